@@ -1,0 +1,115 @@
+"""LLFF: poses_bounds.npy (N x 17: 3x5 [R | t | hwf] + near, far) with images, images_N folders."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from model.scenes.cameras import pixel_rays
+from model.scenes.errors import SceneError
+from model.scenes.formats.points import read_colmap_points
+from model.scenes.images import IMAGE_SUFFIXES, downscale_image, read_image
+from model.scenes.source import SourceScene, SplitBuilder, check_pose, rotate_source, up_alignment
+
+VAL_EVERY = 8  # LLFF's usual hold-out: every 8th image
+
+
+def image_folders(root: Path) -> dict[int, Path]:
+    """Available image folders by downscale factor: images -> 1, images_N -> N."""
+    found = {}
+    for d in root.iterdir():
+        m = re.fullmatch(r"images(?:_(\d+))?", d.name)
+        if d.is_dir() and m:
+            found[int(m.group(1) or 1)] = d
+    return found
+
+
+def pick_folder(root: Path, downscale: int | None) -> tuple[Path, int, int]:
+    """(folder, its factor, extra factor to resize by) so that folder factor x extra = downscale."""
+    folders = image_folders(root)
+    if not folders:
+        raise SceneError(root, "no image folder: expected images/ or images_N/ beside poses_bounds.npy")
+    if downscale is None:
+        factor = min(folders)
+        return folders[factor], factor, 1
+    usable = [f for f in folders if downscale % f == 0]
+    if not usable:
+        have = ", ".join(folders[f].name for f in sorted(folders))
+        raise SceneError(root, f"downscale {downscale} is not a multiple of any image folder's factor (have {have})")
+    factor = max(usable)
+    return folders[factor], factor, downscale // factor
+
+
+def load_llff(root: Path, downscale: int | None) -> SourceScene:
+    path = root / "poses_bounds.npy"
+    try:
+        array = np.load(path, allow_pickle=False)
+    except Exception as exc:
+        raise SceneError(path, f"cannot read ({exc.__class__.__name__}: {exc})") from None
+    if array.ndim != 2 or array.shape[1] != 17 or len(array) == 0:
+        raise SceneError(path, f"must be an N x 17 array, got shape {array.shape}")
+    if not np.isfinite(array).all():
+        raise SceneError(path, f"has non-finite values in row(s) {sorted(set(np.nonzero(~np.isfinite(array))[0].tolist()))}")
+    folder, factor, extra = pick_folder(root, downscale)
+    files = sorted(p for p in folder.iterdir() if p.suffix in IMAGE_SUFFIXES)
+    if len(files) != len(array):
+        raise SceneError(folder, f"has {len(files)} images but poses_bounds.npy has {len(array)} poses")
+
+    poses = torch.from_numpy(array[:, :15].reshape(-1, 3, 5)).double()
+    depth_bounds = torch.from_numpy(array[:, 15:17]).double()
+    builders = {"train": SplitBuilder(), "val": SplitBuilder()}
+    for i, image_path in enumerate(files):
+        h_full, w_full, focal = poses[i, :, 4].tolist()
+        down, right, back, t = poses[i, :, 0], poses[i, :, 1], poses[i, :, 2], poses[i, :, 3]
+        c2w = torch.stack([right, -down, back, t], dim=1)  # LLFF [down, right, back] -> OpenGL [right, up, back]
+        check_pose(path, c2w, f" (row {i})")
+        image = read_image(image_path)
+        h, w = image.shape[:2]
+        if abs(w * factor - w_full) > factor or abs(h * factor - h_full) > factor:
+            raise SceneError(
+                image_path, f"image is {w}x{h} but poses_bounds.npy says {w_full:.0f}x{h_full:.0f} / {factor}"
+            )
+        small = downscale_image(image, extra)
+        s = small.shape[1] / w_full
+        intrinsics = torch.tensor([focal * s, focal * s, small.shape[1] / 2, small.shape[0] / 2])
+        split = "val" if i % VAL_EVERY == 0 else "train"
+        builders[split].add(image_path.stem, small, intrinsics, c2w)
+    splits = {name: b.build() for name, b in builders.items() if b.names}
+
+    sparse = root / "sparse" / "0" / "points3D.bin"
+    if sparse.is_file():
+        points, kind = read_colmap_points(sparse), "sparse_points"
+    else:
+        points, kind = bound_points(splits, depth_bounds, files), "llff_bounds"
+    source = SourceScene(
+        format="llff",
+        root=root,
+        splits=splits,
+        axes=torch.eye(3),
+        units="source units",
+        downscale=factor * extra,
+        points=points,
+        points_kind=kind,
+        extras={"image_folder": folder.name, "depth_bounds": [float(depth_bounds.min()), float(depth_bounds.max())]},
+    )
+    all_c2w = torch.cat([s.cameras.c2w for s in splits.values()])
+    return rotate_source(source, up_alignment(all_c2w))
+
+
+def bound_points(splits: dict, depth_bounds: torch.Tensor, files: list[Path]) -> torch.Tensor:
+    """Points at each image's near and far z-depth on a 3x3 pixel grid: the evidence LLFF bounds give."""
+    order = {p.stem: i for i, p in enumerate(files)}
+    points = []
+    for split in splits.values():
+        cams = split.cameras
+        for c, name in enumerate(split.names):
+            w, h = float(cams.width[c]), float(cams.height[c])
+            u, v = torch.meshgrid(torch.tensor([0.0, w / 2, w - 1]), torch.tensor([0.0, h / 2, h - 1]), indexing="ij")
+            o, d = pixel_rays(cams, torch.full((9,), c), u.reshape(-1), v.reshape(-1))
+            cos = (d * cams.forward[c]).sum(-1, keepdim=True)  # z-depth -> distance along the ray
+            for z in depth_bounds[order[name]].tolist():
+                points.append(o.double() + d.double() * (z / cos.double()))
+    return torch.cat(points)

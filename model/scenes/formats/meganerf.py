@@ -1,0 +1,152 @@
+"""Mega-NeRF format: coordinates.pt, {train,val}/metadata/*.pt, {train,val}/rgbs/*, plus the synthetic
+city's optional gt/ folder (depth maps and an occupancy grid, in metres)."""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from model.scenes.errors import SceneError
+from model.scenes.images import check_image_size, downscale_depth, downscale_image, find_image, read_image
+from model.scenes.source import SourceScene, SourceSplit, SplitBuilder, check_intrinsics, check_pose, scale_intrinsics
+
+# Mega-NeRF's world is down-right-back (x down). DRB -> (east-like right, forward, up): a proper rotation.
+DRB_TO_ZUP = torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]], dtype=torch.float64)
+
+
+def load_pt(path: Path) -> object:
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for corrupt or hostile pickles
+        raise SceneError(path, f"cannot read this torch file ({exc.__class__.__name__}: {exc})") from None
+
+
+def read_coordinates(root: Path) -> tuple[Tensor, float]:
+    path = root / "coordinates.pt"
+    data = load_pt(path)
+    if not isinstance(data, dict) or "origin_drb" not in data or "pose_scale_factor" not in data:
+        raise SceneError(path, "must be a dict with 'origin_drb' and 'pose_scale_factor'")
+    origin = torch.as_tensor(data["origin_drb"], dtype=torch.float64).reshape(-1)
+    scale = float(data["pose_scale_factor"])
+    if origin.shape != (3,) or not torch.isfinite(origin).all() or not np.isfinite(scale) or scale <= 0:
+        raise SceneError(path, f"origin_drb must be 3 finite numbers and pose_scale_factor > 0, got {origin.tolist()}, {scale}")
+    return origin, scale
+
+
+def read_metadata(path: Path) -> dict:
+    meta = load_pt(path)
+    if not isinstance(meta, dict):
+        raise SceneError(path, "metadata must be a dict with W, H, intrinsics and c2w")
+    missing = [k for k in ("W", "H", "intrinsics", "c2w") if k not in meta]
+    if missing:
+        raise SceneError(path, f"metadata is missing field(s): {', '.join(missing)}")
+    intrinsics = torch.as_tensor(meta["intrinsics"], dtype=torch.float64).reshape(-1)
+    if intrinsics.shape != (4,):
+        raise SceneError(path, f"intrinsics must be [fx, fy, cx, cy], got {intrinsics.numel()} values")
+    c2w = torch.as_tensor(meta["c2w"], dtype=torch.float64)
+    if c2w.shape == (4, 4):
+        c2w = c2w[:3]
+    check_pose(path, c2w)
+    width, height = int(meta["W"]), int(meta["H"])
+    check_intrinsics(path, intrinsics, width, height)
+    distortion = meta.get("distortion")
+    distortion = torch.zeros(4) if distortion is None else torch.as_tensor(distortion, dtype=torch.float64).reshape(-1)[:4]
+    return {"W": width, "H": height, "intrinsics": intrinsics, "c2w": c2w, "distortion": distortion}
+
+
+def read_depth(path: Path, height: int, width: int) -> Tensor:
+    if not path.is_file():
+        raise SceneError(path, "ground-truth depth map is missing (gt/ exists, so every view needs one)")
+    try:
+        depth = torch.from_numpy(np.load(path, allow_pickle=False).astype(np.float32))
+    except Exception as exc:
+        raise SceneError(path, f"cannot read depth map ({exc.__class__.__name__}: {exc})") from None
+    if tuple(depth.shape) != (height, width):
+        raise SceneError(path, f"depth map is {tuple(depth.shape)} but its image is {height}x{width}")
+    if torch.isnan(depth).any() or (depth <= 0).any():
+        raise SceneError(path, "depth map must be positive (inf for sky) with no NaN")
+    return depth
+
+
+def read_split(root: Path, split: str, origin: Tensor, scale: float, downscale: int, with_depth: bool) -> SourceSplit:
+    meta_dir, rgb_dir = root / split / "metadata", root / split / "rgbs"
+    builder = SplitBuilder()
+    for meta_path in sorted(meta_dir.glob("*.pt")) if meta_dir.is_dir() else []:
+        meta = read_metadata(meta_path)
+        image_path = find_image(rgb_dir / meta_path.stem)
+        image = read_image(image_path)
+        check_image_size(image_path, image, meta["W"], meta["H"])
+        image = downscale_image(image, downscale)
+        # DRB normalised -> metres, then rotate into the z-up frame; rotation keeps the camera axes' roles.
+        c2w = meta["c2w"].clone()
+        c2w[:, 3] = origin + scale * c2w[:, 3]
+        depth = None
+        if with_depth:
+            depth = read_depth(root / "gt" / "depth" / split / f"{meta_path.stem}.npy", meta["H"], meta["W"])
+            depth = downscale_depth(depth, downscale)
+        intrinsics = scale_intrinsics(meta["intrinsics"], image, meta["W"], meta["H"])
+        builder.add(meta_path.stem, image, intrinsics, DRB_TO_ZUP @ c2w, meta["distortion"], depth)
+    return builder.build()
+
+
+def read_occupancy(path: Path) -> tuple[Tensor, Tensor]:
+    """Ground-truth grid -> (occupied, aabb) in the z-up metric frame. The file's world_from_grid maps
+    grid coordinates to DRB metres; combined with DRB_TO_ZUP it must be an axis-aligned map."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            arrays = {n[:-4]: np.load(io.BytesIO(zf.read(n)), allow_pickle=False) for n in zf.namelist()}
+    except Exception as exc:
+        raise SceneError(path, f"cannot read occupancy grid ({exc.__class__.__name__}: {exc})") from None
+    if "occupied" not in arrays or "world_from_grid" not in arrays:
+        raise SceneError(path, "occupancy file needs arrays 'occupied' and 'world_from_grid'")
+    occupied = torch.from_numpy(arrays["occupied"].astype(bool))
+    m = DRB_TO_ZUP @ torch.from_numpy(arrays["world_from_grid"]).double()[:3]  # (3, 4): z-up metres
+    linear, offset = m[:, :3], m[:, 3]
+    if occupied.ndim != 3 or ((linear.abs() > 1e-9).sum(dim=0) != 1).any():
+        raise SceneError(path, "occupancy grid must be 3-D and axis-aligned (world_from_grid a scaled permutation)")
+    world_axis = linear.abs().argmax(dim=0)  # grid axis a -> world axis
+    signs = linear[world_axis, torch.arange(3)].sign()
+    for a in range(3):
+        if signs[a] < 0:
+            occupied = occupied.flip(a)
+    order = torch.argsort(world_axis)  # grid axis holding world x, y, z
+    occupied = occupied.permute(*order.tolist()).contiguous()
+    shape = torch.tensor(arrays["occupied"].shape, dtype=torch.float64)
+    corners = torch.stack([offset, offset + linear @ shape])
+    return occupied, torch.stack([corners.amin(0), corners.amax(0)])
+
+
+def load_meganerf(root: Path, downscale: int) -> SourceScene:
+    origin, scale = read_coordinates(root)
+    gt = root / "gt"
+    with_depth = (gt / "depth").is_dir()
+    splits = {s: read_split(root, s, origin, scale, downscale, with_depth) for s in ("train", "val")}
+    if not splits["train"].names:
+        raise SceneError(root / "train" / "metadata", "the train split is empty: no *.pt metadata files")
+    extras = {"origin_drb": origin.tolist(), "pose_scale_factor": scale}
+    occupied = aabb = None
+    if (gt / "occupancy.npz").is_file():
+        occupied, aabb = read_occupancy(gt / "occupancy.npz")
+    if (gt / "scene.json").is_file():
+        try:
+            info = json.loads((gt / "scene.json").read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise SceneError(gt / "scene.json", f"malformed JSON ({exc})") from None
+        extras["generator"] = {k: info[k] for k in ("generator", "preset", "seed") if k in info}
+    return SourceScene(
+        format="meganerf",
+        root=root,
+        splits=splits,
+        axes=DRB_TO_ZUP.float(),
+        units="metres",
+        downscale=downscale,
+        occupied=occupied,
+        occupancy_aabb=None if aabb is None else aabb.float(),
+        extras=extras,
+    )

@@ -1,0 +1,92 @@
+"""nerfstudio transforms.json: global or per-frame intrinsics, PINHOLE or OPENCV (k1, k2, p1, p2)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from model.scenes.errors import SceneError
+from model.scenes.formats.jsonfile import field, frames, number, opengl_pose, read_json
+from model.scenes.formats.points import read_ply_points
+from model.scenes.images import check_image_size, downscale_image, read_image
+from model.scenes.source import SourceScene, SplitBuilder, check_intrinsics, rotate_source, scale_intrinsics, up_alignment
+
+SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
+VAL_EVERY = 8  # without explicit split lists, every 8th frame is held out (the LLFF/nerfstudio habit)
+
+
+def frame_camera(path: Path, data: dict, frame: dict, where: str) -> tuple[torch.Tensor, int, int, torch.Tensor]:
+    """Intrinsics, size and distortion of one frame: per-frame values override the global ones."""
+    merged = {**data, **frame}
+    model = str(merged.get("camera_model", "OPENCV"))
+    if model not in SUPPORTED_MODELS:
+        raise SceneError(path, f"camera_model {model!r}{where} is not supported (use one of {', '.join(SUPPORTED_MODELS)})")
+    fx = number(path, merged, "fl_x", where)
+    fy = number(path, merged, "fl_y", where, default=fx)
+    w, h = int(number(path, merged, "w", where)), int(number(path, merged, "h", where))
+    cx = number(path, merged, "cx", where, default=w / 2)
+    cy = number(path, merged, "cy", where, default=h / 2)
+    for extra in ("k3", "k4"):
+        if abs(float(merged.get(extra, 0.0))) > 0:
+            raise SceneError(path, f"distortion term {extra}{where} is not supported (OPENCV k1, k2, p1, p2 only)")
+    distortion = torch.tensor([float(merged.get(k, 0.0)) for k in ("k1", "k2", "p1", "p2")], dtype=torch.float64)
+    if model != "OPENCV" and bool(distortion.any()):
+        raise SceneError(path, f"camera_model {model}{where} has distortion terms; declare it OPENCV")
+    intrinsics = torch.tensor([fx, fy, cx, cy], dtype=torch.float64)
+    check_intrinsics(path, intrinsics, w, h)
+    return intrinsics, w, h, distortion
+
+
+def split_of(data: dict, file_path: str, index: int) -> str:
+    """The split from nerfstudio's {train,val,test}_filenames lists when present, else every 8th is val."""
+    lists = {s: data[f"{s}_filenames"] for s in ("train", "val", "test") if f"{s}_filenames" in data}
+    if not lists:
+        return "val" if index % VAL_EVERY == 0 else "train"
+    key = Path(file_path).as_posix()
+    for split, listed in lists.items():
+        if key in {Path(p).as_posix() for p in listed}:
+            return split
+    return "unlisted"
+
+
+def load_nerfstudio(root: Path, downscale: int) -> SourceScene:
+    path = root / "transforms.json"
+    data = read_json(path)
+    builders: dict[str, SplitBuilder] = {}
+    for i, frame in enumerate(frames(path, data)):
+        where = f" (frame {i})"
+        file_path = str(field(path, frame, "file_path", where))
+        intrinsics, w, h, distortion = frame_camera(path, data, frame, where)
+        c2w = opengl_pose(path, frame, where)
+        image_path = root / file_path
+        if not image_path.is_file():
+            raise SceneError(image_path, f"image is missing (listed in {path.name}{where})")
+        image = read_image(image_path)
+        check_image_size(image_path, image, w, h)
+        small = downscale_image(image, downscale)
+        split = split_of(data, file_path, i)
+        if split != "unlisted":
+            builders.setdefault(split, SplitBuilder()).add(
+                Path(file_path).stem, small, scale_intrinsics(intrinsics, small, w, h), c2w, distortion
+            )
+    if "train" not in builders:
+        raise SceneError(path, "no training frames: 'frames' is empty or no frame is in the train split")
+    points = None
+    if "ply_file_path" in data:
+        ply = root / str(data["ply_file_path"])
+        if not ply.is_file():
+            raise SceneError(ply, "sparse point file named by 'ply_file_path' is missing")
+        points = read_ply_points(ply)
+    source = SourceScene(
+        format="nerfstudio",
+        root=root,
+        splits={s: b.build() for s, b in builders.items()},
+        axes=torch.eye(3),
+        units="source units",
+        downscale=downscale,
+        points=points,
+        points_kind="sparse_points" if points is not None else None,
+    )
+    all_c2w = torch.cat([s.cameras.c2w for s in source.splits.values()])
+    return rotate_source(source, up_alignment(all_c2w))

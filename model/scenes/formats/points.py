@@ -1,0 +1,74 @@
+"""Sparse SfM points: COLMAP points3D.bin and the vertex positions of a PLY file (nerfstudio's sparse_pc.ply)."""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from model.scenes.errors import SceneError
+
+PLY_TYPES = {
+    "char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4",
+    "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2",
+    "int32": "i4", "uint32": "u4", "float32": "f4", "float64": "f8",
+}
+
+
+def read_colmap_points(path: Path) -> Tensor:
+    """xyz (P, 3) float64 of a COLMAP binary points3D file."""
+    data = path.read_bytes()
+    try:
+        (count,) = struct.unpack_from("<Q", data, 0)
+        offset, xyz = 8, np.empty((count, 3), dtype=np.float64)
+        for i in range(count):
+            # id u64, xyz 3 f64, rgb 3 u8, error f64, track length u64, then (image id, point2D idx) i32 pairs
+            xyz[i] = struct.unpack_from("<3d", data, offset + 8)
+            (track,) = struct.unpack_from("<Q", data, offset + 43)
+            offset += 51 + 8 * track
+    except struct.error:
+        raise SceneError(path, "truncated or malformed COLMAP points3D.bin") from None
+    if offset != len(data):
+        raise SceneError(path, f"malformed COLMAP points3D.bin: {len(data) - offset} trailing bytes")
+    return torch.from_numpy(xyz)
+
+
+def read_ply_points(path: Path) -> Tensor:
+    """Vertex x, y, z (P, 3) float64 of an ASCII or binary little-endian PLY file."""
+    data = path.read_bytes()
+    end = data.find(b"end_header\n")
+    if not data.startswith(b"ply") or end < 0:
+        raise SceneError(path, "not a PLY file (no 'ply' magic or no end_header)")
+    header = data[: end].decode("ascii", errors="replace").splitlines()
+    fmt, count, props, in_vertex = None, 0, [], False
+    for line in header:
+        words = line.split()
+        if words[:1] == ["format"]:
+            fmt = words[1]
+        elif words[:1] == ["element"]:
+            in_vertex = words[1] == "vertex"
+            if in_vertex:
+                count = int(words[2])
+        elif words[:1] == ["property"] and in_vertex:
+            if words[1] == "list" or words[1] not in PLY_TYPES:
+                raise SceneError(path, f"unsupported PLY vertex property: {line.strip()}")
+            props.append((words[2], PLY_TYPES[words[1]]))
+    names = [p[0] for p in props]
+    if not {"x", "y", "z"} <= set(names):
+        raise SceneError(path, "PLY vertices need x, y and z properties")
+    body = data[end + len(b"end_header\n") :]
+    try:
+        if fmt == "binary_little_endian":
+            vertices = np.frombuffer(body, dtype=np.dtype([(n, "<" + t) for n, t in props]), count=count)
+            xyz = np.stack([vertices[a].astype(np.float64) for a in "xyz"], axis=1)
+        elif fmt == "ascii":
+            rows = np.loadtxt(body.decode().splitlines()[:count], ndmin=2)
+            xyz = rows[:, [names.index(a) for a in "xyz"]].astype(np.float64)
+        else:
+            raise SceneError(path, f"unsupported PLY format {fmt!r} (ascii or binary_little_endian)")
+    except ValueError as exc:
+        raise SceneError(path, f"truncated or malformed PLY vertex data ({exc})") from None
+    return torch.from_numpy(np.ascontiguousarray(xyz))

@@ -1,0 +1,123 @@
+"""Rays in batches: pixel ids -> (origin, direction, near, far, image index, target colour), a seeded
+shuffling sampler over every training pixel, and the sharding rule for data-parallel ranks."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from model.scenes.bounds import ray_aabb
+from model.scenes.cameras import pixel_rays
+from model.scenes.scene import Views
+
+
+@dataclass
+class RayBatch:
+    origins: Tensor  # (B, 3) world frame
+    directions: Tensor  # (B, 3) unit
+    near: Tensor  # (B,) start of the foreground segment (0 when the ray misses the box)
+    far: Tensor  # (B,) end of the foreground segment, where the background begins
+    image_index: Tensor  # (B,) int64 appearance-embedding index
+    rgb: Tensor  # (B, 3) float32 in [0, 1]: target colour
+    pixel: Tensor  # (B,) int64 global pixel id within its Views
+
+    def __len__(self) -> int:
+        return self.origins.shape[0]
+
+    def to(self, device: torch.device | str) -> RayBatch:
+        return RayBatch(**{k: v.to(device) for k, v in self.__dict__.items()})
+
+
+class PixelTable:
+    """Flat pixel ids over all images of a Views: id = offset[image] + v * W + u."""
+
+    def __init__(self, views: Views):
+        self.views = views
+        sizes = (views.cameras.width * views.cameras.height).long()
+        self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), sizes.cumsum(0)])
+        self.colours = torch.cat([img.reshape(-1, 3) for img in views.images])  # uint8, 3 bytes a pixel
+
+    def __len__(self) -> int:
+        return int(self.offsets[-1])
+
+    def locate(self, pixel: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(image, u, v) of flat pixel ids."""
+        image = torch.searchsorted(self.offsets, pixel, right=True) - 1
+        local = pixel - self.offsets[image]
+        width = self.views.cameras.width[image]
+        return image, local % width, local // width
+
+    def rays(self, pixel: Tensor, aabb: Tensor) -> RayBatch:
+        image, u, v = self.locate(pixel)
+        origins, directions = pixel_rays(self.views.cameras, image, u, v)
+        near, far = ray_aabb(origins, directions, aabb)
+        rgb = self.colours[pixel].float() / 255.0
+        return RayBatch(origins, directions, near, far, self.views.appearance[image], rgb, pixel)
+
+    def image_rays(self, image: int, aabb: Tensor) -> RayBatch:
+        """Every ray of one image, row-major (for validation renders)."""
+        return self.rays(torch.arange(int(self.offsets[image]), int(self.offsets[image + 1])), aabb)
+
+
+def shard(batch: Tensor, rank: int, world_size: int) -> Tensor:
+    """Rank `rank`'s disjoint, equal, contiguous share of a global batch."""
+    if world_size < 1 or not 0 <= rank < world_size:
+        raise ValueError(f"rank must be in [0, world_size), got rank={rank}, world_size={world_size}")
+    if len(batch) % world_size:
+        raise ValueError(f"global batch of {len(batch)} rays does not split evenly over {world_size} ranks")
+    per_rank = len(batch) // world_size
+    return batch[rank * per_rank : (rank + 1) * per_rank]
+
+
+class RaySampler:
+    """Seeded shuffling over all pixels: each epoch is one permutation drawn from (seed, epoch); global
+    batches are consecutive slices of it (the incomplete tail is skipped) and every rank takes its shard
+    of the same global batch. Its position is a state dict, so a resumed run continues with the very
+    next batch."""
+
+    def __init__(
+        self, views: Views, aabb: Tensor, batch_size: int, seed: int, rank: int = 0, world_size: int = 1
+    ):
+        self.table = PixelTable(views)
+        if batch_size % world_size:
+            raise ValueError(f"batch_size {batch_size} must be a multiple of world_size {world_size}")
+        if batch_size > len(self.table):
+            raise ValueError(f"batch_size {batch_size} exceeds the {len(self.table)} pixels of the split")
+        self.aabb, self.batch_size, self.seed = aabb, batch_size, seed
+        self.rank, self.world_size = rank, world_size
+        self.epoch, self.offset = 0, 0
+        self._perm: Tensor | None = None
+
+    @property
+    def batches_per_epoch(self) -> int:
+        return len(self.table) // self.batch_size
+
+    def _permutation(self) -> Tensor:
+        if self._perm is None:
+            g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
+            self._perm = torch.randperm(len(self.table), generator=g)
+        return self._perm
+
+    def next_global(self) -> Tensor:
+        """The next global batch of pixel ids (the same on every rank)."""
+        if self.offset + self.batch_size > len(self.table):
+            self.epoch, self.offset, self._perm = self.epoch + 1, 0, None
+        batch = self._permutation()[self.offset : self.offset + self.batch_size]
+        self.offset += self.batch_size
+        return batch
+
+    def next(self) -> RayBatch:
+        return self.table.rays(shard(self.next_global(), self.rank, self.world_size), self.aabb)
+
+    def state_dict(self) -> dict:
+        return {"seed": self.seed, "epoch": self.epoch, "offset": self.offset, "batch_size": self.batch_size}
+
+    def load_state_dict(self, state: dict) -> None:
+        if state["seed"] != self.seed or state["batch_size"] != self.batch_size:
+            raise ValueError(
+                f"sampler state is for seed={state['seed']}, batch_size={state['batch_size']}; "
+                f"this sampler has seed={self.seed}, batch_size={self.batch_size}"
+            )
+        self.epoch, self.offset, self._perm = int(state["epoch"]), int(state["offset"]), None
