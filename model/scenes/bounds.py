@@ -6,7 +6,9 @@ hand-set box or altitude range. The rule (docs/SCENES.md):
    axes (each crossing point grown by the image footprint at its distance).
 2. Keep points within FAR_FACTOR x the median distance to their nearest camera: surfaces seen much farther
    away than typical (the ground out to the horizon) are coarsely resolved anyway and belong to the
-   background model, which covers everything outside the box.
+   background model, which covers everything outside the box. Surface evidence (depth maps, SfM points)
+   must also be in view of at least COVERAGE_RATIO x the median point's share of the cameras: what few
+   views cover is poorly constrained and goes to the background too.
 3. Box = min/max of exact evidence (depth maps), or 0.5/99.5 percentiles per axis of estimated evidence
    (SfM outliers), padded by MARGIN of its extent on every side, no side thinner than MIN_SIDE of the longest.
 """
@@ -21,6 +23,8 @@ from model.scenes.errors import SceneError
 from model.scenes.source import SourceScene
 
 FAR_FACTOR = 2.5
+COVERAGE_RATIO = 0.5
+MAX_COVERAGE_CAMERAS = 256
 MARGIN = 0.05
 MIN_SIDE = 0.05
 MAX_DEPTH_POINTS = 200_000
@@ -76,6 +80,25 @@ def nearest_camera_distance(points: Tensor, centers: Tensor, chunk: int = 65536)
     return torch.cat(out) if out else torch.zeros(0, dtype=torch.float64)
 
 
+def coverage(points: Tensor, cameras: Cameras, chunk: int = 4096) -> Tensor:
+    """Share of the cameras (at most MAX_COVERAGE_CAMERAS, evenly picked) whose image each point falls in."""
+    pick = torch.linspace(0, len(cameras) - 1, min(len(cameras), MAX_COVERAGE_CAMERAS)).round().long().unique()
+    c2w = cameras.c2w[pick].double()
+    fx, fy, cx, cy = cameras.intrinsics[pick].double().unbind(-1)
+    width, height = cameras.width[pick].double(), cameras.height[pick].double()
+    out = []
+    for s in range(0, len(points), chunk):
+        rel = points[s : s + chunk, None, :] - c2w[None, :, :, 3]
+        local = torch.einsum("pci,cij->pcj", rel, c2w[:, :, :3])  # camera frame: right, up, back
+        depth = -local[..., 2]
+        safe = depth.clamp(min=1e-9)
+        u = fx * local[..., 0] / safe + cx
+        v = -fy * local[..., 1] / safe + cy
+        seen = (depth > 0) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        out.append(seen.double().mean(dim=1))
+    return torch.cat(out) if out else torch.zeros(0, dtype=torch.float64)
+
+
 def evidence(source: SourceScene) -> tuple[Tensor, str, bool]:
     """(points, kind, exact) from the best evidence the dataset carries."""
     train = source.splits["train"]
@@ -97,7 +120,11 @@ def foreground_aabb(source: SourceScene) -> tuple[Tensor, str, int]:
         )
     centers = torch.cat([s.cameras.centers for s in source.splits.values()])
     dist = nearest_camera_distance(points, centers)
-    points = points[dist <= FAR_FACTOR * dist.median()]
+    keep = dist <= FAR_FACTOR * dist.median()
+    if kind in ("gt_depth", "sparse_points"):
+        share = coverage(points, source.splits["train"].cameras)
+        keep &= share >= COVERAGE_RATIO * share.median()
+    points = points[keep]
     if exact:
         lo, hi = points.amin(0), points.amax(0)
     else:

@@ -26,7 +26,7 @@ def find_image(stem: Path) -> Path:
 
 
 def read_image(path: Path, *, background: tuple[float, float, float] | None = None) -> Tensor:
-    """uint8 (H, W, 3). RGBA is composited on `background` (RGB in [0, 1]); RGBA without one is refused."""
+    """uint8 (H, W, 3). RGBA is composited on `background` (RGB in [0, 1]; black when None)."""
     try:
         with Image.open(path) as im:
             im.load()

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import torch
 
-from model.scenes.bounds import FAR_FACTOR, MARGIN
+from model.scenes.bounds import COVERAGE_RATIO, FAR_FACTOR, MARGIN
 from model.scenes.rays import PixelTable
 from model.scenes.scene import Scene
 
 BOUNDS_RULE = (
     "foreground box = extent of the evidence points ({source}) within {far}x the median distance to the "
-    "nearest camera, padded {margin:.0%} per side; rays leaving it continue into the background model"
+    "nearest camera (and, for surface evidence, in view of at least {coverage}x the median point's share of "
+    "cameras), padded {margin:.0%} per side; rays leaving it continue into the background model"
 )
 
 
@@ -65,7 +66,7 @@ def describe(scene: Scene) -> dict:
             "units": norm.units,
         },
         "bounds": {
-            "rule": BOUNDS_RULE.format(source=bounds.source, far=FAR_FACTOR, margin=MARGIN),
+            "rule": BOUNDS_RULE.format(source=bounds.source, far=FAR_FACTOR, coverage=COVERAGE_RATIO, margin=MARGIN),
             "evidence": bounds.source,
             "evidence_points": bounds.num_points,
             "aabb_world": [[round(float(x), 6) for x in row] for row in bounds.aabb],

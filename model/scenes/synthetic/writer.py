@@ -1,0 +1,148 @@
+"""Renders the views and writes the scene folder (Mega-NeRF format + gt/) atomically and byte-for-byte
+deterministically: a temporary sibling folder renamed into place at the end."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import shutil
+import time
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from model.scenes.synthetic.city import CityGeometry, build_city
+from model.scenes.synthetic.flight import flight_poses, intrinsics
+from model.scenes.synthetic.occupancy import occupancy_grid
+from model.scenes.synthetic.presets import CityPreset, get_preset
+from model.scenes.synthetic.shading import shade
+
+GENERATOR = "leco-synthetic-city"
+VERSION = 1
+# (x, y, z) east-north-up -> Mega-NeRF down-right-back: (-z, x, -y).
+DRB_FROM_ENU = torch.tensor([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
+FIXED_ZIP_TIME = (2020, 1, 1, 0, 0, 0)
+
+
+def render_view(geometry: CityGeometry, c2w: torch.Tensor, intr: torch.Tensor, p: CityPreset):
+    """uint8 image (H, W, 3) with s x s supersampling, and float32 depth (H, W) of the pixel-centre rays."""
+    s = p.supersample
+    fx, fy, cx, cy = intr.tolist()
+    offsets = (torch.arange(s, dtype=torch.float64) + 0.5) / s  # sub-pixel positions
+    v, u = torch.meshgrid(torch.arange(p.height, dtype=torch.float64), torch.arange(p.width, dtype=torch.float64), indexing="ij")
+    sub_v = (v[..., None, None] + offsets[:, None]).expand(p.height, p.width, s, s)
+    sub_u = (u[..., None, None] + offsets[None, :]).expand(p.height, p.width, s, s)
+    # Pixel centres go last so the depth comes from exactly the ray the loaders generate.
+    pu = torch.cat([sub_u.reshape(-1), u.reshape(-1) + 0.5])
+    pv = torch.cat([sub_v.reshape(-1), v.reshape(-1) + 0.5])
+    d_cam = torch.stack([(pu - cx) / fx, -(pv - cy) / fy, -torch.ones_like(pu)], dim=-1)
+    dirs = d_cam @ c2w[:, :3].T
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
+    origins = c2w[:, 3].expand_as(dirs)
+    colour, t = shade(geometry, origins, dirs)
+    n_sub = p.height * p.width * s * s
+    linear = colour[:n_sub].reshape(p.height, p.width, s * s, 3).mean(dim=2)
+    srgb = linear.clamp(0, 1) ** (1 / 2.2)
+    image = torch.round(srgb * 255).to(torch.uint8)
+    depth = t[n_sub:].reshape(p.height, p.width).float()
+    return image, depth
+
+
+def save_pt(obj, path: Path) -> None:
+    torch.save(obj, path)
+
+
+def save_npz(path: Path, **arrays: np.ndarray) -> None:
+    """Like np.savez_compressed, but with fixed zip timestamps so the bytes are reproducible."""
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name, array in arrays.items():
+            buf = io.BytesIO()
+            np.save(buf, array, allow_pickle=False)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=FIXED_ZIP_TIME)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            zf.writestr(info, buf.getvalue())
+
+
+def write_scene(tmp: Path, preset: CityPreset, seed: int) -> dict:
+    geometry = build_city(preset, seed)
+    poses = flight_poses(preset, geometry.extent, seed)
+    intr = intrinsics(preset)
+    positions_drb = poses[:, :, 3] @ DRB_FROM_ENU.T
+    origin_drb = positions_drb.mean(dim=0)
+    scale = float((positions_drb - origin_drb).abs().max())
+    save_pt({"origin_drb": origin_drb, "pose_scale_factor": scale}, tmp / "coordinates.pt")
+
+    counts = {"train": 0, "val": 0}
+    for i, c2w in enumerate(poses):
+        split = "val" if i % preset.val_every == preset.val_every // 2 else "train"
+        counts[split] += 1
+        name = f"{i:06d}"
+        image, depth = render_view(geometry, c2w, intr, preset)
+        for sub in ("rgbs", "metadata"):
+            (tmp / split / sub).mkdir(parents=True, exist_ok=True)
+        (tmp / "gt" / "depth" / split).mkdir(parents=True, exist_ok=True)
+        Image.fromarray(image.numpy()).save(tmp / split / "rgbs" / f"{name}.png")
+        c2w_drb = DRB_FROM_ENU @ c2w
+        c2w_drb[:, 3] = (c2w_drb[:, 3] - origin_drb) / scale
+        save_pt({"W": preset.width, "H": preset.height, "intrinsics": intr.float(), "c2w": c2w_drb.float()},
+                tmp / split / "metadata" / f"{name}.pt")
+        np.save(tmp / "gt" / "depth" / split / f"{name}.npy", depth.numpy())
+
+    occupied, grid_min, cell = occupancy_grid(geometry)
+    world_from_grid = torch.eye(4, dtype=torch.float64)
+    world_from_grid[:3, :3] = DRB_FROM_ENU * cell
+    world_from_grid[:3, 3] = DRB_FROM_ENU @ grid_min
+    save_npz(tmp / "gt" / "occupancy.npz", occupied=occupied.numpy(), world_from_grid=world_from_grid.numpy())
+    fraction = float(occupied.float().mean())
+    info = {
+        "generator": GENERATOR,
+        "version": VERSION,
+        "preset": preset.as_dict(),
+        "seed": seed,
+        "units": "metres",
+        "frames": {
+            "generator": "x east, y north, z up; ground plane z = 0; district centred on the origin",
+            "files": "Mega-NeRF down-right-back: drb = (-z, x, -y); c2w positions normalised by origin_drb "
+                     "and pose_scale_factor of coordinates.pt",
+            "depth": "gt/depth/<split>/<name>.npy: float32 metres along the unit pixel-centre ray, inf for sky",
+            "occupancy": "gt/occupancy.npz: occupied[i, j, k] (i east, j north, k up); world_from_grid maps grid "
+                         "coordinates (cell i spans [i, i+1]) to DRB metres",
+        },
+        "occupancy_rule": "a cell is occupied iff it overlaps a solid (box or ground z <= 0) with positive volume",
+        "cell_size": cell,
+        "grid_shape": list(occupied.shape),
+        "occupied_fraction": round(fraction, 6),
+        "counts": {"buildings": int(geometry.building.max()), "boxes": len(geometry.boxes), "views": counts},
+        "boxes": [[[round(float(v), 6) for v in corner] for corner in box] for box in geometry.boxes],
+    }
+    (tmp / "gt" / "scene.json").write_text(json.dumps(info, indent=1, sort_keys=True))
+    return {"views": counts, "image_size": f"{preset.width}x{preset.height}", "occupied_fraction": round(fraction, 6),
+            "grid_shape": list(occupied.shape), "boxes": len(geometry.boxes)}
+
+
+def generate(preset: str | CityPreset, seed: int, out: str | Path) -> dict:
+    """Write a synthetic city to `out` (which must not exist, or be an empty folder). Nothing is left
+    behind on failure: the scene appears at `out` complete, or not at all."""
+    preset = get_preset(preset)
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise FileExistsError(f"{out}: output folder exists and is not empty; choose another --out or remove it")
+    started = time.perf_counter()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    try:
+        summary = write_scene(tmp, preset, seed)
+        if out.exists():
+            out.rmdir()
+        tmp.rename(out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return {"path": str(out), "preset": preset.name, "seed": seed, **summary,
+            "seconds": round(time.perf_counter() - started, 2)}
