@@ -26,9 +26,9 @@ def load_scene(
     images_N present). background: RGB in [0, 1] that RGBA images (Blender) are composited on.
     """
     root = Path(path)
-    fmt = detect_format(root)
     if downscale is not None and (not isinstance(downscale, int) or downscale < 1):
         raise SceneError(root, f"downscale must be a positive integer, got {downscale!r}")
+    fmt = detect_format(root)
     if fmt == "llff":
         source = load_llff(root, downscale)
     elif fmt == "meganerf":
