@@ -1,0 +1,87 @@
+"""LeCO's Heterogeneous Mixture of Experts: the occupancy network O gates n scene experts and one tiny
+empty-space expert E_e (an identity layer with its own head). A point sent to E_e is unoccupied."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from model.fields.encoding import FrequencyEncoding
+from model.fields.experts import Expert, dispatch, top1
+from model.fields.heads import EmptyHead, SceneHead
+from model.fields.output import FieldOutput
+
+
+class OccupancyNetwork(nn.Module):
+    """O: input layer, 2 inner layers, LayerNorm, output layer of n + 1 gate logits (the last is E_e).
+    Its input layer's output also feeds the experts, as Switch-NeRF's shared input layer does."""
+
+    def __init__(self, num_scene_experts: int = 8, width: int = 256, xyz_frequencies: int = 12):
+        super().__init__()
+        self.xyz_encoding = FrequencyEncoding(xyz_frequencies)
+        self.input_layer = nn.Linear(self.xyz_encoding.out_dim, width)
+        self.inner = nn.Sequential(nn.Linear(width, width), nn.ReLU(), nn.Linear(width, width))
+        self.norm = nn.LayerNorm(width)
+        self.output = nn.Linear(width, num_scene_experts + 1)
+        self.num_scene_experts = num_scene_experts
+
+    @property
+    def empty_index(self) -> int:
+        return self.num_scene_experts
+
+    def features_and_logits(self, xyz: Tensor) -> tuple[Tensor, Tensor]:
+        h = self.input_layer(self.xyz_encoding(xyz))
+        z = self.norm(self.inner(h))
+        with torch.autocast(device_type=z.device.type, enabled=False):
+            return h, self.output(z.float())
+
+    def forward(self, xyz: Tensor) -> Tensor:
+        return self.features_and_logits(xyz)[1]
+
+    @torch.no_grad()
+    def occupied(self, xyz: Tensor) -> Tensor:
+        """True where the top-1 gate is a scene expert."""
+        return self(xyz).argmax(dim=-1) != self.empty_index
+
+
+class HMoE(nn.Module):
+    def __init__(
+        self,
+        num_images: int,
+        width: int = 256,
+        num_scene_experts: int = 8,
+        expert_layers: int = 7,
+        xyz_frequencies: int = 12,
+        dir_frequencies: int = 4,
+        appearance_dim: int = 48,
+        homogeneous: bool = False,
+        density_noise: float = 1.0,
+    ):
+        """homogeneous=True makes E_e a full expert (the paper's ablation) instead of an identity layer."""
+        super().__init__()
+        self.gate = OccupancyNetwork(num_scene_experts, width, xyz_frequencies)
+        self.dir_encoding = FrequencyEncoding(dir_frequencies)
+        self.appearance = nn.Embedding(num_images, appearance_dim)
+        self.scene_experts = nn.ModuleList(Expert(width, expert_layers) for _ in range(num_scene_experts))
+        self.scene_head = SceneHead(width, self.dir_encoding.out_dim, appearance_dim, density_noise)
+        self.empty_expert = Expert(width, expert_layers) if homogeneous else nn.Identity()
+        self.empty_head = EmptyHead(width, density_noise)
+
+    def forward(self, xyz: Tensor, dirs: Tensor, image_index: Tensor) -> FieldOutput:
+        h, logits = self.gate.features_and_logits(xyz)
+        probs, index, chosen = top1(logits)
+        empty = index == self.gate.empty_index
+        keep = torch.ones_like(empty)
+        sigma = h.new_zeros(len(h))
+        rgb = h.new_zeros(len(h), 3)
+        scene = torch.nonzero(~empty).squeeze(1)
+        if len(scene):
+            # Each expert's output times its gate value, so O is trained by the rendering loss too.
+            out = dispatch(self.scene_experts, h[scene], index[scene], keep[scene]) * chosen[scene, None]
+            _, s, c = self.scene_head(out, self.dir_encoding(dirs[scene]), self.appearance(image_index[scene]))
+            sigma, rgb = sigma.index_copy(0, scene, s.to(sigma.dtype)), rgb.index_copy(0, scene, c.to(rgb.dtype))
+        void = torch.nonzero(empty).squeeze(1)
+        if len(void):
+            _, s, c = self.empty_head(self.empty_expert(h[void]) * chosen[void, None])
+            sigma, rgb = sigma.index_copy(0, void, s.to(sigma.dtype)), rgb.index_copy(0, void, c.to(rgb.dtype))
+        return FieldOutput(sigma, rgb, probs, index, keep)

@@ -1,0 +1,67 @@
+"""Losses of LeCO-NeRF (paper section 3.3) and Switch-NeRF, with the parts the dashboard shows."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+EPS = 1e-10
+
+
+def dispatch_fractions(probs: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
+    """f: fraction of points sent to each expert (not differentiable); p: mean gate value per expert."""
+    f = torch.bincount(index, minlength=probs.shape[1]).float() / max(len(index), 1)
+    return f, probs.mean(dim=0) if len(probs) else probs.new_zeros(probs.shape[1])
+
+
+def balance_loss(probs: Tensor, index: Tensor) -> Tensor:
+    """Switch Transformer balance loss L_b = E * sum_i f_i p_i: 1 when the experts share points equally."""
+    f, p = dispatch_fractions(probs, index)
+    return probs.shape[1] * (f * p).sum()
+
+
+def imbalanced_gate_loss(probs: Tensor, index: Tensor, v: float) -> Tensor:
+    """L_g = (n + v) (f_e p_e / v + sum_i f_i p_i): E_e counts as v virtual experts (Eq. 1).
+    The empty expert is the last column; the optimum 1.0 sends it v / (n + v) of the points."""
+    f, p = dispatch_fractions(probs, index)
+    n = probs.shape[1] - 1
+    return (n + v) * (f[n] * p[n] / v + (f[:n] * p[:n]).sum())
+
+
+def density_loss(probs: Tensor, index: Tensor, sigma: Tensor) -> Tensor:
+    """L_d = (|Y| / |X|) sum_X g sigma / sum_Y g sigma, sigma detached (Eq. 2). X: points sent to E_e,
+    g their E_e gate; Y: points sent to scene experts, g the sum of the n scene gates. Zero (with a
+    gradient path) when X or Y is empty: there is no ratio to push down."""
+    n = probs.shape[1] - 1
+    empty = index == n
+    num_x, num_y = int(empty.sum()), int((~empty).sum())
+    sigma = sigma.detach().float()
+    if num_x == 0 or num_y == 0:
+        return probs.sum() * 0.0
+    weighted_x = (probs[empty, n] * sigma[empty]).sum()
+    weighted_y = (probs[~empty, :n].sum(dim=-1) * sigma[~empty]).sum()
+    return (num_y / num_x) * weighted_x / (weighted_y + EPS)
+
+
+def rendering_loss(rgb: Tensor, target: Tensor) -> Tensor:
+    """Mean squared colour error over rays (the paper sums; the mean keeps the scale batch-independent)."""
+    return ((rgb.float() - target.float()) ** 2).mean()
+
+
+def gate_statistics(probs: Tensor, index: Tensor, sigma: Tensor, alpha: Tensor | None = None) -> dict[str, float]:
+    """The paper's Fig. 5 numbers: share of points per expert and to E_e, mean density (and alpha) of
+    E_e points against scene-expert points, and their ratio. Missing groups read as NaN, never a crash."""
+    n = probs.shape[1] - 1
+    f, _ = dispatch_fractions(probs, index)
+    empty = index == n
+    stats = {f"fraction_expert_{i}": float(f[i]) for i in range(n)}
+    stats["fraction_empty"] = float(f[n])
+    for name, values in (("density", sigma), ("alpha", alpha)):
+        if values is None:
+            continue
+        values = values.detach().float()
+        e = float(values[empty].mean()) if empty.any() else float("nan")
+        s = float(values[~empty].mean()) if (~empty).any() else float("nan")
+        stats[f"{name}_empty"], stats[f"{name}_scene"] = e, s
+        stats[f"{name}_ratio"] = e / s if s > 0 else float("nan")
+    return stats
