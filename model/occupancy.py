@@ -1,0 +1,52 @@
+"""The frozen occupancy network O on its own: the compact artifact a user can take to other pipelines,
+saved and loaded without the experts, behind the same estimator interface as the occupancy grid."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from model.fields.hmoe import HMoE, OccupancyNetwork
+
+FORMAT = "leco-occupancy-v1"
+
+
+class OccupancyPredictor:
+    """`occupied(points)` for world-frame points, batched so any number of points fits in memory."""
+
+    def __init__(self, network: OccupancyNetwork, chunk: int = 1 << 16):
+        self.network = network.eval().requires_grad_(False)
+        self.chunk = chunk
+
+    @classmethod
+    def from_hmoe(cls, model: HMoE) -> "OccupancyPredictor":
+        network = OccupancyNetwork(model.gate.num_scene_experts, model.gate.input_layer.out_features,
+                                   len(model.gate.xyz_encoding.freqs))
+        network.load_state_dict(model.gate.state_dict())
+        return cls(network)
+
+    @property
+    def num_parameters(self) -> int:
+        return sum(p.numel() for p in self.network.parameters())
+
+    @torch.no_grad()
+    def occupied(self, points: Tensor) -> Tensor:
+        out = [self.network.occupied(points[s : s + self.chunk]) for s in range(0, len(points), self.chunk)]
+        return torch.cat(out) if out else torch.zeros(0, dtype=torch.bool, device=points.device)
+
+    def save(self, path: str | Path) -> None:
+        net = self.network
+        config = {"num_scene_experts": net.num_scene_experts, "width": net.input_layer.out_features,
+                  "xyz_frequencies": len(net.xyz_encoding.freqs)}
+        torch.save({"format": FORMAT, "config": config, "state_dict": net.state_dict()}, path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "OccupancyPredictor":
+        data = torch.load(path, map_location="cpu", weights_only=True)
+        if not isinstance(data, dict) or data.get("format") != FORMAT:
+            raise ValueError(f"{path}: not a LeCO occupancy model (expected format {FORMAT!r})")
+        network = OccupancyNetwork(**data["config"])
+        network.load_state_dict(data["state_dict"])
+        return cls(network)
