@@ -94,3 +94,24 @@ def test_guided_sampler_drops_empty_bins_and_splits_kept_ones():
     assert (samples.starts >= 2.0).all() and (samples.ends <= 4.0).all() and (samples.deltas >= 0).all()
     assert ratio.item() == pytest.approx(4 / 24)
     assert torch.allclose(samples.deltas.reshape(2, 8).sum(-1), torch.tensor([2.0, 2.0]))
+
+
+def test_background_samples_and_compositing():
+    from model.fields.background import BackgroundField, background_samples
+    from model.rendering import composite_batched
+
+    far = torch.tensor([2.0, 0.0, 5.0])  # the middle ray misses the foreground box
+    t, deltas = background_samples(far, 16, torch.Generator().manual_seed(0))
+    assert (t[:, 0] >= far.clamp(min=1e-2)).all() and (t.diff(dim=-1) > 0).all()
+    assert torch.isfinite(t).all() and deltas[:, -1].eq(1e10).all()
+    torch.manual_seed(0)
+    field = BackgroundField(num_images=2, width=16, layers=2)
+    origins, dirs = torch.zeros(3, 3), torch.tensor([[0.0, 0.0, 1.0]] * 3)
+    xyz = origins[:, None] + dirs[:, None] * t[..., None]
+    sigma, rgb = field(xyz.reshape(-1, 3), dirs.repeat_interleave(16, 0), torch.zeros(48, dtype=torch.long))
+    bg = composite_batched(sigma.reshape(3, 16), rgb.reshape(3, 16, 3), t, deltas, torch.zeros(3))
+    assert torch.allclose(bg.opacity, torch.ones(3), atol=1e-5)  # the opaque last sample covers the sky
+    # Foreground with no density shows the background exactly; an opaque one hides it.
+    clear = composite_batched(torch.zeros(3, 4), torch.ones(3, 4, 3), torch.ones(3, 4), torch.full((3, 4), 0.1), bg.rgb)
+    opaque = composite_batched(torch.full((3, 4), 1e6), torch.ones(3, 4, 3), torch.ones(3, 4), torch.full((3, 4), 0.1), bg.rgb)
+    assert torch.allclose(clear.rgb, bg.rgb) and torch.allclose(opaque.rgb, torch.ones(3, 3))
