@@ -27,6 +27,15 @@ def scene_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def model_info_command(args: argparse.Namespace) -> int:
+    from model.model_info import format_model_info, model_info
+    from model.profiles import get_profile
+
+    info = model_info(args.method, get_profile(args.profile), args.images)
+    print(json.dumps(info, indent=2) if args.json else format_model_info(info))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="leco", description="LeCO-NeRF service: scenes, training, benchmarks.")
     commands = parser.add_subparsers(dest="command", required=True)
@@ -43,6 +52,14 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("--json", action="store_true", help="print JSON instead of text")
     info.add_argument("--downscale", type=int, default=None, help="integer image downscale factor")
     info.set_defaults(func=scene_info)
+
+    model = commands.add_parser("model", help="inspect model sizes").add_subparsers(dest="action", required=True)
+    minfo = model.add_parser("info", help="parameter count of every component of a method under a profile")
+    minfo.add_argument("--method", default="leco", help="leco | switch | grid")
+    minfo.add_argument("--profile", default="paper", help="paper | cpu | smoke")
+    minfo.add_argument("--images", type=int, default=100, help="images in the scene (appearance embeddings)")
+    minfo.add_argument("--json", action="store_true")
+    minfo.set_defaults(func=model_info_command)
     return parser
 
 
