@@ -1,0 +1,47 @@
+"""One step of LeCO's occupancy phase (paper section 3.3): stratified samples in each ray's foreground
+segment through the HMoE, the background behind them, and L_f = w_r L_r + w_g L_g + w_d L_d."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from model.fields.background import BackgroundField, background_samples
+from model.fields.hmoe import HMoE
+from model.losses import density_loss, gate_statistics, imbalanced_gate_loss, rendering_loss
+from model.profiles import OccupancyPhaseConfig
+from model.rendering import Rendered, composite_batched
+from model.samplers import stratified_edges
+from model.scenes.rays import RayBatch
+
+
+def render_background(background: BackgroundField, rays: RayBatch, samples: int,
+                      generator: torch.Generator | None) -> Rendered:
+    t, deltas = background_samples(rays.far, samples, generator)
+    xyz = rays.origins[:, None, :] + rays.directions[:, None, :] * t[..., None]
+    r = len(rays)
+    sigma, rgb = background(xyz.reshape(-1, 3), rays.directions.repeat_interleave(samples, 0),
+                            rays.image_index.repeat_interleave(samples, 0))
+    return composite_batched(sigma.reshape(r, samples), rgb.reshape(r, samples, 3), t, deltas, torch.zeros(3))
+
+
+def occupancy_step(model: HMoE, background: BackgroundField, rays: RayBatch, cfg: OccupancyPhaseConfig,
+                   background_samples_per_ray: int, generator: torch.Generator | None) -> tuple[Tensor, dict]:
+    """The total loss and its parts (floats) for one batch of rays."""
+    r, s = len(rays), cfg.samples_per_ray
+    edges = stratified_edges(rays.near, rays.far, s, generator)
+    mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
+    points = rays.origins[:, None, :] + rays.directions[:, None, :] * mids[..., None]
+    out = model(points.reshape(-1, 3), rays.directions.repeat_interleave(s, 0), rays.image_index.repeat_interleave(s, 0))
+    behind = render_background(background, rays, background_samples_per_ray, generator)
+    rendered = composite_batched(out.sigma.reshape(r, s), out.rgb.reshape(r, s, 3), mids, deltas, behind.rgb)
+    l_r = rendering_loss(rendered.rgb, rays.rgb)
+    l_g = imbalanced_gate_loss(out.gate_probs, out.expert, cfg.v)
+    l_d = density_loss(out.gate_probs, out.expert, out.sigma)
+    loss = cfg.w_r * l_r + cfg.w_g * l_g + cfg.w_d * l_d  # L_f, section 3.3
+    alpha = -torch.expm1(-(out.sigma.detach() * deltas.reshape(-1)))
+    values = {k: float(v.detach()) for k, v in
+              (("loss", loss), ("rendering_loss", l_r), ("imbalanced_gate_loss", l_g), ("density_loss", l_d))}
+    parts = {**values, "psnr": -10.0 * torch.log10(torch.tensor(max(values["rendering_loss"], 1e-10))).item(),
+             **gate_statistics(out.gate_probs.detach(), out.expert, out.sigma, alpha)}
+    return loss, parts
