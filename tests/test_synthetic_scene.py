@@ -2,12 +2,15 @@
 
 import json
 
+import numpy as np
+
 import pytest
 import torch
 
 from model.scenes import RaySampler, load_scene, pixel_rays
 from model.scenes.bounds import ray_aabb
 from model.scenes.synthetic import generate
+from model.scenes.synthetic.writer import save_npz
 from service.cli import main
 
 
@@ -94,3 +97,25 @@ def test_cli_synth_then_info(tmp_path, capsys):
     assert 0 < info["ground_truth"]["occupancy"]["occupied_fraction"] < 0.5
     assert main(["scene", "synth", "--preset", "tiny", "--seed", "1", "--out", str(out)]) == 2
     assert "leco: error:" in capsys.readouterr().err
+
+
+def test_city_scale_coordinates_keep_their_precision(tiny_dir, tiny, tmp_path):
+    """The same scene placed at UTM-like coordinates (millions of metres) normalises to the same world:
+    the origin is subtracted in float64 before anything becomes float32."""
+    import shutil
+
+    moved = tmp_path / "utm"
+    shutil.copytree(tiny_dir, moved)
+    shift = torch.tensor([-120.0, 512_345.25, -4_212_345.75], dtype=torch.float64)
+    coords = torch.load(moved / "coordinates.pt", weights_only=True)
+    coords["origin_drb"] = coords["origin_drb"] + shift
+    torch.save(coords, moved / "coordinates.pt")
+    grid = dict(np.load(moved / "gt/occupancy.npz"))  # ground truth is in absolute metres: move it too
+    grid["world_from_grid"][:3, 3] += shift.numpy()
+    save_npz(moved / "gt/occupancy.npz", **grid)
+    far_away = load_scene(moved)
+    assert far_away.normalization.origin.abs().max() > 4e6
+    assert torch.allclose(far_away.train.cameras.c2w, tiny.train.cameras.c2w, atol=1e-5)
+    assert torch.allclose(far_away.bounds.aabb, tiny.bounds.aabb, atol=1e-5)
+    assert torch.equal(far_away.occupancy.occupied, tiny.occupancy.occupied)
+    assert torch.allclose(far_away.occupancy.aabb, tiny.occupancy.aabb, atol=1e-5)

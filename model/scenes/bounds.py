@@ -134,7 +134,7 @@ def foreground_aabb(source: SourceScene) -> tuple[Tensor, str, int]:
     extent = hi - lo
     lo, hi = lo - MARGIN * extent, hi + MARGIN * extent
     pad = (MIN_SIDE * (hi - lo).max() - (hi - lo)).clamp(min=0) / 2
-    return torch.stack([lo - pad, hi + pad]).float(), kind, len(points)
+    return torch.stack([lo - pad, hi + pad]), kind, len(points)  # float64: source coordinates can be large
 
 
 def ray_aabb(origins: Tensor, directions: Tensor, aabb: Tensor) -> tuple[Tensor, Tensor]:

@@ -18,9 +18,10 @@ def build_scene(source: SourceScene) -> Scene:
     if not source.splits.get("train") or len(source.splits["train"].names) == 0:
         raise SceneError(source.root, "the train split is empty: no training images were found")
     aabb, kind, num_points = foreground_aabb(source)
+    aabb = aabb.double()
     origin = 0.5 * (aabb[0] + aabb[1])
     scale = float(0.5 * (aabb[1] - aabb[0]).max())
-    norm = Normalization(axes=source.axes.float(), origin=origin.float(), scale=scale, units=source.units)
+    norm = Normalization(axes=source.axes.float(), origin=origin, scale=scale, units=source.units)
 
     splits: dict[str, Views] = {}
     next_appearance = 0
@@ -28,8 +29,9 @@ def build_scene(source: SourceScene) -> Scene:
         split = source.splits[name]
         if len(split.names) == 0:
             continue
-        c2w = split.cameras.c2w.clone()
+        c2w = split.cameras.c2w.double().clone()  # subtract the origin in float64: city coordinates are large
         c2w[:, :, 3] = (c2w[:, :, 3] - origin) / scale
+        c2w = c2w.float()
         appearance = torch.arange(next_appearance, next_appearance + len(split.names))
         next_appearance += len(split.names)
         depth = None if split.depth is None else [d / scale for d in split.depth]
@@ -37,7 +39,7 @@ def build_scene(source: SourceScene) -> Scene:
 
     occupancy = None
     if source.occupied is not None:
-        occupancy = OccupancyGrid(source.occupied, ((source.occupancy_aabb - origin) / scale).float())
+        occupancy = OccupancyGrid(source.occupied, ((source.occupancy_aabb.double() - origin) / scale).float())
     points = None if source.points is None else ((source.points.double() - origin.double()) / scale).float()
     bounds = Bounds(aabb=((aabb - origin) / scale).float(), source=kind, num_points=num_points)
     return Scene(

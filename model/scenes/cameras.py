@@ -57,12 +57,14 @@ class Cameras:
 def make_cameras(
     intrinsics: Tensor, c2w: Tensor, width: Tensor, height: Tensor, distortion: Tensor | None = None
 ) -> Cameras:
+    """Poses stay float64 when given so (a reader's metres at city scale, before normalisation); a
+    normalised Scene holds float32 poses."""
     n = c2w.shape[0]
     if distortion is None:
         distortion = torch.zeros(n, 4)
     return Cameras(
         intrinsics=intrinsics.float().reshape(n, 4),
-        c2w=c2w.float().reshape(n, 3, 4),
+        c2w=(c2w if c2w.dtype == torch.float64 else c2w.float()).reshape(n, 3, 4),
         width=width.long().reshape(n),
         height=height.long().reshape(n),
         distortion=distortion.float().reshape(n, 4),
@@ -105,7 +107,7 @@ def pixel_rays(cameras: Cameras, cam_index: Tensor, u: Tensor, v: Tensor) -> tup
     # OpenGL camera: x right, y up, looking along -z.
     d_cam = torch.stack([x, -y, -torch.ones_like(x)], dim=-1)
     c2w = cameras.c2w[cam_index]
-    d_world = torch.einsum("nij,nj->ni", c2w[:, :, :3], d_cam)
+    d_world = torch.einsum("nij,nj->ni", c2w[:, :, :3], d_cam.to(c2w.dtype))
     d_world = d_world / d_world.norm(dim=-1, keepdim=True)
     return c2w[:, :, 3].expand_as(d_world).contiguous(), d_world
 

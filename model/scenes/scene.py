@@ -41,7 +41,7 @@ class Normalization:
     """world = (axes @ source - origin) / scale; `scale` is source units per world unit."""
 
     axes: Tensor  # (3, 3) rotation taking source axes to a z-up frame (identity when unknown)
-    origin: Tensor  # (3,) in rotated source units
+    origin: Tensor  # (3,) float64, in rotated source units (large at city scale)
     scale: float
     units: str  # "metres" when the source frame is metric, else "source units"
 

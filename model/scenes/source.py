@@ -116,7 +116,7 @@ def rotate_source(source: SourceScene, rotation: Tensor) -> SourceScene:
     """Apply a world rotation to every camera and point of a reader's output (before normalisation)."""
     r = rotation.double()
     for split in source.splits.values():
-        split.cameras = replace(split.cameras, c2w=(r @ split.cameras.c2w.double()).float())
+        split.cameras = replace(split.cameras, c2w=r @ split.cameras.c2w.double())
     if source.points is not None:
         source.points = source.points.double() @ r.T
     source.axes = (r @ source.axes.double()).float()

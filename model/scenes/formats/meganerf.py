@@ -147,6 +147,6 @@ def load_meganerf(root: Path, downscale: int) -> SourceScene:
         units="metres",
         downscale=downscale,
         occupied=occupied,
-        occupancy_aabb=None if aabb is None else aabb.float(),
+        occupancy_aabb=aabb,
         extras=extras,
     )
