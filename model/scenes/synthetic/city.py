@@ -15,6 +15,7 @@ from model.scenes.synthetic.presets import CityPreset
 
 # Box kinds (they pick the material).
 BUILDING, MAST, POLE, KIOSK = 1, 2, 3, 4
+KIND_NAMES = {BUILDING: "building", MAST: "mast", POLE: "pole", KIOSK: "kiosk"}
 
 
 @dataclass

@@ -24,9 +24,16 @@ def occupancy_grid(geometry: CityGeometry) -> tuple[Tensor, Tensor, float]:
     occupied[:, :, 0] = True  # the layer below z = 0 is ground
     shape = torch.tensor(occupied.shape)
     for lo, hi in geometry.boxes:
-        # Cell i spans [i, i+1] * cell: it overlaps (lo, hi) with positive length iff lo' - 1 < i < hi'.
-        i0 = torch.floor((lo - grid_min) / cell).long().clamp(min=0)
-        i1 = torch.ceil((hi - grid_min) / cell).long()
+        # Cell i spans [i, i+1] in cell units: it overlaps (lo', hi') with positive length iff lo' - 1 < i < hi'.
+        i0 = torch.floor(snap((lo - grid_min) / cell)).long().clamp(min=0)
+        i1 = torch.ceil(snap((hi - grid_min) / cell)).long()
         i1 = torch.minimum(i1, shape)
         occupied[i0[0] : i1[0], i0[1] : i1[1], i0[2] : i1[2]] = True
     return occupied, grid_min, cell
+
+
+def snap(x: Tensor) -> Tensor:
+    """A face meant to lie on a cell boundary (a 4.0 m roof on 0.5 m cells) must not claim a zero-volume
+    sliver of the next cell through rounding: values within 1e-9 of an integer become that integer."""
+    nearest = torch.round(x)
+    return torch.where((x - nearest).abs() < 1e-9, nearest, x)

@@ -15,14 +15,14 @@ import numpy as np
 import torch
 from PIL import Image
 
-from model.scenes.synthetic.city import CityGeometry, build_city
+from model.scenes.synthetic.city import KIND_NAMES, CityGeometry, build_city
 from model.scenes.synthetic.flight import flight_poses, intrinsics
 from model.scenes.synthetic.occupancy import occupancy_grid
 from model.scenes.synthetic.presets import CityPreset, get_preset
 from model.scenes.synthetic.shading import shade
 
 GENERATOR = "leco-synthetic-city"
-VERSION = 1
+VERSION = 2  # 2: float64 ray casting with culling, exact boxes and box kinds in scene.json
 # (x, y, z) east-north-up -> Mega-NeRF down-right-back: (-z, x, -y).
 DRB_FROM_ENU = torch.tensor([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
 FIXED_ZIP_TIME = (2020, 1, 1, 0, 0, 0)
@@ -52,8 +52,19 @@ def render_view(geometry: CityGeometry, c2w: torch.Tensor, intr: torch.Tensor, p
     return image, depth
 
 
+def loaded_pose(stored: torch.Tensor, origin_drb: torch.Tensor, scale: float) -> torch.Tensor:
+    """The float64 generator-frame c2w that a loader rebuilds from a stored (normalised, DRB) one."""
+    c2w = stored.double()
+    c2w[:, 3] = origin_drb + scale * c2w[:, 3]
+    return DRB_FROM_ENU.T @ c2w
+
+
 def save_pt(obj, path: Path) -> None:
     torch.save(obj, path)
+
+
+def save_png(image: torch.Tensor, path: Path) -> None:
+    Image.fromarray(image.numpy()).save(path)
 
 
 def save_npz(path: Path, **arrays: np.ndarray) -> None:
@@ -70,7 +81,7 @@ def save_npz(path: Path, **arrays: np.ndarray) -> None:
 def write_scene(tmp: Path, preset: CityPreset, seed: int) -> dict:
     geometry = build_city(preset, seed)
     poses = flight_poses(preset, geometry.extent, seed)
-    intr = intrinsics(preset)
+    intr = intrinsics(preset).float()
     positions_drb = poses[:, :, 3] @ DRB_FROM_ENU.T
     origin_drb = positions_drb.mean(dim=0)
     scale = float((positions_drb - origin_drb).abs().max())
@@ -81,14 +92,17 @@ def write_scene(tmp: Path, preset: CityPreset, seed: int) -> dict:
         split = "val" if i % preset.val_every == preset.val_every // 2 else "train"
         counts[split] += 1
         name = f"{i:06d}"
-        image, depth = render_view(geometry, c2w, intr, preset)
+        stored = DRB_FROM_ENU @ c2w
+        stored[:, 3] = (stored[:, 3] - origin_drb) / scale
+        stored = stored.float()
+        # Render from the pose as stored (float32) and read back the way a loader does, so the depth maps
+        # are exact for the rays a loader makes, even those grazing the horizon or an edge.
+        image, depth = render_view(geometry, loaded_pose(stored, origin_drb, scale), intr.double(), preset)
         for sub in ("rgbs", "metadata"):
             (tmp / split / sub).mkdir(parents=True, exist_ok=True)
         (tmp / "gt" / "depth" / split).mkdir(parents=True, exist_ok=True)
-        Image.fromarray(image.numpy()).save(tmp / split / "rgbs" / f"{name}.png")
-        c2w_drb = DRB_FROM_ENU @ c2w
-        c2w_drb[:, 3] = (c2w_drb[:, 3] - origin_drb) / scale
-        save_pt({"W": preset.width, "H": preset.height, "intrinsics": intr.float(), "c2w": c2w_drb.float()},
+        save_png(image, tmp / split / "rgbs" / f"{name}.png")
+        save_pt({"W": preset.width, "H": preset.height, "intrinsics": intr, "c2w": stored},
                 tmp / split / "metadata" / f"{name}.pt")
         np.save(tmp / "gt" / "depth" / split / f"{name}.npy", depth.numpy())
 
@@ -108,6 +122,8 @@ def write_scene(tmp: Path, preset: CityPreset, seed: int) -> dict:
             "generator": "x east, y north, z up; ground plane z = 0; district centred on the origin",
             "files": "Mega-NeRF down-right-back: drb = (-z, x, -y); c2w positions normalised by origin_drb "
                      "and pose_scale_factor of coordinates.pt",
+            "camera": "c2w columns: right, up, back (OpenGL; the camera looks along -back); the ray through pixel "
+                      "(u, v) has camera direction normalise([(u + 0.5 - cx) / fx, -(v + 0.5 - cy) / fy, -1])",
             "depth": "gt/depth/<split>/<name>.npy: float32 metres along the unit pixel-centre ray, inf for sky",
             "occupancy": "gt/occupancy.npz: occupied[i, j, k] (i east, j north, k up); world_from_grid maps grid "
                          "coordinates (cell i spans [i, i+1]) to DRB metres",
@@ -117,7 +133,10 @@ def write_scene(tmp: Path, preset: CityPreset, seed: int) -> dict:
         "grid_shape": list(occupied.shape),
         "occupied_fraction": round(fraction, 6),
         "counts": {"buildings": int(geometry.building.max()), "boxes": len(geometry.boxes), "views": counts},
-        "boxes": [[[round(float(v), 6) for v in corner] for corner in box] for box in geometry.boxes],
+        # Full float repr (JSON round-trips it exactly), so the boxes rebuild the geometry bit for bit.
+        "boxes": geometry.boxes.tolist(),
+        "box_kinds": geometry.kind.tolist(),
+        "kind_names": {str(k): v for k, v in KIND_NAMES.items()},
     }
     (tmp / "gt" / "scene.json").write_text(json.dumps(info, indent=1, sort_keys=True))
     return {"views": counts, "image_size": f"{preset.width}x{preset.height}", "occupied_fraction": round(fraction, 6),
