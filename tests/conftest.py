@@ -22,3 +22,14 @@ def lego_dir() -> Path:
 @pytest.fixture(scope="session")
 def fern_dir() -> Path:
     return shared_dataset("nerf_llff_fern")
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory):
+    """The tiny synthetic city (seed 0), generated once per session: exact depth maps and occupancy."""
+    from model.scenes import load_scene
+    from model.scenes.synthetic import generate
+
+    out = tmp_path_factory.mktemp("tiny-scene") / "tiny-0"
+    generate("tiny", 0, out)
+    return load_scene(out)
