@@ -1,4 +1,5 @@
-"""Parameter counts of every component a method trains, so a user sees what a scene will cost."""
+"""The networks of each method built from a profile, and the parameter count of every component a method
+trains, so a user sees what a scene will cost."""
 
 from __future__ import annotations
 
@@ -19,19 +20,19 @@ def count(*modules: nn.Module) -> int:
 def switch_nerf(profile: Profile, num_images: int) -> SwitchNeRF:
     n = profile.network
     return SwitchNeRF(num_images, n.width, n.num_experts, n.expert_layers, n.xyz_frequencies, n.dir_frequencies,
-                      n.appearance_dim, n.capacity_factor)
+                      n.appearance_dim, n.capacity_factor, n.density_noise)
 
 
 def hmoe(profile: Profile, num_images: int) -> HMoE:
     n = profile.network
     return HMoE(num_images, n.width, n.num_experts, n.expert_layers, n.xyz_frequencies, n.dir_frequencies,
-                n.appearance_dim, homogeneous=profile.occupancy.homogeneous)
+                n.appearance_dim, profile.occupancy.homogeneous, n.density_noise)
 
 
 def background(profile: Profile, num_images: int) -> BackgroundField:
     b, n = profile.background, profile.network
     return BackgroundField(num_images, b.width, b.layers, dir_frequencies=n.dir_frequencies,
-                           appearance_dim=n.appearance_dim)
+                           appearance_dim=n.appearance_dim, density_noise=n.density_noise)
 
 
 def model_info(method: str, profile: Profile, num_images: int = 100) -> dict:

@@ -8,6 +8,7 @@ from torch import Tensor
 
 from model.fields.background import BackgroundField, background_samples
 from model.fields.hmoe import HMoE
+from model.fields.output import FieldOutput
 from model.losses import density_loss, gate_statistics, imbalanced_gate_loss, rendering_loss
 from model.profiles import OccupancyPhaseConfig
 from model.rendering import Rendered, composite_batched
@@ -25,16 +26,24 @@ def render_background(background: BackgroundField, rays: RayBatch, samples: int,
     return composite_batched(sigma.reshape(r, samples), rgb.reshape(r, samples, 3), t, deltas, torch.zeros(3))
 
 
-def occupancy_step(model: HMoE, background: BackgroundField, rays: RayBatch, cfg: OccupancyPhaseConfig,
-                   background_samples_per_ray: int, generator: torch.Generator | None) -> tuple[Tensor, dict]:
-    """The total loss and its parts (floats) for one batch of rays."""
-    r, s = len(rays), cfg.samples_per_ray
+def render_hmoe(model: HMoE, background: BackgroundField, rays: RayBatch, samples: int,
+                background_samples_per_ray: int, generator: torch.Generator | None) -> tuple[Rendered, FieldOutput, Tensor]:
+    """The HMoE's image of a batch of rays (stratified samples), its field output and the sample deltas."""
+    r, s = len(rays), samples
     edges = stratified_edges(rays.near, rays.far, s, generator)
     mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
     points = rays.origins[:, None, :] + rays.directions[:, None, :] * mids[..., None]
     out = model(points.reshape(-1, 3), rays.directions.repeat_interleave(s, 0), rays.image_index.repeat_interleave(s, 0))
     behind = render_background(background, rays, background_samples_per_ray, generator)
     rendered = composite_batched(out.sigma.reshape(r, s), out.rgb.reshape(r, s, 3), mids, deltas, behind.rgb)
+    return rendered, out, deltas
+
+
+def occupancy_step(model: HMoE, background: BackgroundField, rays: RayBatch, cfg: OccupancyPhaseConfig,
+                   background_samples_per_ray: int, generator: torch.Generator | None) -> tuple[Tensor, dict]:
+    """The total loss and its parts (floats) for one batch of rays."""
+    rendered, out, deltas = render_hmoe(model, background, rays, cfg.samples_per_ray, background_samples_per_ray,
+                                        generator)
     l_r = rendering_loss(rendered.rgb, rays.rgb)
     l_g = imbalanced_gate_loss(out.gate_probs, out.expert, cfg.v)
     l_d = density_loss(out.gate_probs, out.expert, out.sigma)
@@ -43,5 +52,6 @@ def occupancy_step(model: HMoE, background: BackgroundField, rays: RayBatch, cfg
     values = {k: float(v.detach()) for k, v in
               (("loss", loss), ("rendering_loss", l_r), ("imbalanced_gate_loss", l_g), ("density_loss", l_d))}
     parts = {**values, "psnr": -10.0 * torch.log10(torch.tensor(max(values["rendering_loss"], 1e-10))).item(),
+             "samples_per_ray": float(cfg.samples_per_ray),
              **gate_statistics(out.gate_probs.detach(), out.expert, out.sigma, alpha)}
     return loss, parts

@@ -18,6 +18,7 @@ class NetworkConfig(Frozen):
     dir_frequencies: int = Field(4, ge=0)
     appearance_dim: int = Field(48, ge=1)
     capacity_factor: float | None = Field(None, gt=0)
+    density_noise: float = Field(1.0, ge=0)  # N(0, s) on raw density while training (Switch-NeRF)
 
 
 class BackgroundConfig(Frozen):
@@ -67,6 +68,8 @@ class Profile(Frozen):
     vanilla: VanillaConfig = VanillaConfig()
     grid: GridConfig = GridConfig()
     rays_per_device: int = Field(1024, ge=1)
+    main_steps: int = Field(500_000, ge=1)  # Switch-NeRF (guided or not) steps after any occupancy phase
+    perturb: bool = True  # jittered samples while training; off makes a step deterministic given the rays
     lr: float = Field(5e-4, gt=0)
     lr_final: float = Field(5e-5, gt=0)
 
@@ -82,6 +85,7 @@ PROFILES: dict[str, Profile] = {
         vanilla=VanillaConfig(coarse_samples=32, fine_samples=64),
         grid=GridConfig(resolution=128, march_steps=256),
         rays_per_device=256,
+        main_steps=1500,
         lr=2e-3,
         lr_final=2e-4,
     ),
@@ -95,6 +99,7 @@ PROFILES: dict[str, Profile] = {
         vanilla=VanillaConfig(coarse_samples=8, fine_samples=16),
         grid=GridConfig(resolution=32, warmup_steps=4, update_every=4, march_steps=64),
         rays_per_device=64,
+        main_steps=20,
         lr=5e-3,
         lr_final=5e-4,
     ),

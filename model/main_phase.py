@@ -1,0 +1,127 @@
+"""The main Switch-NeRF network's step under each sampler (paper section 3.4 and the baselines):
+
+- `vanilla`: stratified coarse + inverse-CDF fine through the same network, all composited together;
+- `guided` (LeCO): coarse bins -> frozen occupancy predictor -> kept bins split into k -> packed samples;
+- `grid`: nerfacc-style marching through the occupancy grid (the grid itself is updated by the caller).
+
+Every sampler renders the background behind the foreground, so the three differ only in which foreground
+points the main network sees. Loss = L_r + w_balance * balance loss (Switch-NeRF).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from model.fields.background import BackgroundField
+from model.fields.output import FieldOutput
+from model.fields.switch_nerf import SwitchNeRF
+from model.losses import balance_loss, dispatch_fractions, rendering_loss
+from model.occupancy_grid import OccupancyGrid
+from model.occupancy_phase import render_background
+from model.profiles import Profile
+from model.rendering import Rendered, composite_batched, composite_packed
+from model.samplers import PackedSamples, guided_samples, inverse_cdf_edges, merge_edges, stratified_edges
+from model.scenes.rays import RayBatch
+
+W_BALANCE = 5e-4  # Switch-NeRF's balance-loss weight
+
+
+@dataclass
+class MainRender:
+    rendered: Rendered
+    out: FieldOutput | None  # None when no ray had a foreground sample
+    samples_per_ray: float  # main-network samples per ray (the cost the samplers compete on)
+    occupancy_ratio: float | None  # kept fraction of coarse samples (guided) or of march steps (grid)
+
+
+def field_on_packed(field: SwitchNeRF, rays: RayBatch, samples: PackedSamples) -> FieldOutput | None:
+    if len(samples) == 0:
+        return None
+    i = samples.ray_index
+    xyz = rays.origins[i] + rays.directions[i] * samples.mids[:, None]
+    return field(xyz, rays.directions[i], rays.image_index[i])
+
+
+def composite_field(out: FieldOutput | None, rays: RayBatch, samples: PackedSamples, behind: Tensor) -> Rendered:
+    r = len(rays)
+    if out is None:  # every ray is background only
+        empty = torch.zeros(0, device=behind.device)
+        return composite_packed(empty, torch.zeros(0, 3, device=behind.device), empty, empty,
+                                torch.zeros(0, dtype=torch.long, device=behind.device), r, behind)
+    return composite_packed(out.sigma, out.rgb, samples.mids, samples.deltas, samples.ray_index, r, behind)
+
+
+def render_vanilla(field: SwitchNeRF, background: BackgroundField, rays: RayBatch, profile: Profile,
+                   generator: torch.Generator | None) -> MainRender:
+    cfg, r = profile.vanilla, len(rays)
+    behind = render_background(background, rays, profile.background.samples, generator).rgb
+    coarse = stratified_edges(rays.near, rays.far, cfg.coarse_samples, generator)
+    mids = 0.5 * (coarse[:, 1:] + coarse[:, :-1])
+    n = cfg.coarse_samples
+    xyz = rays.origins[:, None] + rays.directions[:, None] * mids[..., None]
+    if cfg.fine_samples == 0:
+        out = field(xyz.reshape(-1, 3), rays.directions.repeat_interleave(n, 0), rays.image_index.repeat_interleave(n, 0))
+        rendered = composite_batched(out.sigma.reshape(r, n), out.rgb.reshape(r, n, 3), mids,
+                                     coarse[:, 1:] - coarse[:, :-1], behind)
+        return MainRender(rendered, out, float(n), None)
+    with torch.no_grad():  # coarse weights only place the fine samples
+        coarse_out = field(xyz.reshape(-1, 3), rays.directions.repeat_interleave(n, 0),
+                           rays.image_index.repeat_interleave(n, 0))
+        weights = composite_batched(coarse_out.sigma.reshape(r, n), coarse_out.rgb.reshape(r, n, 3), mids,
+                                    coarse[:, 1:] - coarse[:, :-1], behind).weights
+    edges = merge_edges(coarse, inverse_cdf_edges(coarse, weights, cfg.fine_samples, generator))
+    m = edges.shape[1] - 1
+    mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
+    xyz = rays.origins[:, None] + rays.directions[:, None] * mids[..., None]
+    out = field(xyz.reshape(-1, 3), rays.directions.repeat_interleave(m, 0), rays.image_index.repeat_interleave(m, 0))
+    rendered = composite_batched(out.sigma.reshape(r, m), out.rgb.reshape(r, m, 3), mids, deltas, behind)
+    # Coarse points run the network twice (once without gradient to place the fine ones).
+    return MainRender(rendered, out, float(n + m), None)
+
+
+def render_guided(field: SwitchNeRF, background: BackgroundField, rays: RayBatch, profile: Profile,
+                  occupied: Callable[[Tensor], Tensor], generator: torch.Generator | None) -> MainRender:
+    behind = render_background(background, rays, profile.background.samples, generator).rgb
+    with torch.no_grad():
+        samples, ratio = guided_samples(rays.near, rays.far, rays.origins, rays.directions, occupied,
+                                        profile.guided.coarse_samples, profile.guided.split, generator)
+    out = field_on_packed(field, rays, samples)
+    return MainRender(composite_field(out, rays, samples, behind), out, len(samples) / len(rays), float(ratio))
+
+
+def grid_step_size(grid: OccupancyGrid, march_steps: int) -> float:
+    """nerfacc's render_step_size: the box diagonal over the number of marching steps."""
+    return float((grid.aabb[1] - grid.aabb[0]).norm()) / march_steps
+
+
+def render_grid(field: SwitchNeRF, background: BackgroundField, rays: RayBatch, profile: Profile,
+                grid: OccupancyGrid, generator: torch.Generator | None) -> MainRender:
+    behind = render_background(background, rays, profile.background.samples, generator).rgb
+    step = grid_step_size(grid, profile.grid.march_steps)
+    samples = grid.sample(rays.origins, rays.directions, rays.near, rays.far, step, generator)
+    possible = float(((rays.far - rays.near) / step).ceil().clamp(min=0).sum())
+    out = field_on_packed(field, rays, samples)
+    return MainRender(composite_field(out, rays, samples, behind), out, len(samples) / len(rays),
+                      len(samples) / max(possible, 1.0))
+
+
+def main_loss(render: MainRender, rays: RayBatch) -> tuple[Tensor, dict]:
+    """L_r + w_balance * balance loss, and the parts as floats."""
+    l_r = rendering_loss(render.rendered.rgb, rays.rgb)
+    loss = l_r
+    parts = {"rendering_loss": float(l_r.detach()), "samples_per_ray": render.samples_per_ray}
+    if render.out is not None:
+        l_b = balance_loss(render.out.gate_probs, render.out.expert)
+        loss = loss + W_BALANCE * l_b
+        parts["balance_loss"] = float(l_b.detach())
+        fractions, _ = dispatch_fractions(render.out.gate_probs.detach(), render.out.expert)
+        parts.update({f"fraction_expert_{i}": float(f) for i, f in enumerate(fractions)})
+    if render.occupancy_ratio is not None:
+        parts["occupancy_ratio"] = render.occupancy_ratio
+    parts["loss"] = float(loss.detach())
+    parts["psnr"] = -10.0 * torch.log10(torch.tensor(max(parts["rendering_loss"], 1e-10))).item()
+    return loss, parts

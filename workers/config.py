@@ -1,0 +1,90 @@
+"""The job config: one pydantic schema from the API request down to the training loop.
+
+A job names a method and a size profile (model/profiles.py) and may override any profile field with a
+dotted key (`occupancy.steps=200`, `network.width=128`); the resolved profile is what the loop trains.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from model.profiles import PROFILES, Profile
+
+Method = Literal["leco", "switch", "grid"]
+MAX_WORKERS = 8
+
+
+class TrainConfig(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    method: Method
+    profile: str = "cpu"
+    overrides: dict[str, Any] = Field(default_factory=dict)
+    workers: int = Field(1, ge=1, le=MAX_WORKERS)
+    use_gpu: bool = False
+    budget_min: float | None = Field(None, gt=0)  # wall-clock budget for the whole run (both phases)
+    seed: int = Field(0, ge=0)
+    checkpoint_every: int = Field(200, ge=1)
+    metrics_every: int = Field(10, ge=1)
+    val_every: int | None = Field(None, ge=1)  # validation renders during training (None: only at the end)
+    max_failures: int = Field(3, ge=0)  # worker-group restarts Ray Train may make from the last checkpoint
+    max_nonfinite_steps: int = Field(20, ge=1)  # consecutive skipped steps before the run fails
+
+    @field_validator("profile")
+    @classmethod
+    def known_profile(cls, name: str) -> str:
+        if name not in PROFILES:
+            raise ValueError(f"unknown profile {name!r}: choose one of {', '.join(PROFILES)}")
+        return name
+
+    @model_validator(mode="after")
+    def overrides_resolve(self) -> "TrainConfig":
+        self.resolved_profile()  # raises with the offending key named
+        return self
+
+    def resolved_profile(self) -> Profile:
+        data = PROFILES[self.profile].model_dump()
+        for key, value in self.overrides.items():
+            node, parts = data, key.split(".")
+            for part in parts[:-1]:
+                if not isinstance(node.get(part), dict):
+                    raise ValueError(f"override {key!r}: {part!r} is not a section of the profile")
+                node = node[part]
+            if parts[-1] not in node or isinstance(node[parts[-1]], dict):
+                raise ValueError(f"override {key!r}: no such setting in the profile")
+            node[parts[-1]] = value
+        try:
+            return Profile.model_validate(data)
+        except ValidationError as error:
+            problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in error.errors())
+            raise ValueError(f"overrides make an invalid profile: {problems}") from None
+
+    @property
+    def global_batch(self) -> int:
+        return self.resolved_profile().rays_per_device * self.workers
+
+    @property
+    def phases(self) -> tuple[str, ...]:
+        return ("occupancy", "main") if self.method == "leco" else ("main",)
+
+    def phase_steps(self, phase: str) -> int:
+        profile = self.resolved_profile()
+        return profile.occupancy.steps if phase == "occupancy" else profile.main_steps
+
+
+def parse_overrides(items: list[str]) -> dict[str, Any]:
+    """`key=value` strings (CLI --set) -> overrides; values are parsed as JSON where they can be."""
+    import json
+
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--set {item!r}: expected key=value, e.g. occupancy.steps=200")
+        try:
+            out[key.strip()] = json.loads(raw)
+        except json.JSONDecodeError:
+            out[key.strip()] = raw
+    return out

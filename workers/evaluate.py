@@ -1,0 +1,127 @@
+"""Final evaluation of a finished run (also `leco eval --run RUN_DIR`): PSNR / SSIM / LPIPS on the
+validation views, the paper's occupancy metrics when the scene has depth maps, validation renders, and an
+occupancy point cloud (PLY coloured by predicted colour and alpha, like the paper's Fig. 6/7)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from model.metrics import psnr, ssim
+from model.lpips import load_lpips
+from model.occupancy import OccupancyPredictor
+from model.occupancy_eval import evaluate_occupancy
+from model.samplers import stratified_edges
+from model.scenes import load_scene
+from model.scenes.rays import PixelTable
+from workers.config import TrainConfig
+from workers.models import RunModels
+from workers.validation import render_image, save_triptych
+
+OCCUPANCY_RESOLUTION = 64
+MAX_RENDERS = 4  # validation views written as PNG
+PLY_RAYS = 4096  # validation rays whose coarse samples make the point cloud
+
+
+def load_final(run_dir: Path, device: torch.device):
+    final = Path(run_dir) / "final"
+    if not (final / "models.pt").is_file():
+        raise FileNotFoundError(f"{run_dir}: no finished run here (final/models.pt is missing)")
+    saved = torch.load(final / "models.pt", map_location=device, weights_only=False)
+    run = json.loads((Path(run_dir) / "run.json").read_text())
+    cfg = TrainConfig.model_validate(saved["config"])
+    scene = load_scene(run["scene"])
+    models = RunModels(cfg.method, cfg.resolved_profile(), scene.num_images, scene.bounds.aabb, cfg.seed).to(device)
+    models.load_state_dict(saved["models"])
+    models.load_grid_state(saved["grid"])
+    predictor = None
+    if (final / "occupancy.pt").is_file():
+        predictor = OccupancyPredictor.load(final / "occupancy.pt")
+        predictor.network.to(device)
+    return cfg, scene, models, predictor
+
+
+def occupied_fn(cfg: TrainConfig, models: RunModels, predictor):
+    if cfg.method == "leco":
+        return predictor.occupied
+    if cfg.method == "grid":
+        return models.grid.occupied
+    return None
+
+
+def write_ply(path: Path, points: np.ndarray, rgba: np.ndarray) -> None:
+    header = ("ply\nformat binary_little_endian 1.0\n"
+              f"element vertex {len(points)}\nproperty float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nproperty uchar alpha\nend_header\n")
+    row = np.dtype([("xyz", "<f4", 3), ("rgba", "u1", 4)])
+    data = np.empty(len(points), dtype=row)
+    data["xyz"], data["rgba"] = points, rgba
+    tmp = path.with_suffix(".tmp")
+    with tmp.open("wb") as f:
+        f.write(header.encode())
+        f.write(data.tobytes())
+    tmp.replace(path)
+
+
+@torch.no_grad()
+def export_point_cloud(path: Path, cfg, models, occupied, views, aabb, device, num_coarse: int) -> int:
+    """Coarse samples of a seeded subset of validation rays that the occupancy keeps (all of them for the
+    vanilla method), coloured by the main network; alpha = 1 - exp(-sigma * delta)."""
+    table = PixelTable(views)
+    g = torch.Generator().manual_seed(0)
+    ids = torch.randperm(len(table), generator=g)[:PLY_RAYS]
+    rays = table.rays(ids, aabb).to(device)
+    edges = stratified_edges(rays.near, rays.far, num_coarse, None)
+    mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
+    points = (rays.origins[:, None] + rays.directions[:, None] * mids[..., None]).reshape(-1, 3)
+    keep = (deltas.reshape(-1) > 0)
+    if occupied is not None:
+        keep &= occupied(points)
+    n = num_coarse
+    models.eval()
+    out = models.field(points[keep], rays.directions.repeat_interleave(n, 0)[keep],
+                       rays.image_index.repeat_interleave(n, 0)[keep])
+    alpha = -torch.expm1(-out.sigma * deltas.reshape(-1)[keep])
+    rgba = torch.cat([out.rgb, alpha[:, None]], -1).clamp(0, 1)
+    write_ply(path, points[keep].cpu().numpy().astype(np.float32), (rgba * 255).round().byte().cpu().numpy())
+    return int(keep.sum())
+
+
+def evaluate_run(run_dir: str | Path, device: str | torch.device = "cpu") -> dict:
+    run_dir, device = Path(run_dir), torch.device(device)
+    cfg, scene, models, predictor = load_final(run_dir, device)
+    profile = cfg.resolved_profile()
+    views = scene.splits.get("val", scene.train)
+    table = PixelTable(views)
+    lpips_model, lpips_reason = load_lpips()
+    scores = {"psnr": [], "ssim": [], "lpips": []}
+    for image in range(len(views)):
+        rgb, depth = render_image(models, cfg.method, "main", profile, predictor, table, image, scene.bounds.aabb,
+                                  device)
+        truth = views.images[image].float() / 255
+        scores["psnr"].append(psnr(rgb, truth))
+        scores["ssim"].append(ssim(rgb, truth))
+        if lpips_model is not None:
+            scores["lpips"].append(lpips_model(rgb, truth))
+        if image < MAX_RENDERS:
+            save_triptych(run_dir / "renders" / f"final_{views.names[image]}.png", rgb, views.images[image], depth)
+    val = {"psnr": float(np.mean(scores["psnr"])), "ssim": float(np.mean(scores["ssim"])),
+           "lpips": float(np.mean(scores["lpips"])) if scores["lpips"] else None,
+           "lpips_note": lpips_reason or None, "views": len(views),
+           "split": "val" if "val" in scene.splits else "train"}
+
+    occupied = occupied_fn(cfg, models, predictor)
+    occupancy = {}
+    if occupied is not None and views.depth is not None:
+        aabb = scene.occupancy.aabb if scene.occupancy is not None else scene.bounds.aabb
+        occupancy = evaluate_occupancy(occupied, views, aabb.float(), OCCUPANCY_RESOLUTION)
+        occupancy["reference"] = "depth maps of the validation views"
+    num_coarse = profile.guided.coarse_samples if cfg.method != "grid" else profile.vanilla.coarse_samples
+    points = export_point_cloud(run_dir / "occupancy.ply", cfg, models, occupied, views, scene.bounds.aabb,
+                                device, num_coarse)
+    result = {"val": val, "occupancy": occupancy, "point_cloud": {"file": "occupancy.ply", "points": points}}
+    (run_dir / "eval.json").write_text(json.dumps(result, indent=1))
+    return result

@@ -1,0 +1,227 @@
+"""The per-rank training loop: phases, data-parallel steps, non-finite skipping, checkpoints, metrics.
+
+Every rank draws its disjoint share of the same global ray batch, computes its loss on it, and the
+gradients are averaged (plain data parallel). A step whose loss or gradients are non-finite on any rank is
+skipped on every rank; too many in a row end the run with a reason (the last good checkpoint stays).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from model.main_phase import grid_step_size, main_loss, render_grid, render_guided, render_vanilla
+from model.occupancy import OccupancyPredictor
+from model.occupancy_phase import occupancy_step
+from model.scenes import RaySampler, load_scene
+from workers.config import TrainConfig
+from workers.distributed import any_rank, average_gradients, grads_finite, is_distributed
+from workers.models import RunModels, build_optimizer
+from workers.session import Session
+from workers.sinks import JsonlSink
+from workers.validation import write_validation_renders
+
+OCCUPANCY_BUDGET_SHARE = 0.25  # with a wall-clock budget, LeCO's phase 1 stops at this share of it
+
+
+class NonFiniteRun(RuntimeError):
+    pass
+
+
+def peak_memory_mb(device: torch.device) -> float:
+    if device.type == "cuda":
+        return torch.cuda.max_memory_allocated(device) / 2**20
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
+
+
+class RankRun:
+    def __init__(self, cfg: TrainConfig, scene_dir: Path, run_dir: Path, session: Session, device: torch.device):
+        self.cfg, self.run_dir, self.session, self.device = cfg, Path(run_dir), session, device
+        self.profile = cfg.resolved_profile()
+        self.scene = load_scene(scene_dir)
+        self.aabb = self.scene.bounds.aabb
+        self.models = RunModels(cfg.method, self.profile, self.scene.num_images, self.aabb, cfg.seed).to(device)
+        self.sampler = RaySampler(self.scene.train, self.aabb, cfg.global_batch, cfg.seed, session.rank,
+                                  session.world_size)
+        self.generator = torch.Generator().manual_seed(cfg.seed * 7919 + session.rank)  # per-rank seeds
+        self.progress = {"phase": cfg.phases[0], "phase_step": 0, "step": 0, "elapsed": {}, "steps": {},
+                         "nonfinite": 0}
+        self.phase_objects = None
+        self.predictor: OccupancyPredictor | None = None
+        self.sink = JsonlSink(self.run_dir / "metrics.jsonl") if session.rank == 0 else None
+
+    # ----- checkpoints -------------------------------------------------------------------------------
+    def _generator_states(self) -> list[torch.Tensor]:
+        state = self.generator.get_state()
+        if not is_distributed():
+            return [state]
+        import torch.distributed as dist
+
+        gathered = [None] * self.session.world_size
+        dist.all_gather_object(gathered, state)
+        return gathered
+
+    def save_checkpoint(self, metrics: dict) -> None:
+        generator_states = self._generator_states()  # collective: every rank takes part
+        if self.session.rank != 0:
+            self.session.report(metrics, None)
+            return
+        _, optimizer, scheduler = self.phase_objects
+        state = {
+            "progress": self.progress, "models": self.models.state_dict(), "grid": self.models.grid_state(),
+            "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+            "sampler": self.sampler.state_dict(), "generators": generator_states,
+            "torch_rng": torch.get_rng_state(), "config": self.cfg.model_dump(),
+        }
+        with tempfile.TemporaryDirectory() as tmp:
+            torch.save(state, Path(tmp) / "state.pt")
+            self.session.report(metrics, Path(tmp))
+
+    def restore(self) -> bool:
+        with self.session.resume_dir() as path:
+            if path is None:
+                return False
+            state = torch.load(Path(path) / "state.pt", map_location=self.device, weights_only=False)
+        self.progress = state["progress"]
+        self.models.load_state_dict(state["models"])
+        self.models.load_grid_state(state["grid"])
+        self.start_phase(self.progress["phase"])
+        _, optimizer, scheduler = self.phase_objects
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        self.sampler.load_state_dict(state["sampler"])
+        states = state["generators"]
+        self.generator.set_state(states[self.session.rank] if self.session.rank < len(states) else states[0])
+        torch.set_rng_state(state["torch_rng"])
+        return True
+
+    # ----- phases ------------------------------------------------------------------------------------
+    def start_phase(self, phase: str) -> None:
+        self.phase_objects = build_optimizer(self.models, phase, self.profile)
+        if phase == "main" and self.cfg.method == "leco":
+            self.predictor = OccupancyPredictor.from_hmoe(self.models.hmoe)  # frozen O (section 3.4)
+            self.predictor.network.to(self.device)
+            self.models.hmoe.requires_grad_(False)
+
+    def budget_left(self, phase: str) -> bool:
+        if self.cfg.budget_min is None:
+            return True
+        budget = self.cfg.budget_min * 60
+        spent = sum(self.progress["elapsed"].values())
+        if phase == "occupancy":
+            return self.progress["elapsed"].get("occupancy", 0.0) < OCCUPANCY_BUDGET_SHARE * budget
+        return spent < budget
+
+    def step_once(self, phase: str) -> tuple[torch.Tensor, dict]:
+        rays = self.sampler.next().to(self.device)
+        generator = self.generator if self.profile.perturb else None
+        m = self.models
+        if phase == "occupancy":
+            return occupancy_step(m.hmoe, m.occupancy_background, rays, self.profile.occupancy,
+                                  self.profile.background.samples, generator)
+        if self.cfg.method == "leco":
+            render = render_guided(m.field, m.background, rays, self.profile, self.predictor.occupied, generator)
+        elif self.cfg.method == "grid":
+            g = self.profile.grid
+            step = self.progress["phase_step"]
+            density = lambda x: m.field(x, torch.zeros_like(x), torch.zeros(len(x), dtype=torch.long)).sigma
+            was_training = m.field.training
+            m.field.eval()
+            m.grid.update(step, density, grid_step_size(m.grid, g.march_steps), g.threshold, g.decay,
+                          g.warmup_steps, g.update_every, self.generator)
+            m.field.train(was_training)
+            render = render_grid(m.field, m.background, rays, self.profile, m.grid, generator)
+        else:
+            render = render_vanilla(m.field, m.background, rays, self.profile, generator)
+        return main_loss(render, rays)
+
+    def run_phase(self, phase: str) -> None:
+        params, optimizer, scheduler = self.phase_objects
+        total = self.cfg.phase_steps(phase)
+        window_start, window_steps = time.perf_counter(), 0
+        samples_in_window = 0.0
+        while self.progress["phase_step"] < total:
+            if any_rank(not self.budget_left(phase), self.device):
+                break
+            t0 = time.perf_counter()
+            loss, parts = self.step_once(phase)
+            optimizer.zero_grad(set_to_none=True)
+            finite = bool(torch.isfinite(loss))
+            if finite:
+                loss.backward()
+                finite = grads_finite(params)
+            if any_rank(not finite, self.device):
+                self.progress["nonfinite"] += 1
+                if self.progress["nonfinite"] >= self.cfg.max_nonfinite_steps:
+                    raise NonFiniteRun(
+                        f"{self.progress['nonfinite']} consecutive steps had a non-finite loss or gradient "
+                        f"({phase} phase, step {self.progress['phase_step']}); the run stops and keeps its last "
+                        "good checkpoint. Lower the learning rate (--set lr=...) or check the scene's images.")
+                optimizer.zero_grad(set_to_none=True)
+                parts["skipped"] = 1.0
+            else:
+                self.progress["nonfinite"] = 0
+                average_gradients(params)
+                optimizer.step()
+            scheduler.step()
+            self.progress["phase_step"] += 1
+            self.progress["step"] += 1
+            self.progress["steps"][phase] = self.progress["steps"].get(phase, 0) + 1
+            self.progress["elapsed"][phase] = self.progress["elapsed"].get(phase, 0.0) + time.perf_counter() - t0
+            window_steps += 1
+            samples_in_window += parts.get("samples_per_ray", self.profile.occupancy.samples_per_ray)
+            step = self.progress["step"]
+            if self.sink is not None and (step % self.cfg.metrics_every == 0 or self.progress["phase_step"] == total):
+                seconds = time.perf_counter() - window_start
+                rays = self.cfg.global_batch * window_steps / seconds
+                self.sink.write(step, {
+                    **parts, "phase": phase, "phase_step": self.progress["phase_step"],
+                    "lr": optimizer.param_groups[0]["lr"], "rays_per_s": rays,
+                    "samples_per_s": rays * samples_in_window / window_steps,
+                    "peak_memory_mb": peak_memory_mb(self.device), "wall_time_s": sum(self.progress["elapsed"].values()),
+                })
+                window_start, window_steps, samples_in_window = time.perf_counter(), 0, 0.0
+            if self.cfg.val_every and step % self.cfg.val_every == 0 and self.session.rank == 0:
+                write_validation_renders(self, step)
+            if step % self.cfg.checkpoint_every == 0:
+                self.save_checkpoint({"step": step, "phase": phase})
+
+    def train(self) -> None:
+        resumed = self.restore()
+        if self.sink is not None:
+            if resumed:
+                self.sink.resume(self.progress["step"])
+            else:
+                self.sink.path.write_text("")
+        if not resumed:
+            self.start_phase(self.progress["phase"])
+        phases = self.cfg.phases
+        for phase in phases[phases.index(self.progress["phase"]):]:
+            if phase != self.progress["phase"]:
+                self.progress.update(phase=phase, phase_step=0)
+                self.start_phase(phase)
+            self.run_phase(phase)
+        self.save_checkpoint({"step": self.progress["step"], "phase": "done"})
+        if self.session.rank == 0:
+            self.save_final()
+
+    def save_final(self) -> None:
+        final = self.run_dir / "final"
+        final.mkdir(parents=True, exist_ok=True)
+        torch.save({"models": self.models.state_dict(), "grid": self.models.grid_state(),
+                    "progress": self.progress, "config": self.cfg.model_dump()}, final / "models.pt")
+        if self.predictor is not None:
+            self.predictor.save(final / "occupancy.pt")
+        (final / "progress.json").write_text(json.dumps(self.progress, indent=1))
+
+
+def write_pid(run_dir: Path, rank: int) -> None:
+    workers = Path(run_dir) / "workers"
+    workers.mkdir(parents=True, exist_ok=True)
+    (workers / f"rank{rank}.pid").write_text(str(os.getpid()))

@@ -1,0 +1,190 @@
+"""Running a job: the run directory, Ray Train (V2) `TorchTrainer` over N workers (or one local process),
+a progress callback fed from the metrics file, final evaluation and RUN_DIR/summary.json.
+
+With RAY_ADDRESS set the same code runs on that cluster (RUN_DIR must then be on storage every node
+mounts at the same path); otherwise a local Ray is started with as many CPUs as there are workers.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import threading
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from workers.config import TrainConfig
+from workers.evaluate import evaluate_run
+from workers.loop import NonFiniteRun, RankRun, write_pid
+from workers.session import LocalSession, RaySession
+from workers.sinks import read_metrics
+
+SUMMARY = "summary.json"
+
+
+class RunError(RuntimeError):
+    """A run that cannot start or did not finish, with the reason a user can act on."""
+
+
+def write_json(path: Path, data: dict) -> None:
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(data, indent=1, sort_keys=True))
+    tmp.replace(path)
+
+
+def prepare_run_dir(cfg: TrainConfig, scene_dir: Path, run_dir: Path) -> bool:
+    """Creates RUN_DIR/run.json, or checks that an existing one is this same run (then it resumes).
+    Returns True when resuming."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    record = {"config": cfg.model_dump(mode="json"), "scene": str(Path(scene_dir).resolve())}
+    existing = run_dir / "run.json"
+    if existing.exists():
+        if (run_dir / SUMMARY).exists():
+            raise RunError(f"{run_dir} holds a finished run (summary.json exists): choose a new --out")
+        old = json.loads(existing.read_text())
+        if old != record:
+            raise RunError(f"{run_dir} holds a different run (its run.json has another config or scene); "
+                           "resume it with the same arguments or choose a new --out")
+        return True
+    write_json(existing, record)
+    return False
+
+
+def device_for(use_gpu: bool) -> torch.device:
+    if use_gpu:
+        import ray.train.torch
+
+        return ray.train.torch.get_device()
+    return torch.device("cpu")
+
+
+def train_loop_per_worker(config: dict) -> None:
+    """Ray Train entry point: every worker runs this."""
+    cfg = TrainConfig.model_validate(config["train"])
+    session = RaySession()
+    run_dir = Path(config["run_dir"])
+    write_pid(run_dir, session.rank)
+    torch.set_num_threads(max(1, int(config.get("threads", 1))))
+    run = RankRun(cfg, Path(config["scene"]), run_dir, session, device_for(cfg.use_gpu))
+    try:
+        run.train()
+    except NonFiniteRun as error:
+        # A deterministic failure: retrying from the checkpoint would fail the same way, so end cleanly.
+        if session.rank == 0:
+            write_json(run_dir / "failure.json", {"reason": str(error)})
+
+
+def ensure_ray(num_cpus: int) -> None:
+    import ray
+
+    if ray.is_initialized():
+        return
+    if os.environ.get("RAY_ADDRESS"):
+        ray.init(address=os.environ["RAY_ADDRESS"])
+    else:
+        ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
+
+
+def fit_with_ray(cfg: TrainConfig, scene_dir: Path, run_dir: Path) -> None:
+    import ray.train
+    from ray.train.torch import TorchTrainer
+
+    cpus = max(2, cfg.workers)
+    ensure_ray(cpus)
+    threads = max(1, (os.cpu_count() or 2) // cfg.workers) if not os.environ.get("RAY_ADDRESS") else 1
+    trainer = TorchTrainer(
+        train_loop_per_worker,
+        train_loop_config={"train": cfg.model_dump(mode="json"), "scene": str(scene_dir), "run_dir": str(run_dir),
+                           "threads": threads},
+        scaling_config=ray.train.ScalingConfig(num_workers=cfg.workers, use_gpu=cfg.use_gpu,
+                                               resources_per_worker=None if cfg.use_gpu else {"CPU": 1}),
+        # Same storage_path and name on a re-run: Ray Train hands the loop the last checkpoint (resume).
+        run_config=ray.train.RunConfig(
+            name="train", storage_path=str((run_dir / "ray").resolve()),
+            failure_config=ray.train.FailureConfig(max_failures=cfg.max_failures),
+            checkpoint_config=ray.train.CheckpointConfig(num_to_keep=2)),
+    )
+    trainer.fit()
+
+
+def fit_locally(cfg: TrainConfig, scene_dir: Path, run_dir: Path) -> None:
+    if cfg.workers != 1 or cfg.use_gpu and not torch.cuda.is_available():
+        raise RunError("the local backend runs one worker on this machine; use the Ray backend for more")
+    device = torch.device("cuda") if cfg.use_gpu else torch.device("cpu")
+    run = RankRun(cfg, scene_dir, run_dir, LocalSession(run_dir / "checkpoints"), device)
+    try:
+        run.train()
+    except NonFiniteRun as error:
+        write_json(run_dir / "failure.json", {"reason": str(error)})
+
+
+def summarise(cfg: TrainConfig, run_dir: Path, evaluation: dict) -> dict:
+    metrics = read_metrics(run_dir / "metrics.jsonl")
+    progress = json.loads((run_dir / "final" / "progress.json").read_text())
+    elapsed = progress["elapsed"]
+    main = [m for m in metrics if m.get("phase") == "main"]
+    first_phase = [m for m in metrics if m.get("phase") == "occupancy"]
+    mean = lambda rows, key: float(np.mean([r[key] for r in rows if r.get(key) is not None])) if rows else None
+    occupancy = dict(evaluation.get("occupancy") or {})
+    if cfg.method == "leco":
+        occupancy["params"] = sum(p.numel() for p in torch.load(run_dir / "final" / "occupancy.pt",
+                                                                weights_only=True)["state_dict"].values())
+        last = first_phase[-1] if first_phase else {}
+        occupancy.update(empty_fraction=last.get("fraction_empty"), density_ratio=last.get("density_ratio"))
+        occupancy["occupancy_ratio"] = mean(main, "occupancy_ratio")
+    elif cfg.method == "grid":
+        occupancy["params"] = cfg.resolved_profile().grid.resolution ** 3  # one value per cell
+        occupancy["occupancy_ratio"] = mean(main, "occupancy_ratio")
+    device = (torch.cuda.get_device_name(0) if cfg.use_gpu and torch.cuda.is_available()
+              else f"CPU ({platform.processor() or platform.machine()}, {os.cpu_count()} cores)")
+    return {
+        "method": cfg.method, "profile": cfg.profile, "config": cfg.model_dump(mode="json"),
+        "resolved_profile": cfg.resolved_profile().model_dump(mode="json"),
+        "wall_time_s": {"phases": elapsed, "total": sum(elapsed.values())},
+        "steps": {"total": progress["step"], "phases": progress["steps"]},
+        "rays_per_s": mean(main, "rays_per_s"), "samples_per_ray": mean(main, "samples_per_ray"),
+        "occupancy": occupancy or None, "val": evaluation["val"],
+        "peak_memory_mb": max((m.get("peak_memory_mb") or 0.0 for m in metrics), default=None),
+        "device": device, "world_size": cfg.workers, "point_cloud": evaluation["point_cloud"],
+    }
+
+
+def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, backend: str = "ray",
+                 on_progress: Callable[[dict], None] | None = None, poll_s: float = 1.0) -> dict:
+    """Train (or resume) a run to the end, evaluate it, write summary.json and return it."""
+    scene_dir, run_dir = Path(scene_dir), Path(run_dir)
+    from model.scenes import load_scene
+
+    load_scene(scene_dir)  # a broken scene fails here, before any worker starts
+    prepare_run_dir(cfg, scene_dir, run_dir)
+    (run_dir / "failure.json").unlink(missing_ok=True)
+    fit = fit_with_ray if backend == "ray" else fit_locally
+    errors: list[BaseException] = []
+    worker = threading.Thread(target=lambda: _capture(errors, fit, cfg, scene_dir, run_dir), daemon=True)
+    worker.start()
+    while worker.is_alive():
+        worker.join(poll_s)
+        if on_progress is not None:
+            rows = read_metrics(run_dir / "metrics.jsonl")
+            if rows:
+                on_progress(rows[-1])
+    if errors:
+        raise RunError(f"training failed: {errors[0]}") from errors[0]
+    if (run_dir / "failure.json").exists():
+        raise RunError(json.loads((run_dir / "failure.json").read_text())["reason"])
+    evaluation = evaluate_run(run_dir)
+    summary = summarise(cfg, run_dir, evaluation)
+    write_json(run_dir / SUMMARY, summary)
+    return summary
+
+
+def _capture(errors: list, fn, *args) -> None:
+    try:
+        fn(*args)
+    except BaseException as error:  # re-raised in the caller's thread
+        errors.append(error)
