@@ -5,7 +5,7 @@
 - `grid`: nerfacc-style marching through the occupancy grid (the grid itself is updated by the caller).
 
 Every sampler renders the background behind the foreground, so the three differ only in which foreground
-points the main network sees. Loss = L_r + w_balance * balance loss (Switch-NeRF).
+points the main network sees. Loss = L_r + balance_weight * balance loss (Switch-NeRF, 5e-4).
 """
 
 from __future__ import annotations
@@ -26,8 +26,6 @@ from model.profiles import Profile
 from model.rendering import Rendered, composite_batched, composite_packed
 from model.samplers import PackedSamples, guided_samples, inverse_cdf_edges, merge_edges, stratified_edges
 from model.scenes.rays import RayBatch
-
-W_BALANCE = 5e-4  # Switch-NeRF's balance-loss weight
 
 
 @dataclass
@@ -109,14 +107,14 @@ def render_grid(field: SwitchNeRF, background: BackgroundField, rays: RayBatch, 
                       len(samples) / max(possible, 1.0))
 
 
-def main_loss(render: MainRender, rays: RayBatch) -> tuple[Tensor, dict]:
-    """L_r + w_balance * balance loss, and the parts as floats."""
+def main_loss(render: MainRender, rays: RayBatch, balance_weight: float) -> tuple[Tensor, dict]:
+    """L_r + balance_weight * balance loss, and the parts as floats."""
     l_r = rendering_loss(render.rendered.rgb, rays.rgb)
     loss = l_r
     parts = {"rendering_loss": float(l_r.detach()), "samples_per_ray": render.samples_per_ray}
     if render.out is not None:
         l_b = balance_loss(render.out.gate_probs, render.out.expert)
-        loss = loss + W_BALANCE * l_b
+        loss = loss + balance_weight * l_b
         parts["balance_loss"] = float(l_b.detach())
         fractions, _ = dispatch_fractions(render.out.gate_probs.detach(), render.out.expert)
         parts.update({f"fraction_expert_{i}": float(f) for i, f in enumerate(fractions)})

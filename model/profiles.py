@@ -69,6 +69,7 @@ class Profile(Frozen):
     grid: GridConfig = GridConfig()
     rays_per_device: int = Field(1024, ge=1)
     main_steps: int = Field(500_000, ge=1)  # Switch-NeRF (guided or not) steps after any occupancy phase
+    balance_weight: float = Field(5e-4, ge=0)  # Switch-NeRF's balance loss
     perturb: bool = True  # jittered samples while training; off makes a step deterministic given the rays
     lr: float = Field(5e-4, gt=0)
     lr_final: float = Field(5e-5, gt=0)

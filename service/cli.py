@@ -60,16 +60,21 @@ def build_parser() -> argparse.ArgumentParser:
     minfo.add_argument("--images", type=int, default=100, help="images in the scene (appearance embeddings)")
     minfo.add_argument("--json", action="store_true")
     minfo.set_defaults(func=model_info_command)
+
+    from service.train_cli import add_commands
+
+    add_commands(commands)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from model.scenes.errors import SceneError
+    from workers.run import RunError
 
     try:
         return args.func(args)
-    except (SceneError, FileExistsError, ValueError) as exc:
+    except (SceneError, FileExistsError, FileNotFoundError, ValueError, RunError) as exc:
         print(f"leco: error: {exc}", file=sys.stderr)
         return 2
 

@@ -133,19 +133,19 @@ class RankRun:
             density = lambda x: m.field(x, torch.zeros_like(x), torch.zeros(len(x), dtype=torch.long)).sigma
             was_training = m.field.training
             m.field.eval()
+            # Same generator on every rank, so the replicated grids stay identical.
             m.grid.update(step, density, grid_step_size(m.grid, g.march_steps), g.threshold, g.decay,
-                          g.warmup_steps, g.update_every, self.generator)
+                          g.warmup_steps, g.update_every, torch.Generator().manual_seed(self.cfg.seed * 100_003 + step))
             m.field.train(was_training)
             render = render_grid(m.field, m.background, rays, self.profile, m.grid, generator)
         else:
             render = render_vanilla(m.field, m.background, rays, self.profile, generator)
-        return main_loss(render, rays)
+        return main_loss(render, rays, self.profile.balance_weight)
 
     def run_phase(self, phase: str) -> None:
         params, optimizer, scheduler = self.phase_objects
         total = self.cfg.phase_steps(phase)
-        window_start, window_steps = time.perf_counter(), 0
-        samples_in_window = 0.0
+        window_seconds, window_steps, samples_in_window = 0.0, 0, 0.0
         while self.progress["phase_step"] < total:
             if any_rank(not self.budget_left(phase), self.device):
                 break
@@ -173,20 +173,21 @@ class RankRun:
             self.progress["phase_step"] += 1
             self.progress["step"] += 1
             self.progress["steps"][phase] = self.progress["steps"].get(phase, 0) + 1
-            self.progress["elapsed"][phase] = self.progress["elapsed"].get(phase, 0.0) + time.perf_counter() - t0
+            seconds = time.perf_counter() - t0  # compute only: checkpoints and renders are not training time
+            self.progress["elapsed"][phase] = self.progress["elapsed"].get(phase, 0.0) + seconds
+            window_seconds += seconds
             window_steps += 1
             samples_in_window += parts.get("samples_per_ray", self.profile.occupancy.samples_per_ray)
             step = self.progress["step"]
             if self.sink is not None and (step % self.cfg.metrics_every == 0 or self.progress["phase_step"] == total):
-                seconds = time.perf_counter() - window_start
-                rays = self.cfg.global_batch * window_steps / seconds
+                rays = self.cfg.global_batch * window_steps / window_seconds
                 self.sink.write(step, {
                     **parts, "phase": phase, "phase_step": self.progress["phase_step"],
                     "lr": optimizer.param_groups[0]["lr"], "rays_per_s": rays,
                     "samples_per_s": rays * samples_in_window / window_steps,
                     "peak_memory_mb": peak_memory_mb(self.device), "wall_time_s": sum(self.progress["elapsed"].values()),
                 })
-                window_start, window_steps, samples_in_window = time.perf_counter(), 0, 0.0
+                window_seconds, window_steps, samples_in_window = 0.0, 0, 0.0
             if self.cfg.val_every and step % self.cfg.val_every == 0 and self.session.rank == 0:
                 write_validation_renders(self, step)
             if step % self.cfg.checkpoint_every == 0:

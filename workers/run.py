@@ -84,9 +84,11 @@ def ensure_ray(num_cpus: int) -> None:
 
     if ray.is_initialized():
         return
+    # A local Ray on this machine needs no token; a cluster brings its own setting (REFERENCE.md section 6).
     if os.environ.get("RAY_ADDRESS"):
         ray.init(address=os.environ["RAY_ADDRESS"])
     else:
+        os.environ.setdefault("RAY_AUTH_MODE", "disabled")
         ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
 
 
@@ -94,8 +96,6 @@ def fit_with_ray(cfg: TrainConfig, scene_dir: Path, run_dir: Path) -> None:
     import ray.train
     from ray.train.torch import TorchTrainer
 
-    cpus = max(2, cfg.workers)
-    ensure_ray(cpus)
     threads = max(1, (os.cpu_count() or 2) // cfg.workers) if not os.environ.get("RAY_ADDRESS") else 1
     trainer = TorchTrainer(
         train_loop_per_worker,
@@ -123,7 +123,7 @@ def fit_locally(cfg: TrainConfig, scene_dir: Path, run_dir: Path) -> None:
         write_json(run_dir / "failure.json", {"reason": str(error)})
 
 
-def summarise(cfg: TrainConfig, run_dir: Path, evaluation: dict) -> dict:
+def summarise(cfg: TrainConfig, run_dir: Path, evaluation: dict, attempt_s: float) -> dict:
     metrics = read_metrics(run_dir / "metrics.jsonl")
     progress = json.loads((run_dir / "final" / "progress.json").read_text())
     elapsed = progress["elapsed"]
@@ -145,7 +145,9 @@ def summarise(cfg: TrainConfig, run_dir: Path, evaluation: dict) -> dict:
     return {
         "method": cfg.method, "profile": cfg.profile, "config": cfg.model_dump(mode="json"),
         "resolved_profile": cfg.resolved_profile().model_dump(mode="json"),
-        "wall_time_s": {"phases": elapsed, "total": sum(elapsed.values())},
+        # phases/total: training compute (what the budget and rays/s count); this_attempt: the driver's clock
+        # for this invocation, with start-up, checkpoints and evaluation.
+        "wall_time_s": {"phases": elapsed, "total": sum(elapsed.values()), "this_attempt": attempt_s},
         "steps": {"total": progress["step"], "phases": progress["steps"]},
         "rays_per_s": mean(main, "rays_per_s"), "samples_per_ray": mean(main, "samples_per_ray"),
         "occupancy": occupancy or None, "val": evaluation["val"],
@@ -157,6 +159,7 @@ def summarise(cfg: TrainConfig, run_dir: Path, evaluation: dict) -> dict:
 def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, backend: str = "ray",
                  on_progress: Callable[[dict], None] | None = None, poll_s: float = 1.0) -> dict:
     """Train (or resume) a run to the end, evaluate it, write summary.json and return it."""
+    started = time.perf_counter()
     scene_dir, run_dir = Path(scene_dir), Path(run_dir)
     from model.scenes import load_scene
 
@@ -164,6 +167,8 @@ def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, b
     prepare_run_dir(cfg, scene_dir, run_dir)
     (run_dir / "failure.json").unlink(missing_ok=True)
     fit = fit_with_ray if backend == "ray" else fit_locally
+    if backend == "ray":
+        ensure_ray(max(2, cfg.workers))  # in the main thread: Ray installs signal handlers there
     errors: list[BaseException] = []
     worker = threading.Thread(target=lambda: _capture(errors, fit, cfg, scene_dir, run_dir), daemon=True)
     worker.start()
@@ -178,7 +183,7 @@ def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, b
     if (run_dir / "failure.json").exists():
         raise RunError(json.loads((run_dir / "failure.json").read_text())["reason"])
     evaluation = evaluate_run(run_dir)
-    summary = summarise(cfg, run_dir, evaluation)
+    summary = summarise(cfg, run_dir, evaluation, time.perf_counter() - started)
     write_json(run_dir / SUMMARY, summary)
     return summary
 
