@@ -1,0 +1,144 @@
+"""Training runs on the local backend (one process, same loop as on Ray): config, metrics sink, every
+method's smoke run and summary, resume after a kill, non-finite steps."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from model.model_info import model_info
+from workers.config import TrainConfig, parse_overrides
+from workers.run import RunError, run_training
+from workers.sinks import JsonlSink, read_metrics
+
+SUMMARY_KEYS = {"method", "profile", "config", "wall_time_s", "steps", "rays_per_s", "samples_per_ray", "occupancy",
+                "val", "peak_memory_mb", "device", "world_size"}
+
+
+def test_config_overrides_and_errors():
+    cfg = TrainConfig(method="leco", profile="smoke", overrides={"occupancy.steps": 7, "network.width": 32})
+    profile = cfg.resolved_profile()
+    assert profile.occupancy.steps == 7 and profile.network.width == 32 and cfg.phase_steps("occupancy") == 7
+    with pytest.raises(ValueError, match="'occupancy.stepz': no such setting"):
+        TrainConfig(method="leco", overrides={"occupancy.stepz": 1})
+    with pytest.raises(ValueError, match="network.width"):
+        TrainConfig(method="leco", overrides={"network.width": -3})
+    with pytest.raises(ValueError, match="unknown profile 'huge'"):
+        TrainConfig(method="switch", profile="huge")
+    with pytest.raises(ValueError):
+        TrainConfig(method="nerf")
+    assert parse_overrides(["lr=0.001", "occupancy.homogeneous=true", "name=x"]) == {
+        "lr": 0.001, "occupancy.homogeneous": True, "name": "x"}
+    with pytest.raises(ValueError, match="expected key=value"):
+        parse_overrides(["lr"])
+
+
+def test_eight_gpu_paper_config_validates_without_a_gpu():
+    cfg = TrainConfig(method="leco", profile="paper", workers=8, use_gpu=True)
+    assert cfg.global_batch == 8192  # 1024 rays per device, as in the paper
+    assert cfg.phases == ("occupancy", "main") and cfg.phase_steps("occupancy") == 40_000
+    with pytest.raises(ValueError):
+        TrainConfig(method="leco", workers=9)
+
+
+def test_jsonl_sink_replayed_steps_overwrite(tmp_path):
+    sink = JsonlSink(tmp_path / "m.jsonl")
+    for step in (10, 20, 30):
+        sink.write(step, {"loss": float(step), "psnr": float("nan")})
+    sink.resume(20)  # a restart from the step-20 checkpoint
+    sink.write(30, {"loss": 3.0})
+    sink.write(40, {"loss": 4.0})
+    rows = read_metrics(tmp_path / "m.jsonl")
+    assert [r["step"] for r in rows] == [10, 20, 30, 40]
+    assert rows[2]["loss"] == 3.0 and rows[0]["psnr"] is None
+    assert len((tmp_path / "m.jsonl").read_text().splitlines()) == 4
+
+
+@pytest.mark.parametrize("method", ["leco", "switch", "grid"])
+def test_smoke_run_writes_a_valid_summary(method, tiny_scene, tmp_path):
+    cfg = TrainConfig(method=method, profile="smoke", checkpoint_every=10, metrics_every=5, val_every=10)
+    summary = run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")
+    assert SUMMARY_KEYS <= set(summary)
+    on_disk = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert on_disk["method"] == method and on_disk["world_size"] == 1
+    steps = 40 if method == "leco" else 20
+    assert summary["steps"]["total"] == steps
+    rows = read_metrics(tmp_path / "run" / "metrics.jsonl")
+    assert [r["step"] for r in rows] == list(range(5, steps + 1, 5))
+    assert all(r["rays_per_s"] > 0 and r["peak_memory_mb"] > 0 for r in rows)
+    assert 5 < summary["val"]["psnr"] < 60 and 0 < summary["val"]["ssim"] <= 1
+    assert (tmp_path / "run" / "occupancy.ply").read_bytes().startswith(b"ply\n")
+    assert list((tmp_path / "run" / "renders").glob("step*.png")) and list((tmp_path / "run" / "renders").glob("final_*.png"))
+    if method == "switch":
+        assert summary["occupancy"] is None and summary["samples_per_ray"] == 8 + 8 + 16  # coarse twice + fine
+    else:
+        occ = summary["occupancy"]
+        assert 0 <= occ["recall"] <= 1 and 0 < occ["occupancy_ratio"] <= 1
+    if method == "leco":
+        assert (tmp_path / "run" / "final" / "occupancy.pt").is_file()
+        expected = model_info("leco", cfg.resolved_profile())["components"]["occupancy_network"]
+        assert summary["occupancy"]["params"] == expected == 1267
+        assert summary["wall_time_s"]["phases"]["occupancy"] > 0  # phase 1 counts in the total
+
+
+def test_finished_or_different_run_dir_is_refused(tiny_scene, tmp_path):
+    cfg = TrainConfig(method="switch", profile="smoke", overrides={"main_steps": 2})
+    run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")
+    with pytest.raises(RunError, match="finished run"):
+        run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "run.json").write_text(json.dumps({"config": {}, "scene": "elsewhere"}))
+    with pytest.raises(RunError, match="different run"):
+        run_training(cfg, tiny_scene.root, tmp_path / "other", backend="local")
+
+
+def test_repeated_non_finite_steps_fail_with_a_reason_and_keep_the_checkpoint(tiny_scene, tmp_path, monkeypatch):
+    import model.main_phase as main_phase
+
+    real = main_phase.rendering_loss
+    calls = {"n": 0}
+
+    def poisoned(rgb, target):
+        calls["n"] += 1
+        loss = real(rgb, target)
+        return loss * float("nan") if calls["n"] > 6 else loss
+
+    monkeypatch.setattr(main_phase, "rendering_loss", poisoned)
+    cfg = TrainConfig(method="switch", profile="smoke", checkpoint_every=5, max_nonfinite_steps=3)
+    with pytest.raises(RunError, match="3 consecutive steps had a non-finite loss"):
+        run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")
+    state = torch.load(tmp_path / "run" / "checkpoints" / "latest" / "state.pt", weights_only=False)
+    assert state["progress"]["step"] == 5
+    assert all(torch.isfinite(v).all() for v in state["models"].values() if v.is_floating_point())
+
+
+def test_killed_run_resumes_from_its_checkpoint(tiny_scene, tmp_path):
+    """Kill -9 a `leco train` process after its first checkpoint; the same command finishes the run."""
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "service.cli", "train", "--scene", str(tiny_scene.root), "--method", "switch",
+           "--profile", "smoke", "--out", str(out), "--backend", "local", "--checkpoint-every", "10",
+           "--set", "main_steps=400"]
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while not (out / "checkpoints" / "latest").is_dir() or not read_metrics(out / "metrics.jsonl") or \
+            read_metrics(out / "metrics.jsonl")[-1]["step"] < 30:
+        assert time.monotonic() < deadline and proc.poll() is None, "the run should still be going"
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    killed_at = read_metrics(out / "metrics.jsonl")[-1]["step"]
+    assert killed_at < 400
+    done = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    rows = read_metrics(out / "metrics.jsonl")
+    assert [r["step"] for r in rows] == list(range(10, 401, 10))  # nothing missing, nothing twice
+    lines = (out / "metrics.jsonl").read_text().splitlines()
+    assert len(lines) == len(rows)
+    assert json.loads((out / "summary.json").read_text())["steps"]["total"] == 400
