@@ -15,13 +15,17 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e '.[dev]'
 	touch $(STAMP)
 
-# The main job on the embedded default: for now, generate the default synthetic city and describe it.
+# The main job on the embedded default: the default synthetic city (generated once), then a LeCO run on it with
+# the cpu profile on two local Ray workers. An unfinished run resumes; a finished one is shown again.
+SCENE := scenes/city-0
+RUN   := runs/city-0-leco
 run: $(STAMP)
-	$(BIN)/leco scene synth --preset city --seed 0 --out scenes/city-0
-	$(BIN)/leco scene info scenes/city-0
+	test -d $(SCENE) || $(BIN)/leco scene synth --preset city --seed 0 --out $(SCENE)
+	test -f $(RUN)/summary.json || $(BIN)/leco train --scene $(SCENE) --method leco --profile cpu --workers 2 --out $(RUN)
+	@echo "run folder: $(RUN) (summary.json, metrics.jsonl, renders/, occupancy.ply)"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 clean:
-	rm -rf $(VENV) scenes .pytest_cache
+	rm -rf $(VENV) scenes runs .pytest_cache
