@@ -1,6 +1,7 @@
 """A short CPU run of LeCO's occupancy phase on the tiny synthetic city shows the method, not just shapes:
 most points go to the empty expert, its points have far lower density, and the learned occupancy keeps the
-coarse bins that hold the true surfaces more often than it keeps bins at all."""
+coarse bins that hold the true surfaces far more often than it keeps bins at all, and finds most occupied
+cells by the paper's protocol."""
 
 import pytest
 import torch
@@ -8,6 +9,7 @@ import torch
 from model.fields import HMoE
 from model.fields.background import BackgroundField
 from model.occupancy import OccupancyPredictor
+from model.occupancy_eval import evaluate_occupancy
 from model.occupancy_phase import occupancy_step
 from model.profiles import OccupancyPhaseConfig
 from model.samplers import stratified_edges
@@ -15,7 +17,7 @@ from model.scenes import RaySampler, load_scene
 from model.scenes.rays import PixelTable
 from model.scenes.synthetic import generate
 
-STEPS = 400
+STEPS = 1000
 
 
 def surface_bin_recall(predictor, scene, num_coarse=32):
@@ -52,10 +54,17 @@ def test_occupancy_phase_learns_sparse_occupancy(tmp_path):
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
-    recall, kept = surface_bin_recall(OccupancyPredictor.from_hmoe(model), scene)
+    predictor = OccupancyPredictor.from_hmoe(model)
+    recall, kept = surface_bin_recall(predictor, scene)
+    grid = evaluate_occupancy(predictor.occupied, scene.splits["val"], scene.occupancy.aabb, 64)
     print(f"after {STEPS} steps: to E_e {parts['fraction_empty']:.3f} (optimum {80 / 88:.3f}), density ratio "
-          f"{parts['density_ratio']:.3f}, surface-bin recall {recall:.3f}, kept bins {kept:.3f}")
-    assert parts["fraction_empty"] > 0.75
-    assert parts["density_ratio"] < 0.5 and parts["alpha_ratio"] < 0.5
-    # Better than chance already; "high" recall needs a longer run (tracked in issue 3's note).
-    assert kept < 0.3 and recall > kept
+          f"{parts['density_ratio']:.3f}, surface-bin recall {recall:.3f}, kept bins {kept:.3f}; paper protocol "
+          f"(64^3): recall {grid['recall']:.3f} precision {grid['precision']:.3f} "
+          f"predicted occupied {grid['predicted_occupied_fraction']:.3f}")
+    assert parts["fraction_empty"] > 0.8
+    assert parts["density_ratio"] < 0.2 and parts["alpha_ratio"] < 0.3
+    # The predictor keeps the bins holding true surfaces far more often than bins at large, and its grid
+    # recall beats a random grid with as many occupied cells (whose recall is that fraction). Recall is not
+    # yet the paper's 0.68-0.96: that comes after 40k steps at width 256; this is 1000 steps at width 64.
+    assert kept < 0.25 and recall > 2 * kept
+    assert grid["recall"] > 0.7 and grid["recall"] > 3 * grid["predicted_occupied_fraction"]  # measured 0.81, 0.17
