@@ -142,3 +142,35 @@ def test_killed_run_resumes_from_its_checkpoint(tiny_scene, tmp_path):
     lines = (out / "metrics.jsonl").read_text().splitlines()
     assert len(lines) == len(rows)
     assert json.loads((out / "summary.json").read_text())["steps"]["total"] == 400
+
+
+def test_budget_stops_the_run_early(tiny_scene, tmp_path):
+    cfg = TrainConfig(method="switch", profile="smoke", budget_min=0.2 / 60, overrides={"main_steps": 100_000})
+    summary = run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")
+    assert 0 < summary["steps"]["total"] < 100_000
+    assert 0.2 <= summary["wall_time_s"]["total"] < 0.2 + 1.0  # stops at the first step past the budget
+
+
+def test_leco_eval_command_reevaluates_a_finished_run(tiny_scene, tmp_path, capsys):
+    from service.cli import main
+
+    cfg = TrainConfig(method="leco", profile="smoke", overrides={"occupancy.steps": 3, "main_steps": 3})
+    summary = run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")
+    assert main(["eval", "--run", str(tmp_path / "run")]) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert again["val"]["psnr"] == pytest.approx(summary["val"]["psnr"], abs=1e-6)  # deterministic evaluation
+    assert main(["eval", "--run", str(tmp_path / "nothing")]) == 2
+    assert "no finished run here" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_leco_pipeline_on_the_tiny_city_learns_occupancy(tiny_scene, tmp_path):
+    """Both phases through the real runner at cpu-profile width: most points to E_e, most occupied cells found."""
+    cfg = TrainConfig(method="leco", profile="cpu", overrides={
+        "occupancy.steps": 1000, "occupancy.samples_per_ray": 32, "main_steps": 100})
+    summary = run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")
+    occ = summary["occupancy"]
+    print(json.dumps(occ, indent=1))
+    assert occ["empty_fraction"] > 0.8 and occ["density_ratio"] < 0.2
+    assert occ["recall"] > 0.6 and occ["occupancy_ratio"] < 0.3
+    assert summary["samples_per_ray"] < 0.3 * 16 * 8  # guided: most coarse bins dropped
