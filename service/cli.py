@@ -70,10 +70,16 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from model.scenes.errors import SceneError
+    from pydantic import ValidationError
+
     from workers.run import RunError
 
     try:
         return args.func(args)
+    except ValidationError as exc:  # a job config the schema refuses: name each field
+        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'config'}: {e['msg']}" for e in exc.errors())
+        print(f"leco: error: invalid job config: {problems}", file=sys.stderr)
+        return 2
     except (SceneError, FileExistsError, FileNotFoundError, ValueError, RunError) as exc:
         print(f"leco: error: {exc}", file=sys.stderr)
         return 2

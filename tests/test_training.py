@@ -174,3 +174,16 @@ def test_leco_pipeline_on_the_tiny_city_learns_occupancy(tiny_scene, tmp_path):
     assert occ["empty_fraction"] > 0.8 and occ["density_ratio"] < 0.2
     assert occ["recall"] > 0.6 and occ["occupancy_ratio"] < 0.3
     assert summary["samples_per_ray"] < 0.3 * 16 * 8  # guided: most coarse bins dropped
+
+
+def test_train_command_names_bad_arguments_and_writes_nothing(tiny_scene, tmp_path, capsys):
+    from service.cli import main
+
+    base = ["train", "--scene", str(tiny_scene.root), "--method", "leco", "--out", str(tmp_path / "run")]
+    assert main(base + ["--workers", "9"]) == 2
+    assert "workers: Input should be less than or equal to 8" in capsys.readouterr().err
+    assert main(base + ["--set", "network.width=-1"]) == 2
+    assert "network.width" in capsys.readouterr().err
+    assert main(["train", "--scene", str(tmp_path / "missing"), "--method", "leco", "--out", str(tmp_path / "run")]) == 2
+    assert "scene folder does not exist" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
