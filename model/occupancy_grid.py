@@ -25,6 +25,11 @@ class OccupancyGrid:
         self.binary = torch.ones(resolution**3, dtype=torch.bool)  # everything may be occupied until updated
         self.queries = 0  # density evaluations spent on updates, for honest cost accounting
 
+    def to(self, device: torch.device | str) -> "OccupancyGrid":
+        """Moves the grid to the main network's device (its random draws stay on the CPU generator)."""
+        self.aabb, self.values, self.binary = self.aabb.to(device), self.values.to(device), self.binary.to(device)
+        return self
+
     @property
     def num_cells(self) -> int:
         return self.resolution**3
@@ -48,24 +53,25 @@ class OccupancyGrid:
         """Returns True when this step updated the grid."""
         if step % every:
             return False
-        n = self.num_cells
+        n, device = self.num_cells, self.values.device
         if step < warmup_steps:
             cells = torch.arange(n)
         else:
             uniform = torch.randint(0, n, (n // 4,), generator=generator)
-            occupied = torch.nonzero(self.binary).squeeze(1)
+            occupied = torch.nonzero(self.binary).squeeze(1).cpu()
             if len(occupied) > n // 4:
                 occupied = occupied[torch.randint(0, len(occupied), (n // 4,), generator=generator)]
             cells = torch.cat([uniform, occupied])
         r = self.resolution
         ijk = torch.stack([cells // (r * r), (cells // r) % r, cells % r], -1).float()
         jitter = torch.rand(len(cells), 3, generator=generator)
-        points = self.aabb[0] + (ijk + jitter) / r * (self.aabb[1] - self.aabb[0])
+        cells, unit = cells.to(device), ((ijk + jitter) / r).to(device)
+        points = self.aabb[0] + unit * (self.aabb[1] - self.aabb[0])
         value = torch.cat([density_fn(points[s : s + 65536]).float().reshape(-1) for s in range(0, len(points), 65536)])
         self.queries += len(points)
         # Duplicate cells in one update: the largest value wins, as with nerfacc's scatter of maxima.
-        fresh = torch.zeros(n).scatter_reduce_(0, cells, value * step_size, reduce="amax", include_self=False)
-        touched = torch.zeros(n, dtype=torch.bool)
+        fresh = torch.zeros(n, device=device).scatter_reduce_(0, cells, value * step_size, reduce="amax", include_self=False)
+        touched = torch.zeros(n, dtype=torch.bool, device=device)
         touched[cells] = True
         self.values = torch.where(touched, torch.maximum(self.values * decay, fresh), self.values)
         self.binary = self.values > min(float(self.values.mean()), threshold)
@@ -77,8 +83,9 @@ class OccupancyGrid:
         """March each ray's foreground segment with a fixed step and keep the intervals whose midpoints lie in
         occupied cells (packed, grouped by ray)."""
         steps = int(torch.ceil(((far - near).max() / step_size)).clamp(min=1))
-        offset = torch.rand(len(near), 1, generator=generator) * step_size if generator is not None else 0.0
-        starts = near[:, None] + offset + step_size * torch.arange(steps, dtype=near.dtype)
+        offset = (torch.rand(len(near), 1, generator=generator, device=near.device) * step_size
+                  if generator is not None else 0.0)
+        starts = near[:, None] + offset + step_size * torch.arange(steps, dtype=near.dtype, device=near.device)
         ends = torch.minimum(starts + step_size, far[:, None])
         valid = ends > starts
         mids = 0.5 * (starts + ends)

@@ -25,9 +25,10 @@ def format_progress(row: dict, cfg) -> str:
 class ProgressPrinter:
     """Rewrites one line on a terminal; elsewhere prints a line at most every `every_s` seconds."""
 
-    def __init__(self, cfg, stream=sys.stderr, every_s: float = 10.0):
-        self.cfg, self.stream, self.every_s = cfg, stream, every_s
-        self.tty = stream.isatty()
+    def __init__(self, cfg, stream=None, every_s: float = 10.0):
+        # sys.stderr looked up now, not at import: it may have been replaced since (pytest, redirects).
+        self.cfg, self.stream, self.every_s = cfg, stream or sys.stderr, every_s
+        self.tty = self.stream.isatty()
         self.last_line, self.last_time = "", 0.0
 
     def __call__(self, row: dict) -> None:

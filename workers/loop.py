@@ -49,7 +49,8 @@ class RankRun:
         self.models = RunModels(cfg.method, self.profile, self.scene.num_images, self.aabb, cfg.seed).to(device)
         self.sampler = RaySampler(self.scene.train, self.aabb, cfg.global_batch, cfg.seed, session.rank,
                                   session.world_size)
-        self.generator = torch.Generator().manual_seed(cfg.seed * 7919 + session.rank)  # per-rank seeds
+        # Per-rank seeds, on the device the samplers draw on (a CPU generator cannot fill CUDA tensors).
+        self.generator = torch.Generator(device=device).manual_seed(cfg.seed * 7919 + session.rank)
         self.progress = {"phase": cfg.phases[0], "phase_step": 0, "step": 0, "elapsed": {}, "steps": {},
                          "nonfinite": 0}
         self.phase_objects = None
@@ -87,10 +88,12 @@ class RankRun:
         with self.session.resume_dir() as path:
             if path is None:
                 return False
-            state = torch.load(Path(path) / "state.pt", map_location=self.device, weights_only=False)
+            # On the CPU: RNG states must stay CPU tensors; load_state_dict copies the rest onto the device.
+            state = torch.load(Path(path) / "state.pt", map_location="cpu", weights_only=False)
         self.progress = state["progress"]
         self.models.load_state_dict(state["models"])
         self.models.load_grid_state(state["grid"])
+        self.models.to(self.device)
         self.start_phase(self.progress["phase"])
         _, optimizer, scheduler = self.phase_objects
         optimizer.load_state_dict(state["optimizer"])
@@ -130,7 +133,7 @@ class RankRun:
         elif self.cfg.method == "grid":
             g = self.profile.grid
             step = self.progress["phase_step"]
-            density = lambda x: m.field(x, torch.zeros_like(x), torch.zeros(len(x), dtype=torch.long)).sigma
+            density = lambda x: m.field(x, torch.zeros_like(x), torch.zeros(len(x), dtype=torch.long, device=x.device)).sigma
             was_training = m.field.training
             m.field.eval()
             # Same generator on every rank, so the replicated grids stay identical.

@@ -24,6 +24,12 @@ class RunModels(nn.Module):
         self.background = build_background(profile, num_images)
         self.grid = OccupancyGrid(aabb.float(), profile.grid.resolution) if method == "grid" else None
 
+    def to(self, device):
+        super().to(device)
+        if self.grid is not None:
+            self.grid.to(device)
+        return self
+
     def phase_modules(self, phase: str) -> list[nn.Module]:
         return [self.hmoe, self.occupancy_background] if phase == "occupancy" else [self.field, self.background]
 

@@ -113,8 +113,10 @@ def fit_with_ray(cfg: TrainConfig, scene_dir: Path, run_dir: Path) -> None:
 
 
 def fit_locally(cfg: TrainConfig, scene_dir: Path, run_dir: Path) -> None:
-    if cfg.workers != 1 or cfg.use_gpu and not torch.cuda.is_available():
-        raise RunError("the local backend runs one worker on this machine; use the Ray backend for more")
+    if cfg.workers != 1:
+        raise RunError(f"the local backend runs one worker, not {cfg.workers}: use --backend ray for more")
+    if cfg.use_gpu and not torch.cuda.is_available():
+        raise RunError("--gpu asked for, but this machine has no CUDA device")
     device = torch.device("cuda") if cfg.use_gpu else torch.device("cpu")
     run = RankRun(cfg, scene_dir, run_dir, LocalSession(run_dir / "checkpoints"), device)
     try:
