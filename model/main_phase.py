@@ -21,7 +21,7 @@ from model.fields.output import FieldOutput
 from model.fields.switch_nerf import SwitchNeRF
 from model.losses import balance_loss, dispatch_fractions, rendering_loss
 from model.occupancy_grid import OccupancyGrid
-from model.occupancy_phase import render_background
+from model.occupancy_phase import field_on_edges, render_background
 from model.profiles import Profile
 from model.rendering import Rendered, composite_batched, composite_packed
 from model.samplers import PackedSamples, guided_samples, inverse_cdf_edges, merge_edges, stratified_edges
@@ -53,32 +53,26 @@ def composite_field(out: FieldOutput | None, rays: RayBatch, samples: PackedSamp
     return composite_packed(out.sigma, out.rgb, samples.mids, samples.deltas, samples.ray_index, r, behind)
 
 
+def render_batched(field, rays: RayBatch, edges: Tensor, behind: Tensor) -> tuple[Rendered, FieldOutput]:
+    out, mids, deltas = field_on_edges(field, rays, edges)
+    r, n = deltas.shape
+    return composite_batched(out.sigma.reshape(r, n), out.rgb.reshape(r, n, 3), mids, deltas, behind), out
+
+
 def render_vanilla(field: SwitchNeRF, background: BackgroundField, rays: RayBatch, profile: Profile,
                    generator: torch.Generator | None) -> MainRender:
-    cfg, r = profile.vanilla, len(rays)
+    cfg = profile.vanilla
     behind = render_background(background, rays, profile.background.samples, generator).rgb
     coarse = stratified_edges(rays.near, rays.far, cfg.coarse_samples, generator)
-    mids = 0.5 * (coarse[:, 1:] + coarse[:, :-1])
-    n = cfg.coarse_samples
-    xyz = rays.origins[:, None] + rays.directions[:, None] * mids[..., None]
     if cfg.fine_samples == 0:
-        out = field(xyz.reshape(-1, 3), rays.directions.repeat_interleave(n, 0), rays.image_index.repeat_interleave(n, 0))
-        rendered = composite_batched(out.sigma.reshape(r, n), out.rgb.reshape(r, n, 3), mids,
-                                     coarse[:, 1:] - coarse[:, :-1], behind)
-        return MainRender(rendered, out, float(n), None)
+        rendered, out = render_batched(field, rays, coarse, behind)
+        return MainRender(rendered, out, float(cfg.coarse_samples), None)
     with torch.no_grad():  # coarse weights only place the fine samples
-        coarse_out = field(xyz.reshape(-1, 3), rays.directions.repeat_interleave(n, 0),
-                           rays.image_index.repeat_interleave(n, 0))
-        weights = composite_batched(coarse_out.sigma.reshape(r, n), coarse_out.rgb.reshape(r, n, 3), mids,
-                                    coarse[:, 1:] - coarse[:, :-1], behind).weights
+        weights = render_batched(field, rays, coarse, behind)[0].weights
     edges = merge_edges(coarse, inverse_cdf_edges(coarse, weights, cfg.fine_samples, generator))
-    m = edges.shape[1] - 1
-    mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
-    xyz = rays.origins[:, None] + rays.directions[:, None] * mids[..., None]
-    out = field(xyz.reshape(-1, 3), rays.directions.repeat_interleave(m, 0), rays.image_index.repeat_interleave(m, 0))
-    rendered = composite_batched(out.sigma.reshape(r, m), out.rgb.reshape(r, m, 3), mids, deltas, behind)
+    rendered, out = render_batched(field, rays, edges, behind)
     # Coarse points run the network twice (once without gradient to place the fine ones).
-    return MainRender(rendered, out, float(n + m), None)
+    return MainRender(rendered, out, float(cfg.coarse_samples + edges.shape[1] - 1), None)
 
 
 def render_guided(field: SwitchNeRF, background: BackgroundField, rays: RayBatch, profile: Profile,

@@ -26,16 +26,22 @@ def render_background(background: BackgroundField, rays: RayBatch, samples: int,
     return composite_batched(sigma.reshape(r, samples), rgb.reshape(r, samples, 3), t, deltas, torch.zeros(3))
 
 
+def field_on_edges(field, rays: RayBatch, edges: Tensor) -> tuple[FieldOutput, Tensor, Tensor]:
+    """A field (HMoE or Switch-NeRF) on every interval of (R, N + 1) edges: output, mids and deltas (R, N)."""
+    n = edges.shape[1] - 1
+    mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
+    xyz = rays.origins[:, None] + rays.directions[:, None] * mids[..., None]
+    out = field(xyz.reshape(-1, 3), rays.directions.repeat_interleave(n, 0), rays.image_index.repeat_interleave(n, 0))
+    return out, mids, deltas
+
+
 def render_hmoe(model: HMoE, background: BackgroundField, rays: RayBatch, samples: int,
                 background_samples_per_ray: int, generator: torch.Generator | None) -> tuple[Rendered, FieldOutput, Tensor]:
     """The HMoE's image of a batch of rays (stratified samples), its field output and the sample deltas."""
-    r, s = len(rays), samples
-    edges = stratified_edges(rays.near, rays.far, s, generator)
-    mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
-    points = rays.origins[:, None, :] + rays.directions[:, None, :] * mids[..., None]
-    out = model(points.reshape(-1, 3), rays.directions.repeat_interleave(s, 0), rays.image_index.repeat_interleave(s, 0))
+    r = len(rays)
+    out, mids, deltas = field_on_edges(model, rays, stratified_edges(rays.near, rays.far, samples, generator))
     behind = render_background(background, rays, background_samples_per_ray, generator)
-    rendered = composite_batched(out.sigma.reshape(r, s), out.rgb.reshape(r, s, 3), mids, deltas, behind.rgb)
+    rendered = composite_batched(out.sigma.reshape(r, samples), out.rgb.reshape(r, samples, 3), mids, deltas, behind.rgb)
     return rendered, out, deltas
 
 

@@ -343,7 +343,7 @@ def test_failure_midway_leaves_nothing(tmp_path, monkeypatch, saver):
 
 
 @pytest.mark.slow
-def test_city_preset_size_time_and_sparsity(tmp_path):
+def test_city_preset_size_and_sparsity(tmp_path):
     started = time.perf_counter()
     summary = generate("city", 0, tmp_path / "city")
     seconds = time.perf_counter() - started
@@ -353,5 +353,4 @@ def test_city_preset_size_time_and_sparsity(tmp_path):
     assert 50 <= views_total <= 100 and summary["image_size"] == "100x75"
     assert 0.05 <= summary["views"]["val"] / views_total <= 0.15
     assert math.prod(summary["grid_shape"]) <= 3_000_000
-    assert summary["occupied_fraction"] < 0.2
-    assert seconds < 60
+    assert summary["occupied_fraction"] < 0.2  # the time is printed, not asserted: speed is a benchmark's job
