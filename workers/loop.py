@@ -25,6 +25,7 @@ from workers.distributed import any_rank, average_gradients, grads_finite, is_di
 from workers.models import RunModels, build_optimizer
 from workers.session import Session
 from workers.sinks import JsonlSink
+from workers.store import RunStore
 from workers.validation import write_validation_renders
 
 OCCUPANCY_BUDGET_SHARE = 0.25  # with a wall-clock budget, LeCO's phase 1 stops at this share of it
@@ -34,6 +35,11 @@ class NonFiniteRun(RuntimeError):
     pass
 
 
+class RunStopped(RuntimeError):
+    """The launcher asked the run to stop (a cancel, a lost lease); it stopped at a step boundary after a
+    checkpoint."""
+
+
 def peak_memory_mb(device: torch.device) -> float:
     if device.type == "cuda":
         return torch.cuda.max_memory_allocated(device) / 2**20
@@ -41,7 +47,8 @@ def peak_memory_mb(device: torch.device) -> float:
 
 
 class RankRun:
-    def __init__(self, cfg: TrainConfig, scene_dir: Path, run_dir: Path, session: Session, device: torch.device):
+    def __init__(self, cfg: TrainConfig, scene_dir: Path, run_dir: Path, session: Session, device: torch.device,
+                 store: RunStore | None = None):
         self.cfg, self.run_dir, self.session, self.device = cfg, Path(run_dir), session, device
         self.profile = cfg.resolved_profile()
         self.scene = load_scene(scene_dir)
@@ -56,6 +63,7 @@ class RankRun:
         self.phase_objects = None
         self.predictor: OccupancyPredictor | None = None
         self.sink = JsonlSink(self.run_dir / "metrics.jsonl") if session.rank == 0 else None
+        self.store = store if session.rank == 0 else None
 
     # ----- checkpoints -------------------------------------------------------------------------------
     def _generator_states(self) -> list[torch.Tensor]:
@@ -82,6 +90,10 @@ class RankRun:
         }
         with tempfile.TemporaryDirectory() as tmp:
             torch.save(state, Path(tmp) / "state.pt")
+            if self.store is not None:
+                step = self.progress["step"]
+                self.store.artifact("checkpoint", Path(tmp) / "state.pt", name=f"checkpoint-step{step:07d}.pt",
+                                    phase=self.progress["phase"], step=step)
             self.session.report(metrics, Path(tmp))
 
     def restore(self) -> bool:
@@ -107,6 +119,8 @@ class RankRun:
     # ----- phases ------------------------------------------------------------------------------------
     def start_phase(self, phase: str) -> None:
         self.phase_objects = build_optimizer(self.models, phase, self.profile)
+        if self.store is not None:
+            self.store.phase_started(phase)
         if phase == "main" and self.cfg.method == "leco":
             self.predictor = OccupancyPredictor.from_hmoe(self.models.hmoe)  # frozen O (section 3.4)
             self.predictor.network.to(self.device)
@@ -150,6 +164,10 @@ class RankRun:
         total = self.cfg.phase_steps(phase)
         window_seconds, window_steps, samples_in_window = 0.0, 0, 0.0
         while self.progress["phase_step"] < total:
+            reason = self.store.stop_reason() if self.store is not None else None
+            if any_rank(reason is not None, self.device):
+                self.save_checkpoint({"step": self.progress["step"], "phase": phase})
+                raise RunStopped(reason or "stopped by the launcher (asked on rank 0)")
             if any_rank(not self.budget_left(phase), self.device):
                 break
             t0 = time.perf_counter()
@@ -184,15 +202,20 @@ class RankRun:
             step = self.progress["step"]
             if self.sink is not None and (step % self.cfg.metrics_every == 0 or self.progress["phase_step"] == total):
                 rays = self.cfg.global_batch * window_steps / window_seconds
-                self.sink.write(step, {
+                record = {
                     **parts, "phase": phase, "phase_step": self.progress["phase_step"],
                     "lr": optimizer.param_groups[0]["lr"], "rays_per_s": rays,
                     "samples_per_s": rays * samples_in_window / window_steps,
                     "peak_memory_mb": peak_memory_mb(self.device), "wall_time_s": sum(self.progress["elapsed"].values()),
-                })
+                }
+                self.sink.write(step, record)
+                if self.store is not None:
+                    self.store.write(step, record)
                 window_seconds, window_steps, samples_in_window = 0.0, 0, 0.0
             if self.cfg.val_every and step % self.cfg.val_every == 0 and self.session.rank == 0:
-                write_validation_renders(self, step)
+                path = write_validation_renders(self, step)
+                if self.store is not None:
+                    self.store.artifact("render", path, name=f"renders/{path.name}", phase=phase, step=step)
             if step % self.cfg.checkpoint_every == 0:
                 self.save_checkpoint({"step": step, "phase": phase})
 
@@ -203,6 +226,8 @@ class RankRun:
                 self.sink.resume(self.progress["step"])
             else:
                 self.sink.path.write_text("")
+        if self.store is not None:
+            self.store.resume(self.progress["step"])
         if not resumed:
             self.start_phase(self.progress["phase"])
         phases = self.cfg.phases

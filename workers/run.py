@@ -20,15 +20,33 @@ import torch
 
 from workers.config import TrainConfig
 from workers.evaluate import evaluate_run
-from workers.loop import NonFiniteRun, RankRun, write_pid
+from workers.loop import NonFiniteRun, RankRun, RunStopped, write_pid
 from workers.session import LocalSession, RaySession
 from workers.sinks import read_metrics
+from workers.store import RunStore
 
 SUMMARY = "summary.json"
 
 
 class RunError(RuntimeError):
     """A run that cannot start or did not finish, with the reason a user can act on."""
+
+
+class RunInterrupted(RunError):
+    """The run's store asked it to stop (cancelled, lease lost); it stopped after a checkpoint."""
+
+
+def end_cleanly(run: RankRun, run_dir: Path) -> None:
+    """Runs the loop; failures that a retry would only repeat, and stop requests, end it with a record
+    (rank 0) instead of an exception Ray Train would answer with a restart."""
+    try:
+        run.train()
+    except NonFiniteRun as error:
+        if run.session.rank == 0:
+            write_json(run_dir / "failure.json", {"reason": str(error)})
+    except RunStopped as error:
+        if run.session.rank == 0:
+            write_json(run_dir / "stopped.json", {"reason": str(error)})
 
 
 def write_json(path: Path, data: dict) -> None:
@@ -70,13 +88,8 @@ def train_loop_per_worker(config: dict) -> None:
     run_dir = Path(config["run_dir"])
     write_pid(run_dir, session.rank)
     torch.set_num_threads(max(1, int(config.get("threads", 1))))
-    run = RankRun(cfg, Path(config["scene"]), run_dir, session, device_for(cfg.use_gpu))
-    try:
-        run.train()
-    except NonFiniteRun as error:
-        # A deterministic failure: retrying from the checkpoint would fail the same way, so end cleanly.
-        if session.rank == 0:
-            write_json(run_dir / "failure.json", {"reason": str(error)})
+    run = RankRun(cfg, Path(config["scene"]), run_dir, session, device_for(cfg.use_gpu), config.get("store"))
+    end_cleanly(run, run_dir)
 
 
 def ensure_ray(num_cpus: int) -> None:
@@ -92,7 +105,7 @@ def ensure_ray(num_cpus: int) -> None:
         ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
 
 
-def fit_with_ray(cfg: TrainConfig, scene_dir: Path, run_dir: Path) -> None:
+def fit_with_ray(cfg: TrainConfig, scene_dir: Path, run_dir: Path, store: RunStore | None) -> None:
     import ray.train
     from ray.train.torch import TorchTrainer
 
@@ -100,7 +113,7 @@ def fit_with_ray(cfg: TrainConfig, scene_dir: Path, run_dir: Path) -> None:
     trainer = TorchTrainer(
         train_loop_per_worker,
         train_loop_config={"train": cfg.model_dump(mode="json"), "scene": str(scene_dir), "run_dir": str(run_dir),
-                           "threads": threads},
+                           "threads": threads, "store": store},
         scaling_config=ray.train.ScalingConfig(num_workers=cfg.workers, use_gpu=cfg.use_gpu,
                                                resources_per_worker=None if cfg.use_gpu else {"CPU": 1}),
         # Same storage_path and name on a re-run: Ray Train hands the loop the last checkpoint (resume).
@@ -112,17 +125,13 @@ def fit_with_ray(cfg: TrainConfig, scene_dir: Path, run_dir: Path) -> None:
     trainer.fit()
 
 
-def fit_locally(cfg: TrainConfig, scene_dir: Path, run_dir: Path) -> None:
+def fit_locally(cfg: TrainConfig, scene_dir: Path, run_dir: Path, store: RunStore | None) -> None:
     if cfg.workers != 1:
         raise RunError(f"the local backend runs one worker, not {cfg.workers}: use --backend ray for more")
     if cfg.use_gpu and not torch.cuda.is_available():
         raise RunError("--gpu asked for, but this machine has no CUDA device")
     device = torch.device("cuda") if cfg.use_gpu else torch.device("cpu")
-    run = RankRun(cfg, scene_dir, run_dir, LocalSession(run_dir / "checkpoints"), device)
-    try:
-        run.train()
-    except NonFiniteRun as error:
-        write_json(run_dir / "failure.json", {"reason": str(error)})
+    end_cleanly(RankRun(cfg, scene_dir, run_dir, LocalSession(run_dir / "checkpoints"), device, store), run_dir)
 
 
 def summarise(cfg: TrainConfig, run_dir: Path, evaluation: dict, attempt_s: float) -> dict:
@@ -159,8 +168,10 @@ def summarise(cfg: TrainConfig, run_dir: Path, evaluation: dict, attempt_s: floa
 
 
 def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, backend: str = "ray",
-                 on_progress: Callable[[dict], None] | None = None, poll_s: float = 1.0) -> dict:
-    """Train (or resume) a run to the end, evaluate it, write summary.json and return it."""
+                 on_progress: Callable[[dict], None] | None = None, poll_s: float = 1.0,
+                 store: RunStore | None = None) -> dict:
+    """Train (or resume) a run to the end, evaluate it, write summary.json and return it. With a `store`,
+    rank 0 also reports metrics, checkpoints and renders to it and stops when it asks (RunInterrupted)."""
     started = time.perf_counter()
     scene_dir, run_dir = Path(scene_dir), Path(run_dir)
     from model.scenes import load_scene
@@ -168,11 +179,12 @@ def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, b
     load_scene(scene_dir)  # a broken scene fails here, before any worker starts
     prepare_run_dir(cfg, scene_dir, run_dir)
     (run_dir / "failure.json").unlink(missing_ok=True)
+    (run_dir / "stopped.json").unlink(missing_ok=True)
     fit = fit_with_ray if backend == "ray" else fit_locally
     if backend == "ray":
         ensure_ray(max(2, cfg.workers))  # in the main thread: Ray installs signal handlers there
     errors: list[BaseException] = []
-    worker = threading.Thread(target=lambda: _capture(errors, fit, cfg, scene_dir, run_dir), daemon=True)
+    worker = threading.Thread(target=lambda: _capture(errors, fit, cfg, scene_dir, run_dir, store), daemon=True)
     worker.start()
     while worker.is_alive():
         worker.join(poll_s)
@@ -184,6 +196,8 @@ def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, b
         raise RunError(f"training failed: {errors[0]}") from errors[0]
     if (run_dir / "failure.json").exists():
         raise RunError(json.loads((run_dir / "failure.json").read_text())["reason"])
+    if (run_dir / "stopped.json").exists():
+        raise RunInterrupted(json.loads((run_dir / "stopped.json").read_text())["reason"])
     evaluation = evaluate_run(run_dir)
     summary = summarise(cfg, run_dir, evaluation, time.perf_counter() - started)
     write_json(run_dir / SUMMARY, summary)

@@ -66,10 +66,12 @@ def save_triptych(path: Path, prediction: torch.Tensor, truth: torch.Tensor, dep
     tmp.replace(path)
 
 
-def write_validation_renders(run, step: int) -> None:
+def write_validation_renders(run, step: int) -> Path:
     """During training: the first validation view (or training view when the scene has no val split)."""
     views = run.scene.splits.get("val", run.scene.train)
     table = PixelTable(views)
     rgb, depth = render_image(run.models, run.cfg.method, run.progress["phase"], run.profile, run.predictor,
                               table, 0, run.aabb, run.device)
-    save_triptych(run.run_dir / "renders" / f"step{step:07d}_{views.names[0]}.png", rgb, views.images[0], depth)
+    path = run.run_dir / "renders" / f"step{step:07d}_{views.names[0]}.png"
+    save_triptych(path, rgb, views.images[0], depth)
+    return path

@@ -1,0 +1,64 @@
+"""Service settings, read from the environment once per process. The embedded default needs none of them:
+SQLite and the artifact root live under LECO_DATA_DIR (./leco-data), and a local Ray is started."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class Settings(BaseModel):
+    model_config = ConfigDict(frozen=True)
+
+    data_dir: Path = Path("leco-data")
+    database_url: str | None = None  # default: SQLite at data_dir/leco.db
+    artifact_root: Path | None = None  # default: data_dir/artifacts (a shared volume in deployment)
+    ray_address: str | None = None  # a Ray Jobs API address (http://head:8265) submits jobs to a cluster
+    api_tokens: tuple[str, ...] = ()  # bearer tokens; none configured: /v1 is open (embedded default only)
+    max_upload_bytes: int = Field(2 * 2**30, gt=0)
+    lease_s: float = Field(60.0, gt=0)  # a running job's lease; the dispatcher renews it every lease_s / 4
+    max_attempts: int = Field(3, ge=1)  # claims of one job before an expired lease fails it
+    local_cpus: int = Field(max(2, os.cpu_count() or 2), ge=1)  # the embedded Ray's CPUs: the most workers a job gets
+    keep_checkpoints: int = Field(2, ge=1)  # checkpoint artifacts kept per job (older ones are deleted)
+
+    @property
+    def db_url(self) -> str:
+        return self.database_url or f"sqlite:///{(self.data_dir / 'leco.db').resolve()}"
+
+    @property
+    def artifacts(self) -> Path:
+        return (self.artifact_root or self.data_dir / "artifacts").resolve()
+
+    @property
+    def scenes_dir(self) -> Path:
+        return (self.data_dir / "scenes").resolve()
+
+    @property
+    def runs_dir(self) -> Path:
+        return (self.data_dir / "runs").resolve()
+
+    @property
+    def embedded(self) -> bool:
+        return self.database_url is None or self.database_url.startswith("sqlite")
+
+    @classmethod
+    def from_env(cls, **overrides) -> "Settings":
+        env = os.environ
+        values: dict = {}
+        if env.get("LECO_DATA_DIR"):
+            values["data_dir"] = Path(env["LECO_DATA_DIR"])
+        if env.get("DATABASE_URL"):
+            values["database_url"] = env["DATABASE_URL"]
+        if env.get("LECO_ARTIFACT_ROOT"):
+            values["artifact_root"] = Path(env["LECO_ARTIFACT_ROOT"])
+        if env.get("LECO_RAY_JOBS_ADDRESS"):
+            values["ray_address"] = env["LECO_RAY_JOBS_ADDRESS"]
+        if env.get("LECO_API_TOKENS"):
+            values["api_tokens"] = tuple(t.strip() for t in env["LECO_API_TOKENS"].split(",") if t.strip())
+        for key, name in (("max_upload_bytes", "LECO_MAX_UPLOAD_BYTES"), ("lease_s", "LECO_LEASE_S"),
+                          ("max_attempts", "LECO_MAX_ATTEMPTS"), ("local_cpus", "LECO_LOCAL_CPUS")):
+            if env.get(name):
+                values[key] = env[name]
+        return cls(**{**values, **overrides})

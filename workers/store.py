@@ -1,0 +1,25 @@
+"""The small interface through which a run reports to whoever launched it. The service implements it on
+its database and artifact store (service/runstore.py); a `leco train` run has none and keeps everything in
+its run directory. Only rank 0 holds one."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Protocol
+
+
+class RunStore(Protocol):
+    def resume(self, step: int) -> None:
+        """A restarted attempt continues from the checkpoint at `step`: forget metrics after it."""
+
+    def write(self, step: int, metrics: dict) -> None:
+        """One metrics record (numbers, plus 'phase'); idempotent per (phase, name, step)."""
+
+    def artifact(self, kind: str, path: Path, *, name: str, phase: str | None, step: int | None) -> None:
+        """Stores a file the run wrote (checkpoint, render, ...) under `name`; the same name again replaces it."""
+
+    def phase_started(self, phase: str) -> None: ...
+
+    def stop_reason(self) -> str | None:
+        """Why the run should stop at this step boundary (cancelled, lease lost), or None to go on.
+        Called every step: implementations keep it cheap."""
