@@ -61,9 +61,11 @@ def build_parser() -> argparse.ArgumentParser:
     minfo.add_argument("--json", action="store_true")
     minfo.set_defaults(func=model_info_command)
 
+    from service.serve_cli import add_commands as add_service_commands
     from service.train_cli import add_commands
 
     add_commands(commands)
+    add_service_commands(commands)
     return parser
 
 
@@ -72,6 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     from model.scenes.errors import SceneError
     from pydantic import ValidationError
 
+    from service.client import ClientError
+    from service.db import SchemaError
     from workers.run import RunError
 
     try:
@@ -80,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'config'}: {e['msg']}" for e in exc.errors())
         print(f"leco: error: invalid job config: {problems}", file=sys.stderr)
         return 2
-    except (SceneError, FileExistsError, FileNotFoundError, ValueError, RunError) as exc:
+    except (SceneError, FileExistsError, FileNotFoundError, ValueError, RunError, SchemaError, ClientError) as exc:
         print(f"leco: error: {exc}", file=sys.stderr)
         return 2
 

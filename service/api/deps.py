@@ -1,0 +1,31 @@
+"""What every route needs: the settings, and bearer-token auth on /v1 when tokens are configured."""
+
+from __future__ import annotations
+
+import hmac
+
+from fastapi import HTTPException, Request
+
+from service.settings import Settings
+
+
+def settings_of(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+def require_token(request: Request) -> None:
+    tokens = settings_of(request).api_tokens
+    if not tokens:
+        return
+    scheme, _, given = request.headers.get("authorization", "").partition(" ")
+    # Constant time, and every configured token is compared, so timing says nothing about which one nearly matched.
+    matched = False
+    for token in tokens:
+        matched |= hmac.compare_digest(given.strip().encode(), token.encode())
+    if scheme.lower() != "bearer" or not matched:
+        raise HTTPException(401, "missing or invalid bearer token (send 'Authorization: Bearer <token>')",
+                            headers={"WWW-Authenticate": "Bearer"})
+
+
+def not_found(what: str, ident) -> HTTPException:
+    return HTTPException(404, f"{what} {ident!r} not found")

@@ -1,0 +1,76 @@
+"""/healthz (the process answers), /readyz (the database at the right schema, and Ray), /metrics (Prometheus)."""
+
+from __future__ import annotations
+
+import time
+
+from fastapi import APIRouter, Depends, Request
+from fastapi.responses import JSONResponse, PlainTextResponse
+from sqlalchemy import func, select, text
+
+from service.api.deps import settings_of
+from service.db import check_schema, reading, redact
+from service.settings import Settings
+from service.tables import JOB_STATES, Artifact, Job
+
+router = APIRouter(tags=["health"])
+
+
+@router.get("/healthz")
+def healthz() -> dict:
+    return {"status": "ok"}
+
+
+def ray_status(settings: Settings) -> tuple[bool, str]:
+    if settings.ray_address:
+        import urllib.request
+
+        try:
+            with urllib.request.urlopen(f"{settings.ray_address.rstrip('/')}/api/version", timeout=2) as answer:
+                return answer.status == 200, f"Ray Jobs API at {settings.ray_address}"
+        except OSError as error:
+            return False, f"Ray Jobs API at {settings.ray_address} unreachable: {error}"
+    import ray
+
+    return (ray.is_initialized(), "local Ray running" if ray.is_initialized() else "local Ray not started")
+
+
+@router.get("/readyz")
+def readyz(settings: Settings = Depends(settings_of)):
+    checks, ready = {}, True
+    try:
+        with reading(settings.db_url) as session:
+            session.execute(text("SELECT 1"))
+        check_schema(settings.db_url)
+        checks["database"] = f"ok ({redact(settings.db_url)})"
+    except Exception as error:
+        ready, checks["database"] = False, f"{type(error).__name__}: {error}".splitlines()[0]
+    ok, message = ray_status(settings)
+    ready &= ok
+    checks["ray"] = message
+    return JSONResponse({"ready": ready, "checks": checks}, 200 if ready else 503)
+
+
+@router.get("/metrics", response_class=PlainTextResponse)
+def prometheus(request: Request, settings: Settings = Depends(settings_of)) -> str:
+    lines = []
+    with reading(settings.db_url) as session:
+        counts = dict(session.execute(select(Job.state, func.count()).group_by(Job.state)).all())
+        artifacts, size = session.execute(select(func.count(), func.coalesce(func.sum(Artifact.size), 0))).one()
+    lines += ["# HELP leco_jobs Jobs by state.", "# TYPE leco_jobs gauge"]
+    lines += [f'leco_jobs{{state="{s}"}} {counts.get(s, 0)}' for s in JOB_STATES]
+    lines += ["# HELP leco_artifacts Stored artifacts.", "# TYPE leco_artifacts gauge", f"leco_artifacts {artifacts}",
+              "# HELP leco_artifact_bytes Bytes referenced by artifact rows.", "# TYPE leco_artifact_bytes gauge",
+              f"leco_artifact_bytes {size}"]
+    stats = request.app.state.http_stats
+    lines += ["# HELP leco_http_requests_total HTTP requests by route and status.",
+              "# TYPE leco_http_requests_total counter"]
+    lines += [f'leco_http_requests_total{{method="{m}",route="{r}",status="{s}"}} {n}'
+              for (m, r, s), n in sorted(stats["count"].items())]
+    lines += ["# HELP leco_http_request_seconds Time spent answering requests.",
+              "# TYPE leco_http_request_seconds summary",
+              f"leco_http_request_seconds_sum {stats['seconds']:.6f}",
+              f"leco_http_request_seconds_count {sum(stats['count'].values())}",
+              "# HELP leco_uptime_seconds Seconds since the API started.", "# TYPE leco_uptime_seconds gauge",
+              f"leco_uptime_seconds {time.monotonic() - stats['started']:.1f}"]
+    return "\n".join(lines) + "\n"

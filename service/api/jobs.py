@@ -1,0 +1,224 @@
+"""/v1/jobs: submit (with Idempotency-Key), list, show, cancel, delete; per-job metrics."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from datetime import timedelta
+
+import numpy as np
+from fastapi import APIRouter, Depends, Header, HTTPException, Query
+from fastapi.encoders import jsonable_encoder
+from fastapi.responses import JSONResponse
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
+
+from service import queue
+from service.api.deps import not_found, settings_of
+from service.api.scenes import find_scene
+from service.api.schemas import JobList, JobOut, JobRequest, MetricsOut, PhaseOut, Point, Series
+from service.db import reading, transaction
+from service.execute import run_dir_for
+from service.settings import Settings
+from service.store import ArtifactStore
+from service.tables import JOB_STATES, TERMINAL, IdempotencyKey, Job, JobPhase, Metric, utcnow
+from workers.config import TrainConfig
+
+router = APIRouter(prefix="/jobs", tags=["jobs"])
+STALE_IN_FLIGHT = timedelta(minutes=5)  # an in-flight key older than this belonged to a request that died
+
+
+def job_out(session, job: Job) -> JobOut:
+    phases = session.scalars(select(JobPhase).where(JobPhase.job_id == job.id).order_by(JobPhase.position)).all()
+    latest = select(Metric.phase, func.max(Metric.step).label("step")).where(Metric.job_id == job.id) \
+        .group_by(Metric.phase).subquery()
+    rows = session.execute(select(Metric.phase, Metric.name, Metric.value).join(
+        latest, (Metric.phase == latest.c.phase) & (Metric.step == latest.c.step)).where(Metric.job_id == job.id)).all()
+    metrics: dict[str, dict[str, float]] = {}
+    for phase, name, value in rows:
+        metrics.setdefault(phase, {})[name] = value
+    eta = None
+    if job.state == "running" and job.rays_per_s:
+        batch = TrainConfig.model_validate(job.config).global_batch
+        eta = max(job.total_steps - job.step, 0) * batch / job.rays_per_s
+    percent = 100.0 if job.state == "succeeded" else round(100.0 * job.step / max(job.total_steps, 1), 2)
+    return JobOut(id=job.id, scene_id=job.scene_id, state=job.state, method=job.method, profile=job.profile,
+                  config=job.config, phase=job.phase, step=job.step, total_steps=job.total_steps, percent=percent,
+                  eta_s=eta, rays_per_s=job.rays_per_s, attempts=job.attempts, cancel_requested=job.cancel_requested,
+                  error=job.error, submitted_at=job.submitted_at, started_at=job.started_at,
+                  finished_at=job.finished_at, latest_metrics=metrics,
+                  phases=[PhaseOut.model_validate(p, from_attributes=True) for p in phases])
+
+
+def check_resources(cfg: TrainConfig, settings: Settings) -> None:
+    if settings.ray_address:
+        return  # the cluster decides; a job that does not fit waits in Ray's queue
+    problems = []
+    if cfg.workers > settings.local_cpus:
+        problems.append({"loc": ["body", "workers"], "type": "value_error",
+                         "msg": f"{cfg.workers} workers asked for; this service's local Ray has {settings.local_cpus} CPUs"})
+    if cfg.use_gpu:
+        import torch
+
+        if not torch.cuda.is_available():
+            problems.append({"loc": ["body", "use_gpu"], "type": "value_error",
+                             "msg": "use_gpu asked for, but this service's local Ray has no GPU"})
+    if problems:
+        raise HTTPException(422, problems)
+
+
+def create_job(body: JobRequest, settings: Settings) -> tuple[int, dict]:
+    cfg = body.train_config()
+    check_resources(cfg, settings)
+    with transaction(settings.db_url) as session:
+        scene = find_scene(session, body.scene)
+        if scene is None:
+            raise not_found("scene", body.scene)
+        if scene.state == "failed":
+            raise HTTPException(409, f"scene {scene.name!r} failed to generate ({scene.error}); it cannot be trained")
+        job = queue.submit(session, scene.id, cfg)
+        session.flush()
+        return 201, jsonable_encoder(job_out(session, job))
+
+
+@router.post("", status_code=201, response_model=JobOut, responses={
+    409: {"description": "a request with this Idempotency-Key is still in flight"},
+    422: {"description": "invalid body, or the Idempotency-Key was used with another body"}})
+def submit(body: JobRequest, settings: Settings = Depends(settings_of),
+           idempotency_key: str | None = Header(None, max_length=255)):
+    if idempotency_key is None:
+        status, payload = create_job_or_error(body, settings)
+        return JSONResponse(payload, status)
+    digest = hashlib.sha256(json.dumps(body.model_dump(mode="json"), sort_keys=True).encode()).hexdigest()
+    replay = begin_idempotent(settings, idempotency_key, digest)
+    if replay is not None:
+        return replay
+    try:
+        status, payload = create_job_or_error(body, settings)
+    except BaseException:
+        with transaction(settings.db_url) as session:  # an unexpected failure: let the client retry with this key
+            session.execute(IdempotencyKey.__table__.delete().where(IdempotencyKey.key == idempotency_key))
+        raise
+    with transaction(settings.db_url) as session:
+        row = session.get(IdempotencyKey, idempotency_key)
+        row.state, row.status_code, row.response = "done", status, payload
+    return JSONResponse(payload, status)
+
+
+def create_job_or_error(body: JobRequest, settings: Settings) -> tuple[int, dict]:
+    try:
+        return create_job(body, settings)
+    except HTTPException as error:
+        return error.status_code, {"detail": error.detail}
+
+
+def begin_idempotent(settings: Settings, key: str, digest: str) -> JSONResponse | None:
+    """Records the key as in flight (None: go on), or answers for it: the stored response, 422 for another
+    body, 409 while the first request is still in flight."""
+    try:
+        with transaction(settings.db_url) as session:
+            row = session.get(IdempotencyKey, key)
+            if row is not None and row.state == "in_flight" and utcnow() - row.created_at > STALE_IN_FLIGHT:
+                session.delete(row)
+                session.flush()
+                row = None
+            if row is None:
+                session.add(IdempotencyKey(key=key, request_hash=digest, state="in_flight", created_at=utcnow()))
+                return None
+    except IntegrityError:  # another request inserted the key between our read and our write
+        with reading(settings.db_url) as session:
+            row = session.get(IdempotencyKey, key)
+    if row.request_hash != digest:
+        return JSONResponse({"detail": [{"loc": ["header", "Idempotency-Key"], "type": "value_error",
+                                         "msg": "this Idempotency-Key was used with a different request body"}]}, 422)
+    if row.state == "in_flight":
+        return JSONResponse({"detail": "a request with this Idempotency-Key is still in flight; retry later"}, 409)
+    return JSONResponse(row.response, row.status_code, headers={"Idempotent-Replayed": "true"})
+
+
+@router.get("", response_model=JobList)
+def list_jobs(state: str | None = Query(None, pattern="^(" + "|".join(JOB_STATES) + ")$"),
+              scene: str | None = None, method: str | None = Query(None, pattern="^(leco|switch|grid)$"),
+              limit: int = Query(50, ge=1, le=200), offset: int = Query(0, ge=0),
+              settings: Settings = Depends(settings_of)) -> JobList:
+    with reading(settings.db_url) as session:
+        query = select(Job)
+        if state:
+            query = query.where(Job.state == state)
+        if method:
+            query = query.where(Job.method == method)
+        if scene is not None:
+            row = find_scene(session, scene)
+            query = query.where(Job.scene_id == (row.id if row else -1))
+        total = session.scalar(select(func.count()).select_from(query.subquery()))
+        jobs = session.scalars(query.order_by(Job.id.desc()).limit(limit).offset(offset)).all()
+        items = [job_out(session, j) for j in jobs]
+    return JobList(items=items, total=total, limit=limit, offset=offset,
+                   next_offset=offset + limit if offset + limit < total else None)
+
+
+def get_job(session, job_id: int) -> Job:
+    job = session.get(Job, job_id)
+    if job is None:
+        raise not_found("job", job_id)
+    return job
+
+
+@router.get("/{job_id}", response_model=JobOut)
+def show_job(job_id: int, settings: Settings = Depends(settings_of)) -> JobOut:
+    with reading(settings.db_url) as session:
+        return job_out(session, get_job(session, job_id))
+
+
+@router.post("/{job_id}/cancel", response_model=JobOut, responses={409: {"description": "the job already ended"}})
+def cancel_job(job_id: int, settings: Settings = Depends(settings_of)) -> JobOut:
+    state = queue.cancel(settings.db_url, job_id)
+    if state is None:
+        raise not_found("job", job_id)
+    if state in ("succeeded", "failed"):
+        raise HTTPException(409, f"job {job_id} already {state}; there is nothing to cancel")
+    return show_job(job_id, settings)
+
+
+@router.delete("/{job_id}", status_code=204, responses={409: {"description": "the job has not ended"}})
+def delete_job(job_id: int, settings: Settings = Depends(settings_of)) -> None:
+    with reading(settings.db_url) as session:
+        job = get_job(session, job_id)
+        if job.state not in TERMINAL:
+            raise HTTPException(409, f"job {job_id} is {job.state}: cancel it and wait for it to stop first")
+    ArtifactStore(settings.db_url, settings.artifacts).delete_job(job_id)
+    with transaction(settings.db_url) as session:
+        session.execute(Job.__table__.delete().where(Job.id == job_id, Job.state.in_(TERMINAL)))
+    shutil.rmtree(run_dir_for(settings, job_id), ignore_errors=True)
+
+
+def downsample(points: list, max_points: int) -> list:
+    """Evenly spaced points, always keeping the first and the last."""
+    if len(points) <= max_points:
+        return points
+    if max_points == 1:
+        return [points[-1]]
+    index = np.unique(np.round(np.linspace(0, len(points) - 1, max_points)).astype(int))
+    return [points[i] for i in index]
+
+
+@router.get("/{job_id}/metrics", response_model=MetricsOut)
+def metrics(job_id: int, phase: str | None = None, name: list[str] | None = Query(None),
+            after_step: int = Query(-1, ge=-1), max_points: int = Query(1000, ge=1, le=100_000),
+            settings: Settings = Depends(settings_of)) -> MetricsOut:
+    with reading(settings.db_url) as session:
+        get_job(session, job_id)
+        query = select(Metric.phase, Metric.name, Metric.step, Metric.value, Metric.wall_time_s) \
+            .where(Metric.job_id == job_id, Metric.step > after_step)
+        if phase:
+            query = query.where(Metric.phase == phase)
+        if name:
+            query = query.where(Metric.name.in_(name))
+        rows = session.execute(query.order_by(Metric.phase, Metric.name, Metric.step)).all()
+    grouped: dict[tuple[str, str], list[Point]] = {}
+    for p, n, step, value, wall in rows:
+        grouped.setdefault((p, n), []).append(Point(step=step, value=value, wall_time_s=wall))
+    return MetricsOut(job_id=job_id, series=[
+        Series(phase=p, name=n, points=downsample(points, max_points), total_points=len(points))
+        for (p, n), points in grouped.items()])

@@ -1,0 +1,108 @@
+"""/v1/scenes: register a synthetic scene or upload an archive; list, show, delete."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+from fastapi import APIRouter, Depends, HTTPException, Query, Request
+from sqlalchemy import func, select
+
+from service import scenes as registry
+from service.api.deps import not_found, settings_of
+from service.api.schemas import NAME, SceneOut, SyntheticSceneRequest
+from service.db import reading, transaction
+from service.settings import Settings
+from service.tables import Job, Scene
+
+router = APIRouter(prefix="/scenes", tags=["scenes"])
+
+
+def scene_out(row: Scene) -> SceneOut:
+    info = row.info or {}
+    return SceneOut(id=row.id, name=row.name, source=row.source, state=row.state, format=row.format,
+                    cameras=info.get("cameras"), bounds=info.get("bounds"), generator=row.generator, error=row.error,
+                    created_at=row.created_at)
+
+
+def find_scene(session, ident: int | str) -> Scene | None:
+    if isinstance(ident, int) or str(ident).isdigit():
+        return session.get(Scene, int(ident))
+    return session.scalars(select(Scene).where(Scene.name == str(ident))).first()
+
+
+@router.post("/synthetic", status_code=202, response_model=SceneOut,
+             summary="Register a synthetic city; it is generated in the background (state 'generating' -> 'ready')")
+def create_synthetic(body: SyntheticSceneRequest, settings: Settings = Depends(settings_of)) -> SceneOut:
+    name = body.name or f"{body.preset}-{body.seed}"
+    try:
+        scene_id = registry.register_synthetic(settings, name, body.preset, body.seed)
+    except registry.SceneConflict as error:
+        raise HTTPException(409, str(error))
+    with reading(settings.db_url) as session:
+        return scene_out(session.get(Scene, scene_id))
+
+
+@router.post("/upload", status_code=201, response_model=SceneOut,
+             summary="Upload a dataset archive (tar or zip of a Mega-NeRF, nerfstudio, Blender or LLFF folder)",
+             openapi_extra={"requestBody": {"required": True, "content": {
+                 "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}})
+async def upload(request: Request, name: str = Query(..., pattern=NAME),
+                 settings: Settings = Depends(settings_of)) -> SceneOut:
+    from starlette.concurrency import run_in_threadpool
+
+    declared = request.headers.get("content-length")
+    if declared and declared.isdigit() and int(declared) > settings.max_upload_bytes:
+        raise HTTPException(413, f"upload is {int(declared)} bytes; the limit is {settings.max_upload_bytes}")
+    settings.scenes_dir.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile(dir=settings.scenes_dir, prefix=".archive-") as tmp:
+        size = 0
+        async for chunk in request.stream():
+            size += len(chunk)
+            if size > settings.max_upload_bytes:
+                raise HTTPException(413, f"upload exceeds the limit of {settings.max_upload_bytes} bytes")
+            tmp.write(chunk)
+        tmp.flush()
+        if size == 0:
+            raise HTTPException(422, "empty upload: send the archive's bytes as the request body")
+        try:
+            scene_id = await run_in_threadpool(registry.register_upload, settings, name, Path(tmp.name))
+        except registry.SceneConflict as error:
+            raise HTTPException(409, str(error))
+        except ValueError as error:  # ArchiveError and SceneError: the user's archive, named and explained
+            raise HTTPException(422, f"archive refused: {error}".replace(str(settings.scenes_dir), "<upload>"))
+    with reading(settings.db_url) as session:
+        return scene_out(session.get(Scene, scene_id))
+
+
+@router.get("", response_model=list[SceneOut])
+def list_scenes(settings: Settings = Depends(settings_of)) -> list[SceneOut]:
+    with reading(settings.db_url) as session:
+        return [scene_out(r) for r in session.scalars(select(Scene).order_by(Scene.id))]
+
+
+@router.get("/{scene}", response_model=SceneOut)
+def show_scene(scene: str, settings: Settings = Depends(settings_of)) -> SceneOut:
+    with reading(settings.db_url) as session:
+        row = find_scene(session, scene)
+        if row is None:
+            raise not_found("scene", scene)
+        return scene_out(row)
+
+
+@router.delete("/{scene}", status_code=204)
+def delete_scene(scene: str, settings: Settings = Depends(settings_of)) -> None:
+    import shutil
+
+    with transaction(settings.db_url) as session:
+        row = find_scene(session, scene)
+        if row is None:
+            raise not_found("scene", scene)
+        if row.state == "generating":
+            raise HTTPException(409, f"scene {row.name!r} is still being generated; delete it when it is ready")
+        jobs = session.scalar(select(func.count()).select_from(Job).where(Job.scene_id == row.id))
+        if jobs:
+            raise HTTPException(409, f"scene {row.name!r} is used by {jobs} job(s); delete those jobs first")
+        path = Path(row.path)
+        session.delete(row)
+    shutil.rmtree(path, ignore_errors=True)

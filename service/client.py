@@ -1,0 +1,165 @@
+"""`leco submit`: a client of the HTTP API. It finds or registers the scene, submits the job with an
+Idempotency-Key (a retried submit never makes a second job), follows it with a progress line, and prints the
+summary and where the artifacts are."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+import uuid
+from pathlib import Path
+
+
+class ClientError(RuntimeError):
+    pass
+
+
+class Api:
+    def __init__(self, url: str, token: str | None, timeout: float = 30.0):
+        import httpx
+
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self.url = url.rstrip("/")
+        self.http = httpx.Client(base_url=self.url, headers=headers, timeout=timeout)
+
+    def call(self, method: str, path: str, ok=(200, 201, 202, 204), **kwargs):
+        import httpx
+
+        for attempt in range(5):  # the service restarting or briefly busy: retry (submits carry an Idempotency-Key)
+            try:
+                response = self.http.request(method, path, **kwargs)
+                break
+            except httpx.TransportError as error:
+                if attempt == 4:
+                    raise ClientError(f"cannot reach the service at {self.url}: {error}") from error
+                time.sleep(1 + attempt)
+        if response.status_code not in ok:
+            try:
+                detail = response.json().get("detail")
+            except ValueError:
+                detail = response.text
+            raise ClientError(f"{method} {path}: HTTP {response.status_code}: {detail}")
+        return response
+
+
+def default_token(data_dir: str | None) -> str | None:
+    from service.serve_cli import TOKEN_FILE
+
+    if os.environ.get("LECO_TOKEN"):
+        return os.environ["LECO_TOKEN"]
+    path = Path(data_dir or os.environ.get("LECO_DATA_DIR", "leco-data")) / TOKEN_FILE
+    return path.read_text().strip() if path.is_file() else None
+
+
+def ensure_scene(api: Api, args) -> dict:
+    if args.upload:
+        name = args.name or Path(args.upload).name.split(".")[0]
+        with open(args.upload, "rb") as f:
+            return api.call("POST", "/v1/scenes/upload", params={"name": name}, content=f.read(),
+                            headers={"Content-Type": "application/octet-stream"}).json()
+    if args.synthetic:
+        preset, _, seed = args.synthetic.partition(":")
+        name = args.name or f"{preset}-{seed or 0}"
+        found = api.call("GET", f"/v1/scenes/{name}", ok=(200, 404))
+        if found.status_code == 200:
+            return found.json()
+        return api.call("POST", "/v1/scenes/synthetic",
+                        json={"name": name, "preset": preset, "seed": int(seed or 0)}).json()
+    return api.call("GET", f"/v1/scenes/{args.scene}").json()
+
+
+def wait_ready(api: Api, scene: dict, stream) -> dict:
+    while scene["state"] == "generating":
+        stream.write(f"\rgenerating scene {scene['name']} ...")
+        stream.flush()
+        time.sleep(2)
+        scene = api.call("GET", f"/v1/scenes/{scene['id']}").json()
+    if scene["state"] != "ready":
+        raise ClientError(f"scene {scene['name']} is {scene['state']}: {scene.get('error')}")
+    return scene
+
+
+def progress_line(job: dict) -> str:
+    metrics = (job.get("latest_metrics") or {}).get(job.get("phase") or "", {})
+    parts = [f"job {job['id']} {job['state']}", f"[{job.get('phase') or '-'}] step {job['step']}/{job['total_steps']}",
+             f"{job['percent']:.0f}%"]
+    if job.get("rays_per_s"):
+        parts.append(f"{job['rays_per_s']:,.0f} rays/s")
+    if metrics.get("psnr") is not None:
+        parts.append(f"PSNR {metrics['psnr']:.2f}")
+    if job.get("eta_s") is not None:
+        parts.append(f"ETA {int(job['eta_s'] // 60)}m{int(job['eta_s'] % 60):02d}s")
+    return " | ".join(parts)
+
+
+def follow(api: Api, job_id: int, stream, poll_s: float = 2.0) -> dict:
+    last = ""
+    while True:
+        job = api.call("GET", f"/v1/jobs/{job_id}").json()
+        line = progress_line(job)
+        if line != last:
+            stream.write(("\r" + line.ljust(len(last))) if stream.isatty() else line + "\n")
+            stream.flush()
+            last = line
+        if job["state"] in ("succeeded", "failed", "cancelled"):
+            if stream.isatty():
+                stream.write("\n")
+            return job
+        time.sleep(poll_s)
+
+
+def submit_command(args: argparse.Namespace) -> int:
+    from workers.config import parse_overrides
+
+    api = Api(args.url, args.token or default_token(args.data_dir))
+    stream = sys.stderr
+    scene = wait_ready(api, ensure_scene(api, args), stream)
+    body = {"scene": scene["id"], "method": args.method, "profile": args.profile,
+            "overrides": parse_overrides(args.set or []), "workers": args.workers, "use_gpu": args.gpu,
+            "budget_min": args.budget_min, "seed": args.seed}
+    job = api.call("POST", "/v1/jobs", json=body, headers={"Idempotency-Key": str(uuid.uuid4())}).json()
+    print(f"submitted job {job['id']} ({args.method}, profile {args.profile}) on scene {scene['name']}: "
+          f"{api.url}/v1/jobs/{job['id']}", file=stream, flush=True)
+    if args.no_follow:
+        print(json.dumps({"job": job["id"], "state": job["state"]}))
+        return 0
+    try:
+        job = follow(api, job["id"], stream)
+    except KeyboardInterrupt:
+        print(f"\nstopped following; job {job['id']} goes on (cancel: POST {api.url}/v1/jobs/{job['id']}/cancel)",
+              file=stream)
+        return 130
+    artifacts = api.call("GET", f"/v1/jobs/{job['id']}/artifacts").json()
+    result = {"job": job["id"], "state": job["state"], "error": job["error"],
+              "artifacts": [f"{api.url}{a['url']}  {a['kind']:15s} {a['name']} ({a['size']:,} bytes)" for a in artifacts]}
+    summary = next((a for a in artifacts if a["name"] == "summary.json"), None)
+    if summary is not None:
+        data = api.call("GET", summary["url"]).json()
+        result["summary"] = {k: data.get(k) for k in ("method", "profile", "wall_time_s", "steps", "rays_per_s",
+                                                     "samples_per_ray", "occupancy", "val", "peak_memory_mb")}
+    print(json.dumps(result, indent=2))
+    return 0 if job["state"] == "succeeded" else 1
+
+
+def add_submit(commands) -> None:
+    sub = commands.add_parser("submit", help="submit a job to a running service and follow it to the end")
+    sub.add_argument("--url", default=os.environ.get("LECO_URL", "http://127.0.0.1:8765"))
+    sub.add_argument("--token", help="bearer token (default: $LECO_TOKEN, or the api-token file of --data-dir)")
+    sub.add_argument("--data-dir", help="where `leco serve` keeps its token (default: $LECO_DATA_DIR or ./leco-data)")
+    where = sub.add_mutually_exclusive_group(required=True)
+    where.add_argument("--scene", help="a registered scene's id or name")
+    where.add_argument("--synthetic", metavar="PRESET[:SEED]", help="a synthetic city, registered if new (e.g. city:0)")
+    where.add_argument("--upload", metavar="ARCHIVE", help="a tar or zip of a scene folder to register")
+    sub.add_argument("--name", help="name for a new scene")
+    sub.add_argument("--method", default="leco", choices=["leco", "switch", "grid"])
+    sub.add_argument("--profile", default="cpu", help="smoke | cpu | paper (default: cpu)")
+    sub.add_argument("--workers", type=int, default=1)
+    sub.add_argument("--gpu", action="store_true")
+    sub.add_argument("--budget-min", type=float, default=None)
+    sub.add_argument("--seed", type=int, default=0)
+    sub.add_argument("--set", action="append", metavar="KEY=VALUE", help="profile override (repeatable)")
+    sub.add_argument("--no-follow", action="store_true", help="submit and return")
+    sub.set_defaults(func=submit_command)

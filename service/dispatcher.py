@@ -1,0 +1,135 @@
+"""The dispatcher: claims queued jobs under a lease, keeps the lease alive with heartbeats while the job
+runs, and puts jobs whose lease expired (a dead dispatcher or worker) back in the queue.
+
+Two ways to run a claimed job:
+- embedded (no Ray Jobs address): `execute` in a thread of this process, on the local Ray this process
+  started (`ensure_ray`, called from the main thread);
+- cluster (`LECO_RAY_JOBS_ADDRESS`, e.g. http://ray-head:8265): a Ray job `python -m service.execute ...`
+  submitted through the Ray Jobs API with the deterministic submission id `leco-job-<id>-attempt-<n>`; the
+  dispatcher follows it and heartbeats. A re-claimed job first stops an earlier attempt still running there.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+import uuid
+from concurrent.futures import Future, ThreadPoolExecutor
+
+from service import queue
+from service.execute import execute
+from service.settings import Settings
+
+log = logging.getLogger("leco.dispatcher")
+
+RAY_TERMINAL = ("SUCCEEDED", "FAILED", "STOPPED")
+
+
+def submission_id(job_id: int, attempt: int) -> str:
+    return f"leco-job-{job_id}-attempt-{attempt}"
+
+
+class Dispatcher:
+    def __init__(self, settings: Settings, slots: int = 1, poll_s: float = 1.0, owner: str | None = None):
+        self.settings, self.slots, self.poll_s = settings, slots, poll_s
+        self.owner = owner or f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
+        self.pool = ThreadPoolExecutor(max_workers=slots, thread_name_prefix="leco-job")
+        self.running: dict[int, Future] = {}
+        self.stopping = threading.Event()
+
+    # ----- the loop ----------------------------------------------------------------------------------
+    def tick(self) -> int | None:
+        """One round: reap expired leases, then claim a job if a slot is free. Returns the claimed job id."""
+        for job_id, state in queue.requeue_expired(self.settings.db_url, self.settings.max_attempts):
+            log.warning("job %s: lease expired, now %s", job_id, state)
+        self.running = {j: f for j, f in self.running.items() if not f.done()}
+        if len(self.running) >= self.slots or self.stopping.is_set():
+            return None
+        claimed = queue.claim(self.settings.db_url, self.owner, self.settings.lease_s)
+        if claimed is None:
+            return None
+        job_id, attempt = claimed
+        log.info("job %s: claimed (attempt %s) by %s", job_id, attempt, self.owner)
+        self.running[job_id] = self.pool.submit(self.run_job, job_id, attempt)
+        return job_id
+
+    def run_forever(self) -> None:
+        while not self.stopping.is_set():
+            try:
+                claimed = self.tick()
+            except Exception:  # a database hiccup must not end the dispatcher: log, wait, try again
+                log.exception("dispatcher tick failed; retrying")
+                claimed = None
+            if claimed is None:
+                self.stopping.wait(self.poll_s)
+
+    def stop(self, wait: bool = True) -> None:
+        self.stopping.set()
+        self.pool.shutdown(wait=wait)
+
+    # ----- one job -----------------------------------------------------------------------------------
+    def run_job(self, job_id: int, attempt: int) -> str:
+        done = threading.Event()
+        beat = threading.Thread(target=self._heartbeat, args=(job_id, attempt, done), daemon=True,
+                                name=f"leco-lease-{job_id}")
+        beat.start()
+        try:
+            if self.settings.ray_address:
+                state = self._run_on_cluster(job_id, attempt, done)
+            else:
+                state = execute(self.settings, job_id, attempt)
+            log.info("job %s attempt %s: %s", job_id, attempt, state)
+            return state
+        except Exception as error:
+            log.exception("job %s attempt %s: the dispatcher could not run it", job_id, attempt)
+            queue.finish(self.settings.db_url, job_id, attempt, "failed", f"{type(error).__name__}: {error}")
+            return "failed"
+        finally:
+            done.set()
+            beat.join()
+
+    def _heartbeat(self, job_id: int, attempt: int, done: threading.Event) -> None:
+        every = self.settings.lease_s / 4
+        while not done.wait(every):
+            try:
+                if not queue.heartbeat(self.settings.db_url, job_id, attempt, self.owner, self.settings.lease_s):
+                    log.warning("job %s attempt %s: lease no longer ours", job_id, attempt)
+                    return  # the run sees it at its next step boundary (DatabaseRunStore.stop_reason)
+            except Exception:  # the database is briefly away: keep trying until the lease runs out
+                log.exception("job %s: heartbeat failed", job_id)
+
+    def _run_on_cluster(self, job_id: int, attempt: int, done: threading.Event) -> str:
+        from ray.job_submission import JobStatus, JobSubmissionClient
+
+        client = JobSubmissionClient(self.settings.ray_address)
+        for earlier in range(1, attempt):  # an earlier attempt may still be running if only its dispatcher died
+            try:
+                if client.get_job_status(submission_id(job_id, earlier)) not in RAY_TERMINAL:
+                    client.stop_job(submission_id(job_id, earlier))
+                    self._wait_terminal(client, submission_id(job_id, earlier), timeout_s=120)
+            except RuntimeError:
+                pass  # never submitted
+        sid = submission_id(job_id, attempt)
+        env = {k: v for k, v in os.environ.items() if k in ("DATABASE_URL", "LECO_DATA_DIR", "LECO_ARTIFACT_ROOT",
+                                                             "LECO_BACKEND", "RAY_AUTH_MODE")}
+        env["LECO_RAY_JOBS_ADDRESS"] = ""  # inside the Ray job, train on the cluster it runs on
+        client.submit_job(entrypoint=f"python -m service.execute --job-id {job_id} --attempt {attempt}",
+                          submission_id=sid, runtime_env={"env_vars": env})
+        status = self._wait_terminal(client, sid, timeout_s=None)
+        if status != JobStatus.SUCCEEDED:
+            logs = client.get_job_logs(sid)[-2000:]
+            queue.finish(self.settings.db_url, job_id, attempt, "failed",
+                         f"Ray job {sid} ended {status}: {logs.strip().splitlines()[-1] if logs.strip() else ''}")
+            return "failed"
+        return "succeeded"
+
+    def _wait_terminal(self, client, sid: str, timeout_s: float | None):
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            status = client.get_job_status(sid)
+            if status in RAY_TERMINAL or (deadline is not None and time.monotonic() > deadline):
+                return status
+            time.sleep(self.poll_s)

@@ -1,0 +1,90 @@
+"""The service's side of workers.store.RunStore: a run's metrics go to the database (one row per
+(job, phase, metric, step), upserted), its files to the artifact store, and every step boundary asks the
+database whether the job was cancelled or its lease passed to another attempt (fencing by attempt number).
+
+It holds only strings and numbers, so Ray pickles it to the workers; each process opens its own engine."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from sqlalchemy import delete, select, update
+from sqlalchemy.dialects import postgresql, sqlite
+
+from service import queue
+from service.db import reading, transaction
+from service.store import ArtifactStore
+from service.tables import Job, JobPhase, Metric
+
+STOP_CHECK_S = 1.0  # how often a step boundary really asks the database
+
+
+@dataclass
+class DatabaseRunStore:
+    db_url: str
+    artifact_root: str
+    job_id: int
+    attempt: int
+    keep_checkpoints: int = 2
+    _checked_at: float = field(default=0.0, repr=False)
+    _reason: str | None = field(default=None, repr=False)
+
+    @property
+    def artifacts(self) -> ArtifactStore:
+        return ArtifactStore(self.db_url, Path(self.artifact_root))
+
+    def resume(self, step: int) -> None:
+        with transaction(self.db_url) as session:
+            session.execute(delete(Metric).where(Metric.job_id == self.job_id, Metric.step > step))
+
+    def write(self, step: int, metrics: dict) -> None:
+        phase = str(metrics.get("phase", "main"))
+        wall = metrics.get("wall_time_s")
+        rows = [{"job_id": self.job_id, "phase": phase, "name": name, "step": step, "value": float(value),
+                 "wall_time_s": wall}
+                for name, value in metrics.items()
+                if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)]
+        with transaction(self.db_url) as session:
+            if rows:
+                dialect = postgresql if session.get_bind().dialect.name == "postgresql" else sqlite
+                insert = dialect.insert(Metric).values(rows)
+                session.execute(insert.on_conflict_do_update(
+                    index_elements=["job_id", "phase", "name", "step"],
+                    set_={"value": insert.excluded.value, "wall_time_s": insert.excluded.wall_time_s}))
+            # Progress for `GET /v1/jobs/{id}`, only while this attempt holds the job.
+            session.execute(update(Job).where(Job.id == self.job_id, Job.attempts == self.attempt,
+                                              Job.state == "running")
+                            .values(phase=phase, step=step, rays_per_s=metrics.get("rays_per_s")),
+                            execution_options={"synchronize_session": False})
+            if "phase_step" in metrics:
+                session.execute(update(JobPhase).where(JobPhase.job_id == self.job_id, JobPhase.name == phase)
+                                .values(step=int(metrics["phase_step"])),
+                                execution_options={"synchronize_session": False})
+
+    def artifact(self, kind: str, path: Path, *, name: str, phase: str | None, step: int | None) -> None:
+        store = self.artifacts
+        store.put(self.job_id, kind, name, Path(path), phase=phase, step=step)
+        if kind == "checkpoint":
+            store.prune(self.job_id, "checkpoint", self.keep_checkpoints)
+
+    def phase_started(self, phase: str) -> None:
+        queue.phase_started(self.db_url, self.job_id, self.attempt, phase)
+
+    def stop_reason(self) -> str | None:
+        now = time.monotonic()
+        if self._reason is None and now - self._checked_at >= STOP_CHECK_S:
+            self._checked_at = now
+            with reading(self.db_url) as session:
+                row = session.execute(select(Job.state, Job.attempts, Job.cancel_requested)
+                                      .where(Job.id == self.job_id)).first()
+            if row is None:
+                self._reason = f"job {self.job_id} was deleted"
+            elif row.cancel_requested:
+                self._reason = "cancelled by the user"
+            elif row.state != "running" or row.attempts != self.attempt:
+                self._reason = (f"attempt {self.attempt} no longer holds job {self.job_id} "
+                                f"(state {row.state}, attempt {row.attempts}): its lease expired")
+        return self._reason

@@ -1,0 +1,129 @@
+"""`leco serve` (API + dispatcher + local Ray), `leco dispatch` (dispatcher only), `leco db upgrade`."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import secrets
+import sys
+import threading
+from pathlib import Path
+
+TOKEN_FILE = "api-token"
+
+
+def settings_from(args: argparse.Namespace, **overrides):
+    from service.settings import Settings
+
+    if getattr(args, "data_dir", None):
+        overrides["data_dir"] = Path(args.data_dir)
+    return Settings.from_env(**overrides)
+
+
+def db_upgrade(args: argparse.Namespace) -> int:
+    from service.db import redact, upgrade
+
+    settings = settings_from(args)
+    before, after = upgrade(settings.db_url)
+    print(f"database {redact(settings.db_url)}: {before or 'empty'} -> {after}")
+    return 0
+
+
+def prepare(settings, upgrade_embedded: bool) -> None:
+    """The embedded default migrates for the user; any other database must already be at the schema."""
+    from service.db import check_schema, upgrade
+
+    if upgrade_embedded and settings.embedded and settings.database_url is None:
+        upgrade(settings.db_url)
+    check_schema(settings.db_url)
+
+
+def start_ray(settings) -> None:
+    if settings.ray_address or settings.backend != "ray":
+        return
+    from workers.run import ensure_ray
+
+    ensure_ray(settings.local_cpus)  # here, in the main thread: Ray installs signal handlers
+
+
+def serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from service.api.app import create_app
+    from service.dispatcher import Dispatcher
+    from service.scenes import resume_generation
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    logging.getLogger("alembic").setLevel(logging.WARNING)
+    overrides = {}
+    token = None
+    if not args.no_auth and not os.environ.get("LECO_API_TOKENS"):
+        token = secrets.token_urlsafe(24)
+        overrides["api_tokens"] = (token,)
+    settings = settings_from(args, **overrides)
+    prepare(settings, upgrade_embedded=True)
+    if token:
+        settings.data_dir.mkdir(parents=True, exist_ok=True)
+        path = settings.data_dir / TOKEN_FILE
+        path.write_text(token)
+        path.chmod(0o600)
+    start_ray(settings)
+    app = create_app(settings)
+    resume_generation(settings)
+    dispatcher = None
+    if not args.no_dispatcher:
+        dispatcher = Dispatcher(settings, slots=args.slots)
+        threading.Thread(target=dispatcher.run_forever, daemon=True, name="leco-dispatcher").start()
+    print(f"LeCO-NeRF service at http://{args.host}:{args.port} (API docs: /docs; data: {settings.data_dir.resolve()})",
+          flush=True)
+    if token:
+        print(f"API token (also in {settings.data_dir / TOKEN_FILE}): {token}", flush=True)
+    try:
+        uvicorn.run(app, host=args.host, port=args.port, log_level="warning")
+    finally:
+        if dispatcher is not None:
+            dispatcher.stop(wait=False)
+    return 0
+
+
+def dispatch(args: argparse.Namespace) -> int:
+    from service.dispatcher import Dispatcher
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    logging.getLogger("alembic").setLevel(logging.WARNING)
+    settings = settings_from(args)
+    prepare(settings, upgrade_embedded=False)
+    start_ray(settings)
+    dispatcher = Dispatcher(settings, slots=args.slots)
+    print(f"dispatcher {dispatcher.owner} polling {settings.db_url.split('@')[-1]}", flush=True)
+    try:
+        dispatcher.run_forever()
+    except KeyboardInterrupt:
+        dispatcher.stop(wait=False)
+    return 0
+
+
+def add_commands(commands) -> None:
+    db = commands.add_parser("db", help="database schema").add_subparsers(dest="action", required=True)
+    up = db.add_parser("upgrade", help="apply the Alembic migrations (DATABASE_URL, or the embedded SQLite)")
+    up.add_argument("--data-dir", help="embedded data folder (default: $LECO_DATA_DIR or ./leco-data)")
+    up.set_defaults(func=db_upgrade)
+
+    srv = commands.add_parser("serve", help="run the API, a dispatcher and a local Ray (SQLite by default)")
+    srv.add_argument("--host", default="127.0.0.1")
+    srv.add_argument("--port", type=int, default=8765)
+    srv.add_argument("--data-dir", help="embedded data folder (default: $LECO_DATA_DIR or ./leco-data)")
+    srv.add_argument("--slots", type=int, default=1, help="jobs this dispatcher runs at once (default 1)")
+    srv.add_argument("--no-auth", action="store_true", help="no bearer token (only for a loopback-only service)")
+    srv.add_argument("--no-dispatcher", action="store_true", help="API only; run `leco dispatch` elsewhere")
+    srv.set_defaults(func=serve)
+
+    dsp = commands.add_parser("dispatch", help="run a dispatcher only (claims and runs queued jobs)")
+    dsp.add_argument("--data-dir", help="embedded data folder (default: $LECO_DATA_DIR or ./leco-data)")
+    dsp.add_argument("--slots", type=int, default=1)
+    dsp.set_defaults(func=dispatch)
+
+    from service.client import add_submit
+
+    add_submit(commands)
