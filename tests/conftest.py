@@ -33,3 +33,60 @@ def tiny_scene(tmp_path_factory):
     out = tmp_path_factory.mktemp("tiny-scene") / "tiny-0"
     generate("tiny", 0, out)
     return load_scene(out)
+
+
+# ----- the service: every database test runs on SQLite and on the machine's real PostgreSQL ----------------
+PG_ADMIN = "host=127.0.0.1 port=5432 user=postgres dbname=postgres"
+
+
+def fresh_postgres_database() -> str:
+    """A new, empty database on 127.0.0.1:5432; skips (saying why) when no server answers there."""
+    import itertools
+    import os
+
+    try:
+        import psycopg
+
+        with psycopg.connect(PG_ADMIN, autocommit=True, connect_timeout=3) as conn:
+            name = f"leco_test_{os.getpid()}_{next(_pg_counter)}"
+            conn.execute(f"DROP DATABASE IF EXISTS {name} WITH (FORCE)")
+            conn.execute(f"CREATE DATABASE {name}")
+    except Exception as error:  # no server: the SQLite half of the tests still runs
+        pytest.skip(f"PostgreSQL at 127.0.0.1:5432 not available ({type(error).__name__}: {error})")
+    return f"postgresql+psycopg://postgres@127.0.0.1:5432/{name}"
+
+
+def drop_postgres_database(url: str) -> None:
+    import psycopg
+
+    from service.db import engine_for, session_factory
+
+    engine_for(url).dispose()
+    with psycopg.connect(PG_ADMIN, autocommit=True) as conn:
+        conn.execute(f"DROP DATABASE IF EXISTS {url.rsplit('/', 1)[1]} WITH (FORCE)")
+
+
+import itertools as _itertools  # noqa: E402
+
+_pg_counter = _itertools.count()
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def database_url(request, tmp_path):
+    """An empty database of each kind (no schema yet)."""
+    if request.param == "sqlite":
+        yield f"sqlite:///{tmp_path / 'leco.db'}"
+        return
+    url = fresh_postgres_database()
+    yield url
+    drop_postgres_database(url)
+
+
+@pytest.fixture
+def service_settings(database_url, tmp_path):
+    """Service settings on a migrated database of each kind, with a private data folder and artifact root."""
+    from service.db import upgrade
+    from service.settings import Settings
+
+    upgrade(database_url)
+    return Settings(data_dir=tmp_path / "data", database_url=database_url, local_cpus=2, lease_s=5.0)

@@ -1,0 +1,146 @@
+"""The database layer on SQLite and PostgreSQL: migrations, schema check, the queue's transitions, and
+claims that never hand one job to two dispatchers."""
+
+import threading
+from datetime import timedelta
+
+import pytest
+from alembic.autogenerate import compare_metadata
+from alembic.migration import MigrationContext
+from sqlalchemy import inspect, select, update
+
+from service import queue
+from service.db import SchemaError, check_schema, current_revision, engine_for, head_revision, transaction, upgrade
+from service.tables import Base, Job, JobPhase, Scene, utcnow
+from workers.config import TrainConfig
+
+
+def add_scene(url, name="s", state="ready") -> int:
+    with transaction(url) as session:
+        scene = Scene(name=name, source="synthetic", state=state, path="/nowhere")
+        session.add(scene)
+        session.flush()
+        return scene.id
+
+
+def add_jobs(url, scene_id, n, method="leco") -> list[int]:
+    with transaction(url) as session:
+        return [queue.submit(session, scene_id, TrainConfig(method=method, profile="smoke")).id for _ in range(n)]
+
+
+def test_migrations_upgrade_an_empty_database_to_the_models(database_url):
+    with pytest.raises(SchemaError, match="empty database.*leco db upgrade"):
+        check_schema(database_url)
+    assert upgrade(database_url) == (None, head_revision())
+    check_schema(database_url)
+    with engine_for(database_url).connect() as connection:
+        assert compare_metadata(MigrationContext.configure(connection, opts={"compare_type": True}),
+                                Base.metadata) == []
+        tables = set(inspect(connection).get_table_names())
+    assert {"scenes", "jobs", "job_phases", "metrics", "artifacts", "idempotency_keys", "alembic_version"} <= tables
+    assert upgrade(database_url) == (head_revision(), head_revision())  # a second upgrade changes nothing
+
+
+def test_server_refuses_an_out_of_date_schema(database_url, tmp_path):
+    from service.api.app import create_app
+    from service.settings import Settings
+
+    with pytest.raises(SchemaError, match="run `leco db upgrade`"):
+        create_app(Settings(data_dir=tmp_path, database_url=database_url))
+    upgrade(database_url)
+    with engine_for(database_url).begin() as connection:  # pretend the code moved on to a newer revision
+        connection.exec_driver_sql("UPDATE alembic_version SET version_num = 'older'")
+    assert current_revision(database_url) == "older"
+    with pytest.raises(SchemaError, match="revision older, this code needs revision"):
+        create_app(Settings(data_dir=tmp_path, database_url=database_url))
+
+
+def test_sqlite_runs_in_wal_with_foreign_keys(tmp_path):
+    url = f"sqlite:///{tmp_path / 'x.db'}"
+    with engine_for(url).connect() as connection:
+        assert connection.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
+        assert connection.exec_driver_sql("PRAGMA foreign_keys").scalar() == 1
+        assert connection.exec_driver_sql("PRAGMA busy_timeout").scalar() == 30000
+
+
+def test_concurrent_claims_never_share_a_job(service_settings):
+    url = service_settings.db_url
+    scene = add_scene(url)
+    jobs = add_jobs(url, scene, 24)
+    claimed: dict[str, list] = {f"d{i}": [] for i in range(6)}
+    start = threading.Barrier(6)
+
+    def dispatcher(owner):
+        start.wait()
+        while (got := queue.claim(url, owner, 60)) is not None:
+            claimed[owner].append(got)
+
+    threads = [threading.Thread(target=dispatcher, args=(o,)) for o in claimed]
+    [t.start() for t in threads]
+    [t.join() for t in threads]
+    ids = [job for got in claimed.values() for job, _ in got]
+    assert sorted(ids) == jobs  # every job exactly once
+    assert sum(1 for got in claimed.values() if got) >= 2  # they really competed
+    with transaction(url) as session:
+        rows = session.execute(select(Job.id, Job.state, Job.attempts, Job.lease_owner)).all()
+    owners = {job: owner for owner, got in claimed.items() for job, _ in got}
+    assert all(state == "running" and attempts == 1 and owner == owners[i] for i, state, attempts, owner in rows)
+
+
+def test_claim_waits_for_a_ready_scene_and_takes_the_oldest(service_settings):
+    url = service_settings.db_url
+    generating, ready = add_scene(url, "g", "generating"), add_scene(url, "r")
+    first = add_jobs(url, generating, 1)[0]
+    second, third = add_jobs(url, ready, 2)
+    assert queue.claim(url, "a", 60) == (second, 1)
+    with transaction(url) as session:
+        session.get(Scene, generating).state = "ready"
+    assert queue.claim(url, "a", 60) == (first, 1)
+    assert queue.claim(url, "a", 60) == (third, 1)
+    assert queue.claim(url, "a", 60) is None
+
+
+def test_lease_expiry_requeues_then_fails_with_the_last_error(service_settings):
+    url = service_settings.db_url
+    job = add_jobs(url, add_scene(url), 1)[0]
+
+    def expire():
+        with transaction(url) as session:
+            session.execute(update(Job).values(lease_expires_at=utcnow() - timedelta(seconds=1)))
+
+    for attempt in (1, 2):
+        assert queue.claim(url, f"d{attempt}", 60) == (job, attempt)
+        assert queue.heartbeat(url, job, attempt, f"d{attempt}", 60)
+        assert queue.requeue_expired(url, max_attempts=3) == []  # lease still valid
+        expire()
+        assert queue.requeue_expired(url, max_attempts=3) == [(job, "queued")]
+        assert not queue.heartbeat(url, job, attempt, f"d{attempt}", 60)  # the old owner lost it
+        assert not queue.finish(url, job, attempt, "succeeded")  # and cannot finish it
+    assert queue.claim(url, "d3", 60) == (job, 3)
+    expire()
+    assert queue.requeue_expired(url, max_attempts=3) == [(job, "failed")]
+    with transaction(url) as session:
+        row = session.get(Job, job)
+        phases = session.scalars(select(JobPhase.state).where(JobPhase.job_id == job)).all()
+    assert row.state == "failed" and row.attempts == 3
+    assert "lease of attempt 3 expired" in row.error and "no attempts left (3 of 3)" in row.error
+    assert set(phases) == {"failed"}
+
+
+def test_cancel_queued_at_once_running_by_request_and_not_after_the_end(service_settings):
+    url = service_settings.db_url
+    scene = add_scene(url)
+    queued, running, done = add_jobs(url, scene, 3)
+    assert queue.cancel(url, queued) == "cancelled"
+    assert queue.claim(url, "d", 60) == (running, 1)
+    assert queue.claim(url, "d", 60) == (done, 1)
+    assert queue.finish(url, done, 1, "succeeded")
+    assert queue.cancel(url, running) == "running"
+    assert queue.cancel(url, done) == "succeeded"
+    assert queue.cancel(url, 999) is None
+    with transaction(url) as session:
+        assert session.get(Job, running).cancel_requested
+        assert session.get(Job, queued).finished_at is not None
+        assert set(session.scalars(select(JobPhase.state).where(JobPhase.job_id == queued))) == {"cancelled"}
+        assert set(session.scalars(select(JobPhase.state).where(JobPhase.job_id == done))) == {"succeeded"}
+    assert queue.claim(url, "d", 60) is None  # the cancelled job is never claimed
