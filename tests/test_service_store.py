@@ -1,0 +1,88 @@
+"""The artifact store on SQLite and PostgreSQL: content-addressed bytes, verified reads, no row without its
+bytes and no bytes without a row, replacement, pruning and deletion."""
+
+import hashlib
+import os
+
+import pytest
+from sqlalchemy import select
+
+from service.store import ArtifactError, ArtifactStore, CorruptArtifact
+from service.tables import Artifact
+from service.db import reading
+from tests.test_service_db import add_jobs, add_scene
+
+
+def blobs(root):
+    return sorted(p.name for p in root.rglob("*") if p.is_file() and p.parent.name != "tmp")
+
+
+@pytest.fixture
+def store_and_job(service_settings):
+    url = service_settings.db_url
+    job = add_jobs(url, add_scene(url), 1)[0]
+    return ArtifactStore(url, service_settings.artifacts), job
+
+
+def test_put_verify_replace_and_delete(store_and_job, tmp_path):
+    store, job = store_and_job
+    data = b"checkpoint bytes" * 1000
+    meta = store.put(job, "checkpoint", "a.pt", data, phase="main", step=10)
+    sha = hashlib.sha256(data).hexdigest()
+    assert meta["sha256"] == sha and meta["size"] == len(data) and meta["content_type"] == "application/octet-stream"
+    assert store.verified_path(meta).read_bytes() == data
+    assert store.blob_path(sha).relative_to(store.root).parts[:2] == (sha[:2], sha[2:4])
+    # the same bytes under a second name share one blob; replacing a name frees its old blob
+    twin = store.put(job, "report", "b.json", data)
+    assert blobs(store.root) == [sha] and twin["content_type"] == "application/json"
+    store.put(job, "checkpoint", "a.pt", b"newer", phase="main", step=20)
+    assert len(blobs(store.root)) == 2
+    store.put(job, "report", "b.json", b"{}")
+    assert hashlib.sha256(data).hexdigest() not in blobs(store.root)  # no row references it any more
+    assert store.delete_job(job) == 2 and blobs(store.root) == []
+    assert not list((store.root / "tmp").iterdir())
+
+
+def test_corrupted_or_missing_bytes_are_detected(store_and_job):
+    store, job = store_and_job
+    meta = store.put(job, "render", "r.png", b"\x89PNG fake image")
+    path = store.blob_path(meta["sha256"])
+    os.chmod(path, 0o644)
+    path.write_bytes(b"\x89PNG fake imagE")  # one flipped byte, same size
+    with pytest.raises(CorruptArtifact, match="do not match their sha256"):
+        store.verified_path(meta)
+    path.unlink()
+    with pytest.raises(CorruptArtifact, match="bytes are missing"):
+        store.verified_path(meta)
+
+
+def test_a_failed_row_leaves_no_bytes(store_and_job):
+    store, job = store_and_job
+    with pytest.raises(Exception):  # the foreign key refuses a job that does not exist
+        store.put(job + 100, "report", "x.json", b"orphan?")
+    assert blobs(store.root) == []
+    with reading(store.db_url) as session:
+        assert session.scalars(select(Artifact)).all() == []
+
+
+def test_an_unwritable_root_fails_cleanly(service_settings, tmp_path):
+    url = service_settings.db_url
+    job = add_jobs(url, add_scene(url), 1)[0]
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("a file where the artifact root should be")
+    with pytest.raises(ArtifactError, match="not writable"):
+        ArtifactStore(url, blocker).put(job, "report", "x.json", b"{}")
+    with reading(url) as session:
+        assert session.scalars(select(Artifact)).all() == []
+    with pytest.raises(ValueError, match="artifact kind 'model'"):
+        ArtifactStore(url, tmp_path / "ok").put(job, "model", "x", b"")
+
+
+def test_prune_keeps_the_newest_checkpoints(store_and_job):
+    store, job = store_and_job
+    for step in (10, 20, 30, 40):
+        store.put(job, "checkpoint", f"c{step}.pt", f"state {step}".encode(), step=step)
+    assert store.prune(job, "checkpoint", keep=2) == 2
+    with reading(store.db_url) as session:
+        assert sorted(session.scalars(select(Artifact.step))) == [30, 40]
+    assert len(blobs(store.root)) == 2
