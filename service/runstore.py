@@ -55,9 +55,11 @@ class DatabaseRunStore:
                     index_elements=["job_id", "phase", "name", "step"],
                     set_={"value": insert.excluded.value, "wall_time_s": insert.excluded.wall_time_s}))
             # Progress for `GET /v1/jobs/{id}`, only while this attempt holds the job.
+            progress = {"phase": phase, "step": step}
+            if metrics.get("rays_per_s") is not None:
+                progress["rays_per_s"] = metrics["rays_per_s"]
             session.execute(update(Job).where(Job.id == self.job_id, Job.attempts == self.attempt,
-                                              Job.state == "running")
-                            .values(phase=phase, step=step, rays_per_s=metrics.get("rays_per_s")),
+                                              Job.state == "running").values(**progress),
                             execution_options={"synchronize_session": False})
             if "phase_step" in metrics:
                 session.execute(update(JobPhase).where(JobPhase.job_id == self.job_id, JobPhase.name == phase)
