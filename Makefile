@@ -15,17 +15,14 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e '.[dev]'
 	touch $(STAMP)
 
-# The main job on the embedded default: the default synthetic city (generated once), then a LeCO run on it with
-# the cpu profile on two local Ray workers. An unfinished run resumes; a finished one is shown again.
-SCENE := scenes/city-0
-RUN   := runs/city-0-leco
+# The main job on the embedded default: `leco serve` (SQLite + local artifact root + local Ray, migrated for
+# the user), then `leco submit` registers the default synthetic city, submits a LeCO job (cpu profile, two
+# Ray workers) and follows it to the end; the service stops afterwards. Data lives in leco-data/.
 run: $(STAMP)
-	test -d $(SCENE) || $(BIN)/leco scene synth --preset city --seed 0 --out $(SCENE)
-	test -f $(RUN)/summary.json || $(BIN)/leco train --scene $(SCENE) --method leco --profile cpu --workers 2 --out $(RUN)
-	@echo "run folder: $(RUN) (summary.json, metrics.jsonl, renders/, occupancy.ply)"
+	deploy/main-job.sh
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 clean:
-	rm -rf $(VENV) scenes runs .pytest_cache
+	rm -rf $(VENV) scenes runs leco-data .pytest_cache

@@ -113,11 +113,16 @@ class Dispatcher:
             except RuntimeError:
                 pass  # never submitted
         sid = submission_id(job_id, attempt)
-        env = {k: v for k, v in os.environ.items() if k in ("DATABASE_URL", "LECO_DATA_DIR", "LECO_ARTIFACT_ROOT",
-                                                             "LECO_BACKEND", "RAY_AUTH_MODE")}
-        env["LECO_RAY_JOBS_ADDRESS"] = ""  # inside the Ray job, train on the cluster it runs on
-        client.submit_job(entrypoint=f"python -m service.execute --job-id {job_id} --attempt {attempt}",
-                          submission_id=sid, runtime_env={"env_vars": env})
+        s = self.settings
+        env = {"DATABASE_URL": s.db_url, "LECO_DATA_DIR": str(s.data_dir.resolve()),
+               "LECO_ARTIFACT_ROOT": str(s.artifacts), "LECO_BACKEND": s.backend,
+               "LECO_RAY_JOBS_ADDRESS": ""}  # inside the Ray job, train on the cluster it runs on
+        try:
+            client.submit_job(entrypoint=f"python -m service.execute --job-id {job_id} --attempt {attempt}",
+                              submission_id=sid, runtime_env={"env_vars": env})
+        except RuntimeError as error:
+            if "already exists" not in str(error):
+                raise  # else: this very attempt was submitted before (a retried tick); follow it
         status = self._wait_terminal(client, sid, timeout_s=None)
         if status != JobStatus.SUCCEEDED:
             logs = client.get_job_logs(sid)[-2000:]
