@@ -1,102 +1,226 @@
-"""Safe extraction of an uploaded dataset archive (tar, tar.gz/bz2/xz, zip). Every member is checked
-before a byte is written: no absolute paths, no `..`, no links, no devices; member count, total size and
-compression ratio are bounded (zip bombs), and the bytes actually written are counted too (headers lie).
-Files are written one by one by us, never by extractall. On any error `dest` is removed: nothing half-written."""
+"""Safe extraction of a user-uploaded dataset archive (tar, tar.gz, tar.bz2, tar.xz or zip).
+
+We never call extractall: every member is first checked (path, type, declared size), and only then written
+by hand, one chunk at a time, into a folder we create ourselves, so no link, device or `..` can reach the
+disk and a lying header cannot write more than it declared. On any failure the destination is removed."""
 
 from __future__ import annotations
 
+import lzma
+import os
 import shutil
 import stat
 import tarfile
 import zipfile
 import zlib
-from pathlib import Path, PurePosixPath
-
-MAX_MEMBERS = 20_000
-MAX_TOTAL_BYTES = 2 * 2**30  # uncompressed, all members together
-MAX_RATIO = 200  # uncompressed / compressed: beyond it we call it a zip bomb
-CHUNK = 1 << 20
-JUNK = ("__MACOSX", ".DS_Store")
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Callable, Iterator
 
 
 class ArchiveError(ValueError):
-    """An uploaded archive we refuse, with the member and the reason."""
+    """An archive a user uploaded that we refuse, with a message naming the member and what is wrong."""
 
 
-def safe_name(name: str) -> PurePosixPath:
-    clean = name.replace("\\", "/")
-    path = PurePosixPath(clean)
-    if clean.startswith("/") or (len(clean) > 1 and clean[1] == ":"):
-        raise ArchiveError(f"member {name!r}: absolute path")
-    if ".." in path.parts:
-        raise ArchiveError(f"member {name!r}: path leaves the archive ('..')")
-    return PurePosixPath(*[p for p in path.parts if p not in ("", ".")])
+MAX_MEMBERS = 20_000
+MAX_TOTAL_BYTES = 2 * 2**30          # uncompressed, all members together
+MAX_RATIO = 200                       # uncompressed / compressed: beyond it we call it a zip bomb
+
+CHUNK = 1 << 20
+# What a broken archive raises while we read it. tarfile and zipfile wrap only part of it: gzip and lzma
+# raise their own errors, bz2 reports bad data as a bare OSError. Only reads are wrapped (see _reading),
+# so a full disk on our side is never blamed on the upload.
+CORRUPT = (tarfile.TarError, zipfile.BadZipFile, EOFError, zlib.error, lzma.LZMAError, OSError)
+# Leading bytes of gzip, bzip2, xz and zip: such a file that neither tarfile nor zipfile opens is broken,
+# not something else (a zip cut short loses the directory at its end, so is_zipfile says no).
+ARCHIVE_MAGIC = (b"\x1f\x8b", b"BZh", b"\xfd7zXZ\x00", b"PK\x03\x04")
+ZIP_METHODS = {zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED, zipfile.ZIP_BZIP2, zipfile.ZIP_LZMA}
 
 
-def _members(archive: Path):
-    """(name, kind, declared size, opener) for every member; kind is 'file' or 'dir'."""
-    if zipfile.is_zipfile(archive):
-        with zipfile.ZipFile(archive) as zf:
-            for info in zf.infolist():
-                kind = stat.S_IFMT(info.external_attr >> 16)  # 0 when the writer recorded no Unix type
-                if kind == stat.S_IFLNK:
-                    raise ArchiveError(f"member {info.filename!r}: symbolic links are not allowed")
-                if kind not in (0, stat.S_IFREG, stat.S_IFDIR):
-                    raise ArchiveError(f"member {info.filename!r}: not a regular file or folder")
-                yield info.filename, "dir" if info.is_dir() else "file", info.file_size, (lambda i=info: zf.open(i))
-        return
-    if tarfile.is_tarfile(archive):
-        with tarfile.open(archive) as tf:
-            for info in tf:
-                if info.issym() or info.islnk():
-                    raise ArchiveError(f"member {info.name!r}: links are not allowed")
-                if not (info.isfile() or info.isdir()):
-                    raise ArchiveError(f"member {info.name!r}: devices, FIFOs and special files are not allowed")
-                yield info.name, "dir" if info.isdir() else "file", info.size, (lambda i=info: tf.extractfile(i))
-        return
-    raise ArchiveError("not a tar or zip archive")
+@dataclass(frozen=True)
+class Entry:
+    name: str                          # as stored in the archive, for messages
+    is_dir: bool
+    size: int                          # declared uncompressed size
+    open: Callable[[], IO[bytes]]
+    parts: tuple[str, ...] = ()        # the checked relative path, filled in by _plan
+
+
+@dataclass(frozen=True)
+class Limits:
+    members: int
+    total_bytes: int
+    ratio: float
+    archive_size: int
+
+    def check_total(self, name: str, total: int, verb: str) -> None:
+        if total > self.total_bytes:
+            raise _refuse(name, f"archive {verb} more than {self.total_bytes:,} bytes uncompressed")
+        if total > self.ratio * self.archive_size:
+            raise _refuse(name, f"archive {verb} {total:,} bytes from {self.archive_size:,} on disk "
+                                f"(more than {self.ratio:g}x): looks like a zip bomb")
 
 
 def extract_archive(archive: Path, dest: Path, *, max_members: int = MAX_MEMBERS,
                     max_total_bytes: int = MAX_TOTAL_BYTES, max_ratio: float = MAX_RATIO) -> Path:
-    """Extracts into `dest` (created; must not exist) and returns the scene root: the single top-level folder
-    when there is exactly one, else `dest`."""
+    """Extracts `archive` into `dest` (which must not exist yet; it is created) and returns the scene root:
+    the single top-level folder when the archive holds exactly one (ignoring macOS `__MACOSX` and `.DS_Store`
+    junk), else `dest`. On any error it raises ArchiveError and removes `dest` entirely: nothing half-written."""
     archive, dest = Path(archive), Path(dest)
-    limit = min(max_total_bytes, max_ratio * max(archive.stat().st_size, 1))
-    dest.mkdir(parents=True)
+    limits = Limits(max_members, max_total_bytes, max_ratio, archive.stat().st_size)
+    dest.mkdir(parents=True)  # FileExistsError before the try: never remove a folder that was not ours
     try:
-        count, written, files = 0, 0, 0
-        for name, kind, declared, opener in _members(archive):
-            count += 1
-            if count > max_members:
-                raise ArchiveError(f"more than {max_members} members")
-            relative = safe_name(name)
-            if not relative.parts or relative.parts[0] in JUNK or relative.name in JUNK:
-                continue
-            target = dest.joinpath(*relative.parts)
-            if kind == "dir":
-                target.mkdir(parents=True, exist_ok=True)
-                continue
-            if written + declared > limit:
-                raise ArchiveError(f"member {name!r}: archive expands beyond {limit:,} bytes (zip bomb?)")
-            target.parent.mkdir(parents=True, exist_ok=True)
-            with opener() as source, open(target, "xb") as out:
-                while chunk := source.read(CHUNK):
-                    written += len(chunk)
-                    if written > limit:
-                        raise ArchiveError(f"member {name!r}: archive expands beyond {limit:,} bytes (zip bomb?)")
-                    out.write(chunk)
-            files += 1
-        if files == 0:
-            raise ArchiveError("the archive holds no files")
-    except ArchiveError:
+        with _reading():
+            handle, entries = _open_archive(archive)
+        with handle:
+            with _reading():
+                plan = _plan(entries, limits)
+            _extract(plan, dest, limits)
+    except BaseException:
         shutil.rmtree(dest, ignore_errors=True)
         raise
-    except FileExistsError as error:
-        shutil.rmtree(dest, ignore_errors=True)
-        raise ArchiveError(f"member {Path(error.filename).name!r} appears twice") from None
-    except (tarfile.TarError, zipfile.BadZipFile, EOFError, zlib.error, OSError, RuntimeError) as error:
-        shutil.rmtree(dest, ignore_errors=True)
-        raise ArchiveError(f"archive is truncated or corrupt: {error}") from None
-    top = [p for p in dest.iterdir()]
-    return top[0] if len(top) == 1 and top[0].is_dir() else dest
+    tops = list(dest.iterdir())  # junk was never written, so it cannot hide a single top folder
+    return tops[0] if len(tops) == 1 and tops[0].is_dir() else dest
+
+
+def _open_archive(archive: Path) -> tuple[tarfile.TarFile | zipfile.ZipFile, Iterator[Entry]]:
+    # Tar first: is_zipfile looks for a zip directory near the end, which a plain tar whose last member is
+    # a .zip also has; a tar header's checksum cannot pass on a zip's first bytes.
+    if tarfile.is_tarfile(archive):
+        tar = tarfile.open(archive, "r:*")
+        return tar, _tar_entries(tar)
+    if zipfile.is_zipfile(archive):
+        zf = zipfile.ZipFile(archive)
+        return zf, _zip_entries(zf)
+    with archive.open("rb") as f:
+        head = f.read(8)
+    if head.startswith(ARCHIVE_MAGIC):
+        raise ArchiveError("archive is truncated or corrupt: it starts like one but cannot be opened")
+    raise ArchiveError("not a tar or zip archive")
+
+
+def _tar_entries(tar: tarfile.TarFile) -> Iterator[Entry]:
+    for info in tar:  # lazily, so a member-count bomb stops at max_members + 1
+        if info.issym():
+            raise _refuse(info.name, f"symbolic links are not allowed (to {info.linkname!r})")
+        if info.islnk():
+            raise _refuse(info.name, f"hard links are not allowed (to {info.linkname!r})")
+        if info.ischr() or info.isblk():
+            raise _refuse(info.name, "device files are not allowed")
+        if info.isfifo():
+            raise _refuse(info.name, "FIFOs are not allowed")
+        if not (info.isreg() or info.isdir()):
+            raise _refuse(info.name, f"not a regular file or a folder (tar type {info.type!r})")
+        yield Entry(info.name, info.isdir(), info.size if info.isreg() else 0,
+                    lambda info=info: tar.extractfile(info))
+    # tarfile stops at its end marker; reading on to the end lets gzip and xz check their CRCs, so a flipped
+    # byte in the data is refused here, before anything is written.
+    while tar.fileobj.read(CHUNK):
+        pass
+
+
+def _zip_entries(zf: zipfile.ZipFile) -> Iterator[Entry]:
+    for info in zf.infolist():
+        kind = stat.S_IFMT(info.external_attr >> 16)  # Unix type bits; 0 when the zipper set none
+        if stat.S_ISLNK(kind):
+            raise _refuse(info.filename, "symbolic links are not allowed")
+        if kind and not (stat.S_ISREG(kind) or stat.S_ISDIR(kind)):
+            raise _refuse(info.filename, f"not a regular file or a folder (mode {kind:#o})")
+        if info.flag_bits & 0x1:
+            raise _refuse(info.filename, "encrypted members are not supported")
+        if info.compress_type not in ZIP_METHODS:
+            raise _refuse(info.filename, f"unsupported compression method {info.compress_type}")
+        is_dir = info.is_dir() or stat.S_ISDIR(kind)
+        yield Entry(info.filename, is_dir, 0 if is_dir else info.file_size, lambda info=info: zf.open(info))
+
+
+def _plan(entries: Iterator[Entry], limits: Limits) -> list[Entry]:
+    """Checks every member before anything is written: count, path, and the declared sizes."""
+    plan, declared = [], 0
+    for count, entry in enumerate(entries, 1):
+        if count > limits.members:
+            raise _refuse(entry.name, f"archive holds more than {limits.members:,} members")
+        parts = _safe_parts(entry.name)
+        if not parts and not entry.is_dir:
+            raise _refuse(entry.name, "file has no name")
+        declared += entry.size
+        limits.check_total(entry.name, declared, "declares")
+        plan.append(Entry(entry.name, entry.is_dir, entry.size, entry.open, parts))
+    if not any(not e.is_dir and not _is_junk(e.parts) for e in plan):
+        raise ArchiveError("archive holds no files")
+    return plan
+
+
+def _safe_parts(name: str) -> tuple[str, ...]:
+    # Backslashes count as separators: Windows zippers write them, and `..\x` must not slip through.
+    if name.startswith(("/", "\\")) or (len(name) >= 2 and name[1] == ":" and name[0].isalpha()):
+        raise _refuse(name, "path is absolute")
+    parts = tuple(p for p in name.replace("\\", "/").split("/") if p not in ("", "."))
+    if ".." in parts:
+        raise _refuse(name, "path leaves the archive ('..')")
+    return parts
+
+
+def _is_junk(parts: tuple[str, ...]) -> bool:
+    # Finder's metadata: the __MACOSX tree, .DS_Store, and AppleDouble `._name` files beside real ones.
+    return bool(parts) and (parts[0] == "__MACOSX" or parts[-1] == ".DS_Store" or parts[-1].startswith("._"))
+
+
+def _extract(plan: list[Entry], dest: Path, limits: Limits) -> None:
+    written = 0
+    for entry in plan:
+        if _is_junk(entry.parts):
+            continue
+        target = dest.joinpath(*entry.parts)
+        _make_dirs(entry, target if entry.is_dir else target.parent)
+        if not entry.is_dir:
+            written = _write_file(entry, target, written, limits)
+
+
+def _make_dirs(entry: Entry, folder: Path) -> None:
+    try:
+        folder.mkdir(parents=True, exist_ok=True)  # only folders we made ourselves: no links to follow
+    except (FileExistsError, NotADirectoryError):
+        raise _refuse(entry.name, "path clashes with a file extracted earlier") from None
+
+
+def _write_file(entry: Entry, target: Path, written: int, limits: Limits) -> int:
+    """Copies one member in chunks; returns the bytes written so far, all members together."""
+    # O_EXCL: a duplicate member cannot overwrite, O_NOFOLLOW: never through a link; 0o644 whatever the
+    # archive says (no setuid, no executables).
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+    try:
+        fd = os.open(target, flags, 0o644)
+    except FileExistsError:
+        raise _refuse(entry.name, "path appears twice or clashes with a folder") from None
+    with os.fdopen(fd, "wb") as out:
+        with _reading(entry.name):
+            src = entry.open()
+        size = 0
+        while True:
+            with _reading(entry.name):
+                chunk = src.read(CHUNK)
+            if not chunk:
+                return written
+            # Headers can lie: hold each member to its declared size and everything to the limits.
+            size += len(chunk)
+            written += len(chunk)
+            if size > entry.size:
+                raise _refuse(entry.name, f"holds more than the {entry.size:,} bytes its header declares")
+            limits.check_total(entry.name, written, "expands to")
+            out.write(chunk)
+
+
+@contextmanager
+def _reading(name: str | None = None) -> Iterator[None]:
+    """Turns what a truncated or corrupt archive raises while being read into an ArchiveError."""
+    try:
+        yield
+    except CORRUPT as exc:
+        where = f"member {name!r}: " if name else ""
+        raise ArchiveError(f"{where}archive is truncated or corrupt: {exc}") from exc
+
+
+def _refuse(name: str, reason: str) -> ArchiveError:
+    return ArchiveError(f"member {name!r}: {reason}")

@@ -72,9 +72,10 @@ def ensure_scene(api: Api, args) -> dict:
 
 
 def wait_ready(api: Api, scene: dict, stream) -> dict:
-    while scene["state"] == "generating":
-        stream.write(f"\rgenerating scene {scene['name']} ...")
+    if scene["state"] == "generating":
+        stream.write(f"generating scene {scene['name']} (preset {scene['generator']['preset']}) ...\n")
         stream.flush()
+    while scene["state"] == "generating":
         time.sleep(2)
         scene = api.call("GET", f"/v1/scenes/{scene['id']}").json()
     if scene["state"] != "ready":

@@ -144,3 +144,16 @@ def test_cancel_queued_at_once_running_by_request_and_not_after_the_end(service_
         assert set(session.scalars(select(JobPhase.state).where(JobPhase.job_id == queued))) == {"cancelled"}
         assert set(session.scalars(select(JobPhase.state).where(JobPhase.job_id == done))) == {"succeeded"}
     assert queue.claim(url, "d", 60) is None  # the cancelled job is never claimed
+
+
+def test_leco_serve_refuses_an_unmigrated_database_and_says_what_to_run(database_url, tmp_path, monkeypatch, capsys):
+    from service.cli import main
+
+    monkeypatch.setenv("DATABASE_URL", database_url)
+    monkeypatch.setenv("LECO_DATA_DIR", str(tmp_path / "data"))
+    assert main(["serve", "--no-auth"]) == 2
+    err = capsys.readouterr().err
+    assert "leco: error:" in err and "empty database" in err and "run `leco db upgrade`" in err
+    assert main(["db", "upgrade"]) == 0
+    assert head_revision() in capsys.readouterr().out
+    check_schema(database_url)

@@ -69,7 +69,7 @@ async def upload(request: Request, name: str = Query(..., pattern=NAME),
             scene_id = await run_in_threadpool(registry.register_upload, settings, name, Path(tmp.name))
         except registry.SceneConflict as error:
             raise HTTPException(409, str(error))
-        except ValueError as error:  # ArchiveError and SceneError: the user's archive, named and explained
+        except (ValueError, OSError) as error:  # ArchiveError, SceneError, unreadable images: the user's archive
             raise HTTPException(422, f"archive refused: {error}".replace(str(settings.scenes_dir), "<upload>"))
     with reading(settings.db_url) as session:
         return scene_out(session.get(Scene, scene_id))
