@@ -6,7 +6,6 @@ import argparse
 import logging
 import os
 import secrets
-import sys
 import threading
 from pathlib import Path
 

@@ -1,5 +1,7 @@
-"""Shared fixtures: the real scenes in ../shared/datasets (tests skip, saying why, when it is absent)."""
+"""Shared fixtures: the real scenes in ../shared/datasets (tests skip, saying why, when it is absent), and
+the service's databases (SQLite, and the machine's PostgreSQL)."""
 
+import itertools
 from pathlib import Path
 
 import pytest
@@ -41,7 +43,6 @@ PG_ADMIN = "host=127.0.0.1 port=5432 user=postgres dbname=postgres"
 
 def fresh_postgres_database() -> str:
     """A new, empty database on 127.0.0.1:5432; skips (saying why) when no server answers there."""
-    import itertools
     import os
 
     try:
@@ -59,16 +60,14 @@ def fresh_postgres_database() -> str:
 def drop_postgres_database(url: str) -> None:
     import psycopg
 
-    from service.db import engine_for, session_factory
+    from service.db import engine_for
 
     engine_for(url).dispose()
     with psycopg.connect(PG_ADMIN, autocommit=True) as conn:
         conn.execute(f"DROP DATABASE IF EXISTS {url.rsplit('/', 1)[1]} WITH (FORCE)")
 
 
-import itertools as _itertools  # noqa: E402
-
-_pg_counter = _itertools.count()
+_pg_counter = itertools.count()
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])

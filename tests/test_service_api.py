@@ -9,10 +9,10 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.api.app import create_app
-from service.db import reading, transaction
+from service.db import transaction
 from service.runstore import DatabaseRunStore
 from service.settings import Settings
-from service.tables import IdempotencyKey, Scene, utcnow
+from service.tables import IdempotencyKey, utcnow
 
 TOKEN = "test-token-123"
 
