@@ -9,7 +9,7 @@ from fastapi import APIRouter, Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from service.api import artifacts, health, jobs, scenes
+from service.api import artifacts, dashboard, health, jobs, scenes
 from service.api.deps import require_token
 from service.db import check_schema
 from service.settings import Settings
@@ -29,6 +29,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         v1.include_router(module.router)
     app.include_router(v1)
     app.include_router(health.router)
+    app.include_router(dashboard.router)
 
     @app.middleware("http")
     async def count_requests(request: Request, call_next):
