@@ -98,9 +98,24 @@ def test_the_dashboard_follows_a_job_and_cancels_another(service):
                                             "overrides": {"main_steps": 20000}}).json()
         page.goto(f"{url}/dashboard/#/jobs/{second['id']}")
         expect(page.locator("#job-state [data-state]")).to_have_attribute("data-state", "running", timeout=60_000)
+        deadline = time.monotonic() + 60
+        while api.get(f"/v1/jobs/{second['id']}").json()["step"] < 50 and time.monotonic() < deadline:
+            time.sleep(0.3)  # some metrics first, for the comparison view below
         page.click("#cancel")
         expect(page.locator("#job-state [data-state]")).to_have_attribute("data-state", "cancelled", timeout=60_000)
         page.screenshot(path=SHOTS / "job-cancelled.png", full_page=True)
+
+        page.goto(f"{url}/dashboard/#/scenes")
+        page.click(f'tr[data-scene="{scene["id"]}"] a')
+        expect(page.locator("#scene-map g.camera")).to_have_count(scene["cameras"])
+        expect(page.locator("#bounds")).to_have_count(1)
+        page.screenshot(path=SHOTS / "scene.png", full_page=True)
+        page.goto(f"{url}/dashboard/#/compare/{scene['id']}")
+        expect(page.locator("#compare tbody tr")).to_have_count(2)
+        assert int(page.get_attribute("#compare-chart svg.chart", "data-points")) >= 10
+        switch_row = page.locator(f'#compare tr[data-job="{second["id"]}"] td.speedup').inner_text()
+        assert switch_row.endswith("x") and float(switch_row[:-1]) > 0  # LeCO's speed-up at equal PSNR
+        page.screenshot(path=SHOTS / "compare.png", full_page=True)
         browser.close()
     job = api.get(f"/v1/jobs/{second['id']}").json()
     assert job["state"] == "cancelled" and job["step"] < 20000

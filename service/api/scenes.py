@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import tempfile
+from functools import lru_cache
 from pathlib import Path
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
@@ -106,3 +107,27 @@ def delete_scene(scene: str, settings: Settings = Depends(settings_of)) -> None:
         path = Path(row.path)
         session.delete(row)
     shutil.rmtree(path, ignore_errors=True)
+
+
+@lru_cache(maxsize=16)
+def _camera_layout(path: str, mtime: float) -> dict:
+    from model.scenes import load_scene
+
+    scene = load_scene(path)
+    cameras = []
+    for split, views in scene.splits.items():
+        for center, forward in zip(views.cameras.centers.tolist(), views.cameras.forward.tolist()):
+            cameras.append({"split": split, "center": center, "forward": forward})
+    return {"frame": "normalised world (z up)", "aabb": scene.bounds.aabb.tolist(), "cameras": cameras}
+
+
+@router.get("/{scene}/cameras", summary="Camera centres and viewing directions, and the automatic foreground box")
+def cameras(scene: str, settings: Settings = Depends(settings_of)) -> dict:
+    with reading(settings.db_url) as session:
+        row = find_scene(session, scene)
+        if row is None:
+            raise not_found("scene", scene)
+        if row.state != "ready":
+            raise HTTPException(409, f"scene {row.name!r} is {row.state}")
+        path = row.path
+    return _camera_layout(path, Path(path).stat().st_mtime)

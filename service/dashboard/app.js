@@ -199,12 +199,103 @@ async function showJob(id) {
   if (!TERMINAL.includes(job.state) || !jobState.plyId) schedule(route);
 }
 
+// ----- scenes: list, cameras and bounds from above, and a comparison of the jobs on one scene ---------------
+async function showScenes() {
+  const scenes = await getJson("/v1/scenes");
+  document.getElementById("view").innerHTML = `<h1>Scenes</h1><table id="scenes"><thead><tr><th>scene</th><th>state</th>
+    <th>format</th><th>cameras</th><th>source</th><th></th></tr></thead><tbody>${scenes.map(s => `<tr data-scene="${s.id}">
+    <td><a href="#/scenes/${s.id}">${esc(s.name)}</a></td><td>${stateBadge(s.state)}</td><td>${esc(s.format || "–")}</td>
+    <td>${s.cameras ?? "–"}</td><td>${esc(s.source)}</td><td><a href="#/compare/${s.id}">compare jobs</a></td></tr>`).join("")}</tbody></table>`;
+  setStatus(`${scenes.length} scenes · updated ${new Date().toLocaleTimeString()}`);
+  if (scenes.some(s => s.state === "generating")) schedule(route);
+}
+
+async function showScene(id) {
+  const [scene, layout] = await Promise.all([getJson(`/v1/scenes/${id}`), getJson(`/v1/scenes/${id}/cameras`)]);
+  const [lo, hi] = layout.aabb;
+  const xs = layout.cameras.map(c => c.center[0]).concat([lo[0], hi[0]]);
+  const ys = layout.cameras.map(c => c.center[1]).concat([lo[1], hi[1]]);
+  const [x0, x1, y0, y1] = [Math.min(...xs), Math.max(...xs), Math.min(...ys), Math.max(...ys)];
+  const pad = 0.08 * Math.max(x1 - x0, y1 - y0), size = 560;
+  const scale = size / (Math.max(x1 - x0, y1 - y0) + 2 * pad);
+  const sx = x => (x - x0 + pad) * scale, sy = y => (y1 - y + pad) * scale;  // north up
+  const arrows = layout.cameras.map(c => {
+    const [x, y] = [sx(c.center[0]), sy(c.center[1])], len = Math.hypot(c.forward[0], c.forward[1]) || 1;
+    const [dx, dy] = [c.forward[0] / len * 14, -c.forward[1] / len * 14];
+    const colour = c.split === "train" ? "#2f6fde" : "#d9480f";
+    return `<g class="camera" data-split="${esc(c.split)}"><circle cx="${x.toFixed(1)}" cy="${y.toFixed(1)}" r="3" fill="${colour}"/>
+      <line x1="${x.toFixed(1)}" y1="${y.toFixed(1)}" x2="${(x + dx).toFixed(1)}" y2="${(y + dy).toFixed(1)}" stroke="${colour}"/></g>`;
+  }).join("");
+  const box = `<rect id="bounds" x="${sx(lo[0])}" y="${sy(hi[1])}" width="${(hi[0] - lo[0]) * scale}" height="${(hi[1] - lo[1]) * scale}"
+    fill="rgba(31,138,76,.08)" stroke="#1f8a4c" stroke-dasharray="4 3"/>`;
+  const splits = [...new Set(layout.cameras.map(c => c.split))];
+  document.getElementById("view").innerHTML = `<h1>Scene ${esc(scene.name)} ${stateBadge(scene.state)}</h1>
+    <p class="muted">${esc(scene.format)} · ${scene.cameras} cameras · ${esc(scene.source)} ·
+      <a href="#/compare/${scene.id}">compare the jobs on this scene</a></p>
+    <div class="card" style="max-width:${size + 40}px"><h3>From above: cameras (${splits.map(s => `${s} ${s === "train" ? "blue" : "orange"}`).join(", ")})
+      and the automatic foreground box (green)</h3>
+      <svg id="scene-map" viewBox="0 0 ${(x1 - x0 + 2 * pad) * scale} ${(y1 - y0 + 2 * pad) * scale}" style="width:100%">${box}${arrows}</svg>
+      <p class="muted">${esc(layout.frame)}; box z from ${fmt(lo[2], 3)} to ${fmt(hi[2], 3)}</p></div>
+    <h2>Bounds</h2><div class="card" id="bounds-info"><dl class="stats">
+      <dt>size (source units)</dt><dd>${(scene.bounds.size_source || []).map(v => fmt(v, 1)).join(" x ")}</dd>
+      <dt>evidence</dt><dd>${esc(scene.bounds.evidence)} (${scene.bounds.evidence_points ?? "–"} points)</dd>
+      <dt>rays hitting the box</dt><dd>${fmt(100 * ((scene.bounds.rays || {}).fraction_hitting_foreground ?? NaN), 1)}%</dd>
+      <dt>rule</dt><dd class="wrap">${esc(scene.bounds.rule)}</dd></dl></div>`;
+  setStatus(`scene ${scene.name}`);
+}
+
+// Moving average over `k` points: the training-batch PSNR is noisy, and "first time it reaches X" must not
+// be decided by one lucky batch.
+function smooth(points, k = 5) {
+  return points.map((p, i) => {
+    const window = points.slice(Math.max(0, i - k + 1), i + 1);
+    return Object.assign({}, p, { value: window.reduce((s, q) => s + q.value, 0) / window.length });
+  });
+}
+
+async function showCompare(sceneId) {
+  const [scene, jobs] = await Promise.all([getJson(`/v1/scenes/${sceneId}`), getJson(`/v1/jobs?scene=${sceneId}&limit=200`)]);
+  const runs = [];
+  for (const job of jobs.items) {
+    const metrics = await getJson(`/v1/jobs/${job.id}/metrics?phase=main&name=psnr&max_points=2000`);
+    const series = metrics.series[0];
+    if (series && series.points.length) runs.push({ job, points: smooth(series.points) });
+  }
+  // Equal PSNR: the best smoothed PSNR that every run reached; each run's first training time at or above it.
+  const target = runs.length ? Math.min(...runs.map(r => Math.max(...r.points.map(p => p.value)))) : null;
+  const reach = r => (r.points.find(p => p.value >= target) || {}).wall_time_s ?? null;
+  const leco = runs.find(r => r.job.method === "leco");
+  const rows = runs.map(r => {
+    const t = reach(r), speedup = leco && t && reach(leco) ? t / reach(leco) : null;
+    return `<tr data-job="${r.job.id}"><td><a href="#/jobs/${r.job.id}">${r.job.id}</a></td><td>${esc(r.job.method)}</td>
+      <td>${stateBadge(r.job.state)}</td><td>${fmt(r.points[r.points.length - 1].value)}</td><td>${fmt(t, 1)}</td>
+      <td class="speedup">${r.job.method === "leco" || speedup === null ? "–" : `${fmt(speedup, 2)}x`}</td></tr>`;
+  }).join("");
+  const view = document.getElementById("view");
+  view.innerHTML = `<h1>Compare jobs on ${esc(scene.name)}</h1>
+    <p class="muted">Training-batch PSNR of the main phase (moving average of 5 points) against training time; LeCO's time
+      includes its occupancy phase, as in the paper's Fig. 9. Validation PSNR of finished jobs is in their summary.json.</p>
+    <div class="card" id="compare-chart"><h3>PSNR against training time (s)</h3></div>
+    <h2>Speed-up at equal PSNR${target === null ? "" : ` (${fmt(target)} dB, the best all runs reached)`}</h2>
+    <table id="compare"><thead><tr><th>job</th><th>method</th><th>state</th><th>last PSNR</th><th>time to ${fmt(target)} dB (s)</th>
+      <th>LeCO's speed-up</th></tr></thead><tbody>${rows || '<tr><td colspan="6" class="muted">no jobs with main-phase metrics yet</td></tr>'}</tbody></table>`;
+  const card = document.getElementById("compare-chart");
+  card.appendChild(lineChart(runs.map(r => ({ label: `${r.job.method} (job ${r.job.id})`, points: r.points })), { x: "wall_time_s" }));
+  card.appendChild(legend(runs.map(r => `${r.job.method} (job ${r.job.id})`)));
+  setStatus(`${runs.length} runs on ${scene.name} · updated ${new Date().toLocaleTimeString()}`);
+  if (runs.some(r => !TERMINAL.includes(r.job.state))) schedule(route);
+}
+
 // ----- routing --------------------------------------------------------------------------------------------
 async function route() {
   clearTimeout(timer);
-  const match = location.hash.match(/^#\/jobs\/(\d+)/);
+  const hash = location.hash, id = (hash.match(/\/(\d+)$/) || [])[1];
   try {
-    if (match) await showJob(Number(match[1])); else await showJobs();
+    if (hash.startsWith("#/jobs/") && id) await showJob(Number(id));
+    else if (hash.startsWith("#/scenes/") && id) await showScene(Number(id));
+    else if (hash.startsWith("#/scenes")) await showScenes();
+    else if (hash.startsWith("#/compare/") && id) await showCompare(Number(id));
+    else await showJobs();
   } catch (error) {
     setStatus(`error: ${error.message} (retrying)`);
     schedule(route);
