@@ -37,6 +37,15 @@ def tiny_scene(tmp_path_factory):
     return load_scene(out)
 
 
+def free_port() -> int:
+    """A free TCP port on the loopback interface, for a server a test starts."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 # ----- the service: every database test runs on SQLite and on the machine's real PostgreSQL ----------------
 PG_ADMIN = "host=127.0.0.1 port=5432 user=postgres dbname=postgres"
 

@@ -4,7 +4,6 @@ it, and the job's own process (python -m service.execute) trains and stores ever
 
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import threading
@@ -17,15 +16,10 @@ from fastapi.testclient import TestClient
 from service.api.app import create_app
 from service.dispatcher import Dispatcher, submission_id
 from service.settings import Settings
+from tests.conftest import free_port
 
 pytestmark = pytest.mark.slow
 BIN = Path(sys.executable).parent
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture
