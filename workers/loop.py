@@ -21,7 +21,7 @@ from model.occupancy import OccupancyPredictor
 from model.occupancy_phase import occupancy_step
 from model.scenes import RaySampler, load_scene
 from workers.config import TrainConfig
-from workers.distributed import any_rank, average_gradients, grads_finite, is_distributed
+from workers.distributed import any_rank, any_rank_each, average_gradients, grads_finite, is_distributed
 from workers.models import RunModels, build_optimizer
 from workers.session import Session
 from workers.sinks import JsonlSink
@@ -165,10 +165,11 @@ class RankRun:
         window_seconds, window_steps, samples_in_window = 0.0, 0, 0.0
         while self.progress["phase_step"] < total:
             reason = self.store.stop_reason() if self.store is not None else None
-            if any_rank(reason is not None, self.device):
+            stop, spent = any_rank_each([reason is not None, not self.budget_left(phase)], self.device)
+            if stop:
                 self.save_checkpoint({"step": self.progress["step"], "phase": phase})
                 raise RunStopped(reason or "stopped by the launcher (asked on rank 0)")
-            if any_rank(not self.budget_left(phase), self.device):
+            if spent:
                 break
             t0 = time.perf_counter()
             loss, parts = self.step_once(phase)
