@@ -120,7 +120,7 @@ def submit_command(args: argparse.Namespace) -> int:
     scene = wait_ready(api, ensure_scene(api, args), stream)
     body = {"scene": scene["id"], "method": args.method, "profile": args.profile,
             "overrides": parse_overrides(args.set or []), "workers": args.workers, "use_gpu": args.gpu,
-            "budget_min": args.budget_min, "seed": args.seed}
+            "budget_min": args.budget_min, "seed": args.seed, "eval_every_s": args.eval_every_s}
     job = api.call("POST", "/v1/jobs", json=body, headers={"Idempotency-Key": str(uuid.uuid4())}).json()
     print(f"submitted job {job['id']} ({args.method}, profile {args.profile}) on scene {scene['name']}: "
           f"{api.url}/v1/jobs/{job['id']}", file=stream, flush=True)
@@ -161,6 +161,8 @@ def add_submit(commands) -> None:
     sub.add_argument("--gpu", action="store_true")
     sub.add_argument("--budget-min", type=float, default=None)
     sub.add_argument("--seed", type=int, default=0)
+    sub.add_argument("--eval-every-s", type=float, default=None,
+                     help="validation PSNR every this many training seconds (the dashboard's comparison uses it)")
     sub.add_argument("--set", action="append", metavar="KEY=VALUE", help="profile override (repeatable)")
     sub.add_argument("--no-follow", action="store_true", help="submit and return")
     sub.set_defaults(func=submit_command)

@@ -54,7 +54,7 @@ def train_command(args: argparse.Namespace) -> int:
 
     cfg = TrainConfig(method=args.method, profile=args.profile, overrides=parse_overrides(args.set or []),
                       workers=args.workers, use_gpu=args.gpu, budget_min=args.budget_min, seed=args.seed,
-                      checkpoint_every=args.checkpoint_every)
+                      checkpoint_every=args.checkpoint_every, eval_every_s=args.eval_every_s)
     progress = ProgressPrinter(cfg)
     try:
         summary = run_training(cfg, args.scene, args.out, backend=args.backend, on_progress=progress)
@@ -84,6 +84,8 @@ def add_commands(commands) -> None:
     train.add_argument("--budget-min", type=float, default=None, help="wall-clock budget in minutes")
     train.add_argument("--seed", type=int, default=0)
     train.add_argument("--checkpoint-every", type=int, default=200, help="steps between checkpoints")
+    train.add_argument("--eval-every-s", type=float, default=None,
+                       help="validation PSNR/SSIM every this many seconds of training time (not counted in it)")
     train.add_argument("--set", action="append", metavar="KEY=VALUE",
                        help="override a profile setting, e.g. --set occupancy.steps=200 (repeatable)")
     train.add_argument("--backend", default="ray", choices=["ray", "local"],

@@ -29,6 +29,10 @@ class TrainConfig(BaseModel):
     checkpoint_every: int = Field(200, ge=1)
     metrics_every: int = Field(10, ge=1)
     val_every: int | None = Field(None, ge=1)  # validation renders during training (None: only at the end)
+    # Validation PSNR/SSIM (and occupancy metrics while one is learned) every this many seconds of training
+    # time and at each phase's end; not counted as training time (workers/periodic_eval.py).
+    eval_every_s: float | None = Field(None, gt=0)
+    eval_views: int = Field(4, ge=1)
     max_failures: int = Field(3, ge=0)  # worker-group restarts Ray Train may make from the last checkpoint
     max_nonfinite_steps: int = Field(20, ge=1)  # consecutive skipped steps before the run fails
 

@@ -13,7 +13,7 @@ import torch
 from model.metrics import psnr, ssim
 from model.lpips import load_lpips
 from model.occupancy import OccupancyPredictor
-from model.occupancy_eval import evaluate_occupancy
+from model.occupancy_eval import evaluate_occupancy, evaluate_occupancy_exact
 from model.samplers import stratified_edges
 from model.scenes import load_scene
 from model.scenes.rays import PixelTable
@@ -115,9 +115,11 @@ def evaluate_run(run_dir: str | Path, device: str | torch.device = "cpu") -> dic
 
     occupied = occupied_fn(cfg, models, predictor)
     occupancy = {}
-    if occupied is not None and views.depth is not None:
-        aabb = scene.occupancy.aabb if scene.occupancy is not None else scene.bounds.aabb
-        occupancy = evaluate_occupancy(occupied, views, aabb.float(), OCCUPANCY_RESOLUTION)
+    if occupied is not None and scene.occupancy is not None and views.depth is not None:
+        occupancy = evaluate_occupancy_exact(occupied, scene.occupancy, views, OCCUPANCY_RESOLUTION)
+        occupancy["reference"] = "exact ground truth, on the cells the validation views observe"
+    elif occupied is not None and views.depth is not None:
+        occupancy = evaluate_occupancy(occupied, views, scene.bounds.aabb.float(), OCCUPANCY_RESOLUTION)
         occupancy["reference"] = "depth maps of the validation views"
     num_coarse = profile.guided.coarse_samples if cfg.method != "grid" else profile.vanilla.coarse_samples
     points = export_point_cloud(run_dir / "occupancy.ply", cfg, models, occupied, views, scene.bounds.aabb,

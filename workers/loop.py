@@ -7,6 +7,7 @@ skipped on every rank; too many in a row end the run with a reason (the last goo
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import resource
@@ -22,7 +23,9 @@ from model.occupancy_phase import occupancy_step
 from model.scenes import RaySampler, load_scene
 from workers.config import TrainConfig
 from workers.distributed import any_rank, any_rank_each, average_gradients, grads_finite, is_distributed
+from workers.memory import SavedTensorBytes
 from workers.models import RunModels, build_optimizer
+from workers.periodic_eval import PeriodicEval
 from workers.session import Session
 from workers.sinks import JsonlSink
 from workers.store import RunStore
@@ -61,9 +64,11 @@ class RankRun:
         self.progress = {"phase": cfg.phases[0], "phase_step": 0, "step": 0, "elapsed": {}, "steps": {},
                          "nonfinite": 0}
         self.phase_objects = None
+        self.activation_mb: float | None = None
         self.predictor: OccupancyPredictor | None = None
         self.sink = JsonlSink(self.run_dir / "metrics.jsonl") if session.rank == 0 else None
         self.store = store if session.rank == 0 else None
+        self.periodic = PeriodicEval(self) if session.rank == 0 and cfg.eval_every_s else None
 
     # ----- checkpoints -------------------------------------------------------------------------------
     def _generator_states(self) -> list[torch.Tensor]:
@@ -172,7 +177,11 @@ class RankRun:
             if spent:
                 break
             t0 = time.perf_counter()
-            loss, parts = self.step_once(phase)
+            measure_memory = (self.progress["step"] + 1) % self.cfg.metrics_every == 0
+            with SavedTensorBytes() if measure_memory else contextlib.nullcontext() as saved:
+                loss, parts = self.step_once(phase)
+            if saved is not None:
+                self.activation_mb = saved.megabytes
             optimizer.zero_grad(set_to_none=True)
             finite = bool(torch.isfinite(loss))
             if finite:
@@ -196,18 +205,24 @@ class RankRun:
             self.progress["step"] += 1
             self.progress["steps"][phase] = self.progress["steps"].get(phase, 0) + 1
             seconds = time.perf_counter() - t0  # compute only: checkpoints and renders are not training time
+            before = sum(self.progress["elapsed"].values())
             self.progress["elapsed"][phase] = self.progress["elapsed"].get(phase, 0.0) + seconds
+            # Rank 0's own view of the end is exact: any rank's spent budget stops every rank (any_rank_each).
+            ending = self.progress["phase_step"] == total or not self.budget_left(phase)
+            evaluation = (self.periodic.measure(self, phase)
+                          if self.periodic and self.periodic.due(before, before + seconds, ending) else None)
             window_seconds += seconds
             window_steps += 1
             samples_in_window += parts.get("samples_per_ray", self.profile.occupancy.samples_per_ray)
             step = self.progress["step"]
-            if self.sink is not None and (step % self.cfg.metrics_every == 0 or self.progress["phase_step"] == total):
+            if self.sink is not None and (step % self.cfg.metrics_every == 0 or ending or evaluation):
                 rays = self.cfg.global_batch * window_steps / window_seconds
                 record = {
                     **parts, "phase": phase, "phase_step": self.progress["phase_step"],
                     "lr": optimizer.param_groups[0]["lr"], "rays_per_s": rays,
                     "samples_per_s": rays * samples_in_window / window_steps,
-                    "peak_memory_mb": peak_memory_mb(self.device), "wall_time_s": sum(self.progress["elapsed"].values()),
+                    "peak_memory_mb": peak_memory_mb(self.device), "activation_memory_mb": self.activation_mb,
+                    "wall_time_s": sum(self.progress["elapsed"].values()), **(evaluation or {}),
                 }
                 self.sink.write(step, record)
                 if self.store is not None:

@@ -163,6 +163,8 @@ def summarise(cfg: TrainConfig, run_dir: Path, evaluation: dict, attempt_s: floa
         "rays_per_s": mean(main, "rays_per_s"), "samples_per_ray": mean(main, "samples_per_ray"),
         "occupancy": occupancy or None, "val": evaluation["val"],
         "peak_memory_mb": max((m.get("peak_memory_mb") or 0.0 for m in metrics), default=None),
+        # What autograd keeps for one step of the main network (workers/memory.py): the memory the samplers set.
+        "activation_memory_mb": max((m.get("activation_memory_mb") or 0.0 for m in main), default=None),
         "device": device, "world_size": cfg.workers, "point_cloud": evaluation["point_cloud"],
     }
 

@@ -255,12 +255,16 @@ function smooth(points, k = 5) {
 
 async function showCompare(sceneId) {
   const [scene, jobs] = await Promise.all([getJson(`/v1/scenes/${sceneId}`), getJson(`/v1/jobs?scene=${sceneId}&limit=200`)]);
-  const runs = [];
+  // Validation PSNR (jobs submitted with eval_every_s) when every job has it; else the training batch's, smoothed.
+  const fetched = [];
   for (const job of jobs.items) {
-    const metrics = await getJson(`/v1/jobs/${job.id}/metrics?phase=main&name=psnr&max_points=2000`);
-    const series = metrics.series[0];
-    if (series && series.points.length) runs.push({ job, points: smooth(series.points) });
+    const series = name => getJson(`/v1/jobs/${job.id}/metrics?phase=main&name=${name}&max_points=2000`).then(m => m.series[0]);
+    const [val, train] = await Promise.all([series("val_psnr"), series("psnr")]);
+    fetched.push({ job, val: val && val.points.length ? val.points : null, train: train && train.points.length ? train.points : null });
   }
+  const useVal = fetched.some(f => f.train) && fetched.every(f => f.val || !f.train);
+  const runs = fetched.filter(f => useVal ? f.val : f.train)
+    .map(f => ({ job: f.job, points: useVal ? f.val : smooth(f.train) }));
   // Equal PSNR: the best smoothed PSNR that every run reached; each run's first training time at or above it.
   const target = runs.length ? Math.min(...runs.map(r => Math.max(...r.points.map(p => p.value)))) : null;
   const reach = r => (r.points.find(p => p.value >= target) || {}).wall_time_s ?? null;
@@ -273,8 +277,9 @@ async function showCompare(sceneId) {
   }).join("");
   const view = document.getElementById("view");
   view.innerHTML = `<h1>Compare jobs on ${esc(scene.name)}</h1>
-    <p class="muted">Training-batch PSNR of the main phase (moving average of 5 points) against training time; LeCO's time
-      includes its occupancy phase, as in the paper's Fig. 9. Validation PSNR of finished jobs is in their summary.json.</p>
+    <p class="muted">${useVal ? "Validation PSNR of the main phase (jobs submitted with eval_every_s)"
+      : "Training-batch PSNR of the main phase (moving average of 5 points; submit with eval_every_s for validation PSNR)"}
+      against training time; LeCO's time includes its occupancy phase, as in the paper's Fig. 9.</p>
     <div class="card" id="compare-chart"><h3>PSNR against training time (s)</h3></div>
     <h2>Speed-up at equal PSNR${target === null ? "" : ` (${fmt(target)} dB, the best all runs reached)`}</h2>
     <table id="compare"><thead><tr><th>job</th><th>method</th><th>state</th><th>last PSNR</th><th>time to ${fmt(target)} dB (s)</th>

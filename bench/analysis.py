@@ -1,0 +1,128 @@
+"""Numbers derived from the runs: time to reach a PSNR, speed-ups, per-variant means over seeds, targets."""
+
+from __future__ import annotations
+
+import math
+import statistics
+
+
+def main_curve(run: dict) -> list[tuple[float, float]]:
+    """(training seconds, validation PSNR) of the main network; LeCO's times include its occupancy phase."""
+    return [(p["wall_time_s"], p["val_psnr"]) for p in run["curve"] if p.get("phase") == "main" and "val_psnr" in p]
+
+
+def time_to_psnr(points: list[tuple[float, float]], target: float) -> float | None:
+    """First training time at which the curve reaches `target`, linearly interpolated between evaluations."""
+    previous = None
+    for t, value in points:
+        if value >= target:
+            if previous is None or previous[1] >= target:
+                return t
+            (t0, v0) = previous
+            return t0 + (target - v0) / (value - v0) * (t - t0)
+        previous = (t, value)
+    return None
+
+
+def mean_std(values: list[float | None]) -> tuple[float | None, float | None]:
+    values = [v for v in values if v is not None and math.isfinite(v)]
+    if not values:
+        return None, None
+    return statistics.fmean(values), (statistics.stdev(values) if len(values) > 1 else None)
+
+
+def get(summary: dict, path: str):
+    node = summary
+    for part in path.split("."):
+        if not isinstance(node, dict) or node.get(part) is None:
+            return None
+        node = node[part]
+    return node
+
+
+def per_variant(runs: list[dict], path: str) -> dict[str, tuple[float | None, float | None]]:
+    names = dict.fromkeys(r["variant"] for r in runs)
+    return {n: mean_std([get(r["summary"], path) for r in runs if r["variant"] == n]) for n in names}
+
+
+def equal_psnr(runs: list[dict]) -> list[dict]:
+    """Per seed: the best validation PSNR every compared method reached, and when each reached it."""
+    out = []
+    main = [r for r in runs if not r["ablation"]]
+    for seed in sorted({r["seed"] for r in main}):
+        group = [r for r in main if r["seed"] == seed and main_curve(r)]
+        if len(group) < 2:
+            continue
+        target = min(max(v for _, v in main_curve(r)) for r in group)
+        out.append({"seed": seed, "target_psnr": target,
+                    "time_s": {r["variant"]: time_to_psnr(main_curve(r), target) for r in group}})
+    return out
+
+
+def ratio(a: float | None, b: float | None) -> float | None:
+    return a / b if a is not None and b not in (None, 0) else None
+
+
+def speedups(runs: list[dict], equal: list[dict]) -> dict[str, dict]:
+    """LeCO over each baseline: rays/s, time to equal PSNR (mean over seeds), samples per ray, memory."""
+    names = list(dict.fromkeys(r["variant"] for r in runs if not r["ablation"]))
+    if "leco" not in names:
+        return {}
+    rays = per_variant(runs, "rays_per_s")
+    spr = per_variant(runs, "samples_per_ray")
+    act = per_variant(runs, "activation_memory_mb")
+    peak = per_variant(runs, "peak_memory_mb")
+    out = {}
+    for base in [n for n in names if n != "leco"]:
+        times = [ratio(e["time_s"].get(base), e["time_s"].get("leco")) for e in equal]
+        out[base] = {
+            "rays_per_s": ratio(rays["leco"][0], rays[base][0]),
+            "time_to_equal_psnr": mean_std(times)[0],
+            "samples_per_ray_fraction": ratio(spr["leco"][0], spr[base][0]),
+            "activation_memory_fraction": ratio(act["leco"][0], act[base][0]),
+            "peak_memory_fraction": ratio(peak["leco"][0], peak[base][0]),
+        }
+    return out
+
+
+def targets(runs: list[dict], speed: dict) -> list[dict]:
+    """The issue's targets, each with what was measured and whether it was met (None: not measurable here)."""
+    names = {r["variant"] for r in runs if not r["ablation"]}
+    psnr = per_variant(runs, "val.psnr")
+    f1 = per_variant(runs, "occupancy.f1")
+    params = per_variant(runs, "occupancy.params")
+    occ_ratio = per_variant(runs, "occupancy.occupancy_ratio")
+    rows = []
+
+    def add(text: str, measured: str, met: bool | None) -> None:
+        rows.append({"target": text, "measured": measured, "met": met})
+
+    fmt = lambda v, spec: "n/a" if v is None else format(v, spec)
+    if {"leco", "switch"} <= names:
+        s = speed["switch"]
+        add("guided phase rays/s >= 2.5x vanilla Switch-NeRF", f"{fmt(s['rays_per_s'], '.2f')}x",
+            None if s["rays_per_s"] is None else s["rays_per_s"] >= 2.5)
+        add("main-network samples per ray <= 25% of vanilla", f"{fmt(s['samples_per_ray_fraction'], '.1%')}",
+            None if s["samples_per_ray_fraction"] is None else s["samples_per_ray_fraction"] <= 0.25)
+        add("validation PSNR >= vanilla's at equal budget",
+            f"{fmt(psnr['leco'][0], '.2f')} vs {fmt(psnr['switch'][0], '.2f')} dB",
+            None if None in (psnr["leco"][0], psnr["switch"][0]) else psnr["leco"][0] >= psnr["switch"][0])
+        memory = s["peak_memory_fraction"] if _on_gpu(runs) else s["activation_memory_fraction"]
+        add("peak training memory <= half of vanilla's" + ("" if _on_gpu(runs) else " (autograd activations, CPU)"),
+            f"{fmt(memory, '.1%')} of vanilla's", None if memory is None else memory <= 0.5)
+    if {"leco", "grid"} <= names:
+        add("validation PSNR >= the grid's at equal budget",
+            f"{fmt(psnr['leco'][0], '.2f')} vs {fmt(psnr['grid'][0], '.2f')} dB",
+            None if None in (psnr["leco"][0], psnr["grid"][0]) else psnr["leco"][0] >= psnr["grid"][0])
+        add("occupancy F1 above the grid's", f"{fmt(f1['leco'][0], '.3f')} vs {fmt(f1['grid'][0], '.3f')}",
+            None if None in (f1["leco"][0], f1["grid"][0]) else f1["leco"][0] > f1["grid"][0])
+        p = ratio(params["leco"][0], params["grid"][0])
+        add("occupancy parameters <= 10% of the grid's", f"{fmt(p, '.1%')}", None if p is None else p <= 0.10)
+    if "leco" in names:
+        r = occ_ratio["leco"][0]
+        add("LeCO occupancy ratio <= 20%", fmt(r, ".1%"), None if r is None else r <= 0.20)
+    return rows
+
+
+def _on_gpu(runs: list[dict]) -> bool:
+    return any(r["summary"]["config"].get("use_gpu") for r in runs)

@@ -1,0 +1,117 @@
+"""`leco bench`: train LeCO, vanilla Switch-NeRF and the occupancy grid on one scene at the same profile, seed
+and wall-clock budget, then write results.json, report.md and figures/ (see docs/BENCHMARKS.md)."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+import time
+from pathlib import Path
+
+
+def bench_command(args: argparse.Namespace) -> int:
+    from bench import analysis, plots, report
+    from bench.runner import BenchError, Plan, config_for, run_variant
+    from bench.variants import select
+    from model.scenes import load_scene
+    from workers.config import parse_overrides
+
+    log = lambda text: print(text, file=sys.stderr, flush=True)
+    try:
+        variants = select([m.strip() for m in args.methods.split(",") if m.strip()], args.ablation)
+        seeds = [int(s) for s in args.seeds.split(",")]
+        overrides = parse_overrides(args.set or [])
+    except ValueError as error:
+        raise SystemExit(f"leco bench: {error}")
+    scene_dir, out = Path(args.scene), Path(args.out)
+    scene = load_scene(scene_dir)  # a broken scene fails here, naming what is wrong
+    every = args.eval_every_s or (args.budget_min * 60 / 15 if args.budget_min else 30.0)
+    plan = Plan(scene=scene_dir, profile=args.profile, out=out, budget_min=args.budget_min, seeds=seeds,
+                eval_every_s=every, eval_views=args.eval_views, backend=args.backend, workers=args.workers,
+                use_gpu=args.gpu, overrides=overrides)
+    try:
+        for variant in variants:  # every config is valid before the first run starts
+            config_for(variant, plan, seeds[0])
+    except ValueError as error:
+        raise SystemExit(f"leco bench: {error}")
+    out.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    try:
+        runs = [run_variant(v, plan, seed, log) for seed in seeds for v in variants]
+    except BenchError as error:
+        raise SystemExit(f"leco bench: {error}")
+
+    reference = "none (the scene has no ground truth or depth maps, and no vanilla run to take depth from)"
+    if scene.occupancy is not None:
+        reference = "exact ground truth (gt/), on the cells the validation views observe"
+    elif any(v.depth is not None for v in scene.splits.values()):
+        reference = "the scene's depth maps of the validation views"
+    else:
+        from bench.reference import score_against_vanilla
+
+        for seed in seeds:
+            switch = [r for r in runs if r["variant"] == "switch" and r["seed"] == seed]
+            scored = [r for r in runs if r["method"] in ("leco", "grid") and r["seed"] == seed]
+            if switch and scored:
+                log(f"[bench] seed {seed}: occupancy against the trained vanilla model's depth (paper's protocol)")
+                metrics = score_against_vanilla(Path(switch[0]["run_dir"]), [Path(r["run_dir"]) for r in scored])
+                for r in scored:
+                    r["summary"]["occupancy"] = {**(r["summary"].get("occupancy") or {}), **metrics[r["run_dir"]]}
+                reference = "depth maps of the validation views rendered by the trained vanilla Switch-NeRF"
+
+    equal = analysis.equal_psnr(runs)
+    speed = analysis.speedups(runs, equal)
+    results = {
+        "plan": {"scene": str(scene_dir), "profile": args.profile, "budget_min": args.budget_min, "seeds": seeds,
+                 "methods": [v.name for v in variants], "eval_every_s": every, "eval_views": args.eval_views,
+                 "backend": args.backend, "workers": args.workers, "gpu": args.gpu, "overrides": overrides},
+        "command": command_line(args),
+        "machine": report.machine(), "finished_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "bench_wall_s": time.perf_counter() - started, "occupancy_reference": reference,
+        "runs": runs, "equal_psnr": equal, "speedups": speed, "targets": analysis.targets(runs, speed),
+    }
+    results["figures"] = plots.all_figures(runs, out / "figures")
+    report.write_results(results, out)
+    report.write_report(results, out)
+    log(f"[bench] {report.summary_line(results)}")
+    print(f"{out / 'report.md'}\n{out / 'results.json'}")
+    return 0
+
+
+def command_line(args: argparse.Namespace) -> str:
+    """The invocation, rebuilt from the parsed arguments (so it is exact however the command was called)."""
+    words = ["leco", "bench", "--scene", args.scene, "--profile", args.profile, "--out", args.out,
+             "--methods", args.methods, "--seeds", args.seeds, "--eval-views", str(args.eval_views)]
+    for flag, value in (("--budget-min", args.budget_min), ("--eval-every-s", args.eval_every_s)):
+        if value is not None:
+            words += [flag, str(value)]
+    if args.backend != "local":
+        words += ["--backend", args.backend, "--workers", str(args.workers)]
+    words += ["--ablation"] * args.ablation + ["--gpu"] * args.gpu
+    for item in args.set or []:
+        words += ["--set", item]
+    return " ".join(shlex.quote(w) for w in words)
+
+
+def add_commands(commands) -> None:
+    bench = commands.add_parser("bench", help="LeCO vs Switch-NeRF vs occupancy grid on one scene: report, plots")
+    bench.add_argument("--scene", required=True, help="scene folder (any supported format)")
+    bench.add_argument("--profile", default="cpu", help="smoke | cpu | paper (default: cpu)")
+    bench.add_argument("--out", required=True, help="output folder; finished runs in it are reused")
+    bench.add_argument("--budget-min", type=float, default=None,
+                       help="wall-clock training budget per method in minutes (LeCO's includes its occupancy "
+                            "phase); without it every method runs the profile's step counts")
+    bench.add_argument("--methods", default="leco,switch,grid", help="comma-separated: leco, switch, grid")
+    bench.add_argument("--ablation", action="store_true",
+                       help="also train the ablations: homogeneous MoE and HMoE without the density loss")
+    bench.add_argument("--seeds", default="0", help="comma-separated seeds, e.g. 0,1,2")
+    bench.add_argument("--eval-every-s", type=float, default=None,
+                       help="validation every this many training seconds (default: budget/15, or 30 s)")
+    bench.add_argument("--eval-views", type=int, default=4, help="validation views scored during training")
+    bench.add_argument("--backend", default="local", choices=["local", "ray"],
+                       help="local (default): one process per method; ray: Ray Train workers")
+    bench.add_argument("--workers", type=int, default=1, help="data-parallel workers (ray backend)")
+    bench.add_argument("--gpu", action="store_true", help="train on GPUs")
+    bench.add_argument("--set", action="append", metavar="KEY=VALUE", help="profile override for every method")
+    bench.set_defaults(func=bench_command)

@@ -1,0 +1,143 @@
+"""The report's figures as PNG (matplotlib, Agg): PSNR against training time (Fig. 9), occupancy F1 and
+empty-expert fraction against occupancy-phase step (Fig. 5), main-network samples per ray, the occupancy point
+clouds of LeCO and the grid side by side (Fig. 7) and validation renders side by side (Fig. 8)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from PIL import Image  # noqa: E402
+
+from bench.analysis import main_curve, per_variant  # noqa: E402
+
+COLOURS = {"leco": "#d62728", "switch": "#1f77b4", "grid": "#2ca02c", "leco-homogeneous": "#9467bd",
+           "leco-no-density-loss": "#ff7f0e"}
+
+
+def _save(fig, path: Path) -> str:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path.name
+
+
+def psnr_vs_time(runs: list[dict], path: Path) -> str:
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for run in runs:
+        points = main_curve(run)
+        if points:
+            t, v = zip(*points)
+            ax.plot(np.array(t) / 60, v, marker=".", color=COLOURS.get(run["variant"]),
+                    alpha=1.0 if run["seed"] == runs[0]["seed"] else 0.5,
+                    label=f"{run['label']} (seed {run['seed']})")
+    ax.set_xlabel("training time (min; LeCO includes its occupancy phase)")
+    ax.set_ylabel("validation PSNR (dB)")
+    ax.set_title("PSNR against training time (paper Fig. 9)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    return _save(fig, path)
+
+
+def occupancy_phase(runs: list[dict], path: Path) -> str | None:
+    leco = [r for r in runs if r["method"] == "leco"]
+    if not leco:
+        return None
+    fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.6))
+    for run in leco:
+        rows = [p for p in run["curve"] if p.get("phase") == "occupancy"]
+        label = f"{run['label']} (seed {run['seed']})"
+        f1 = [(p["phase_step"], p["occupancy_f1"]) for p in rows if "occupancy_f1" in p]
+        if f1:
+            left.plot(*zip(*f1), marker=".", color=COLOURS.get(run["variant"]), label=label)
+        empty = [(p["phase_step"], 100 * p["fraction_empty"]) for p in rows if "fraction_empty" in p]
+        if empty:
+            right.plot(*zip(*empty), color=COLOURS.get(run["variant"]), label=label)
+    left.set(xlabel="occupancy-phase step", ylabel="occupancy F1", title="Occupancy F1 (paper Fig. 5)")
+    right.set(xlabel="occupancy-phase step", ylabel="% of points sent to E_e", title="Empty-expert fraction")
+    for ax in (left, right):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    return _save(fig, path)
+
+
+def samples_per_ray(runs: list[dict], path: Path) -> str:
+    means = per_variant(runs, "samples_per_ray")
+    names = [n for n, (m, _) in means.items() if m is not None]
+    fig, ax = plt.subplots(figsize=(6, 3.4))
+    bars = ax.bar(names, [means[n][0] for n in names], color=[COLOURS.get(n, "grey") for n in names])
+    ax.bar_label(bars, fmt="%.1f")
+    ax.set_ylabel("main-network samples per ray")
+    ax.set_title("Main-network samples per ray (mean over the main phase)")
+    return _save(fig, path)
+
+
+def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    data = path.read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    rows = np.frombuffer(data[end:], dtype=np.dtype([("xyz", "<f4", 3), ("rgba", "u1", 4)]))
+    return rows["xyz"], rows["rgba"]
+
+
+def occupancy_clouds(runs: list[dict], path: Path) -> str | None:
+    """Top-down and oblique views of each method's occupied points (coloured by the main network)."""
+    chosen = [r for r in runs if r["method"] in ("leco", "grid") and not r["ablation"]
+              and (Path(r["run_dir"]) / "occupancy.ply").exists() and r["seed"] == runs[0]["seed"]]
+    if not chosen:
+        return None
+    fig, axes = plt.subplots(2, len(chosen), figsize=(4.5 * len(chosen), 8), squeeze=False)
+    for col, run in enumerate(chosen):
+        xyz, rgba = read_ply(Path(run["run_dir"]) / "occupancy.ply")
+        colours = rgba[:, :3] / 255.0
+        top, oblique = axes[0, col], axes[1, col]
+        order = np.argsort(xyz[:, 2])  # higher points drawn last, as seen from above
+        top.scatter(xyz[order, 0], xyz[order, 1], c=colours[order], s=0.5, linewidths=0)
+        top.set_title(f"{run['label']}: {len(xyz):,} points, from above", fontsize=9)
+        depth = xyz[:, 0] + xyz[:, 1]
+        order = np.argsort(-depth)
+        oblique.scatter(xyz[order, 0] - xyz[order, 1], xyz[order, 2] + 0.3 * depth[order], c=colours[order],
+                        s=0.5, linewidths=0)
+        oblique.set_title("oblique", fontsize=9)
+        for ax in (top, oblique):
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.suptitle("Occupied points kept for the main network (paper Fig. 7)")
+    return _save(fig, path)
+
+
+def render_grid(runs: list[dict], path: Path) -> str | None:
+    """Each method's first final validation render (prediction | truth | depth), one row per method."""
+    rows = []
+    for run in runs:
+        if run["seed"] != runs[0]["seed"]:
+            continue
+        renders = sorted((Path(run["run_dir"]) / "renders").glob("final_*.png"))
+        if renders:
+            rows.append((run["label"], Image.open(renders[0]).convert("RGB")))
+    if not rows:
+        return None
+    fig, axes = plt.subplots(len(rows), 1, figsize=(9, 2.6 * len(rows)), squeeze=False)
+    for ax, (label, image) in zip(axes[:, 0], rows):
+        ax.imshow(np.asarray(image))
+        ax.set_title(f"{label}: prediction | ground truth | depth", fontsize=9)
+        ax.axis("off")
+    fig.suptitle("Validation renders (paper Fig. 8)")
+    return _save(fig, path)
+
+
+def all_figures(runs: list[dict], out: Path) -> dict[str, str]:
+    out.mkdir(parents=True, exist_ok=True)
+    main = [r for r in runs if not r["ablation"]]
+    figures = {
+        "psnr_vs_time": psnr_vs_time(main or runs, out / "psnr_vs_time.png"),
+        "occupancy_phase": occupancy_phase(runs, out / "occupancy_phase.png"),
+        "samples_per_ray": samples_per_ray(runs, out / "samples_per_ray.png"),
+        "occupancy_clouds": occupancy_clouds(runs, out / "occupancy_leco_vs_grid.png"),
+        "renders": render_grid(runs, out / "renders.png"),
+    }
+    return {k: f"figures/{v}" for k, v in figures.items() if v}

@@ -1,0 +1,168 @@
+"""results.json and report.md: the paper's Tables 1 and 3 (and 4/5 for ablations) from measured runs."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+from pathlib import Path
+
+import torch
+
+from bench.analysis import get, mean_std, per_variant
+
+PAPER_NOTE = ("Paper (Mega-NeRF scenes, 8 GPUs): LeCO ~2.5x faster than Switch-NeRF at equal or better PSNR, "
+              "occupancy network 0.15M parameters vs a 2.1M-cell grid, occupancy ratio below the grid's.")
+
+
+def machine() -> dict:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    info = {"cpu": cpu, "cores": os.cpu_count(), "torch": torch.__version__, "python": platform.python_version(),
+            "os": platform.platform()}
+    if torch.cuda.is_available():
+        info["gpu"] = torch.cuda.get_device_name(0)
+    return info
+
+
+def cell(value: tuple[float | None, float | None] | float | None, spec: str) -> str:
+    mean, std = value if isinstance(value, tuple) else (value, None)
+    if mean is None:
+        return "n/a"
+    text = format(mean, spec)
+    return f"{text} ± {format(std, spec)}" if std is not None else text
+
+
+def table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def occupancy_table(runs: list[dict], names: list[str], labels: dict) -> str:
+    stats = {k: per_variant(runs, f"occupancy.{k}") for k in
+             ("accuracy", "precision", "recall", "f1", "params", "occupancy_ratio")}
+    rows = [[labels[n], cell(stats["accuracy"][n], ".3f"), cell(stats["precision"][n], ".3f"),
+             cell(stats["recall"][n], ".3f"), cell(stats["f1"][n], ".3f"), cell(stats["params"][n], ",.0f"),
+             cell(stats["occupancy_ratio"][n], ".1%")] for n in names]
+    return table(["method", "accuracy", "precision", "recall", "F1", "parameters", "occupancy ratio"], rows)
+
+
+def quality_table(runs: list[dict], names: list[str], labels: dict) -> str:
+    s = {k: per_variant(runs, k) for k in ("val.psnr", "val.ssim", "val.lpips", "wall_time_s.total",
+                                           "peak_memory_mb", "activation_memory_mb", "rays_per_s",
+                                           "samples_per_ray", "steps.total")}
+    minutes = {n: (None if m is None else m / 60, None if sd is None else sd / 60)
+               for n, (m, sd) in s["wall_time_s.total"].items()}
+    rows = [[labels[n], cell(s["val.psnr"][n], ".2f"), cell(s["val.ssim"][n], ".3f"), cell(s["val.lpips"][n], ".3f"),
+             cell(minutes[n], ".2f"), cell(s["peak_memory_mb"][n], ",.0f"), cell(s["activation_memory_mb"][n], ".1f"),
+             cell(s["rays_per_s"][n], ",.0f"), cell(s["samples_per_ray"][n], ".1f"), cell(s["steps.total"][n], ",.0f")]
+            for n in names]
+    return table(["method", "PSNR", "SSIM", "LPIPS", "time (min)", "peak memory (MB)", "activations (MB/step)",
+                  "rays/s (main)", "samples/ray", "steps"], rows)
+
+
+def ablation_table(runs: list[dict]) -> str:
+    names = [n for n in dict.fromkeys(r["variant"] for r in runs) if n.startswith("leco")]
+    labels = {r["variant"]: r["label"] for r in runs}
+    hmoe = {}
+    for n in names:  # the HMoE's own rendering at the end of phase 1 (what Table 4 scores)
+        ends = []
+        for r in runs:
+            points = [p for p in r["curve"] if p.get("phase") == "occupancy" and "val_psnr" in p]
+            if r["variant"] == n and points:
+                ends.append(points[-1]["val_psnr"])
+        hmoe[n] = mean_std(ends)
+    s = {k: per_variant(runs, k) for k in ("occupancy.empty_fraction", "occupancy.f1", "occupancy.recall",
+                                           "occupancy.precision", "val.psnr", "val.ssim", "val.lpips")}
+    rows = [[labels[n], cell(hmoe[n], ".2f"), cell(s["occupancy.empty_fraction"][n], ".1%"),
+             cell(s["occupancy.f1"][n], ".3f"), cell(s["occupancy.recall"][n], ".3f"),
+             cell(s["occupancy.precision"][n], ".3f"), cell(s["val.psnr"][n], ".2f"), cell(s["val.ssim"][n], ".3f"),
+             cell(s["val.lpips"][n], ".3f")] for n in names]
+    return table(["variant", "phase-1 HMoE PSNR", "points to E_e", "occupancy F1", "recall", "precision",
+                  "guided PSNR", "SSIM", "LPIPS"], rows)
+
+
+def write_results(results: dict, out: Path) -> None:
+    tmp = out / "results.json.tmp"
+    tmp.write_text(json.dumps(results, indent=1, default=float))
+    tmp.replace(out / "results.json")
+
+
+def write_report(results: dict, out: Path) -> None:
+    runs = results["runs"]
+    labels = {r["variant"]: r["label"] for r in runs}
+    main = [n for n in dict.fromkeys(r["variant"] for r in runs if not r["ablation"])]
+    plan, m = results["plan"], results["machine"]
+    parts = [
+        "# LeCO-NeRF benchmark",
+        "",
+        f"- scene: `{plan['scene']}`; profile `{plan['profile']}`; "
+        + (f"wall-clock budget {plan['budget_min']:g} min per method; " if plan["budget_min"]
+           else "no budget (the profile's step counts); ") +
+        f"seeds {', '.join(map(str, plan['seeds']))}; backend {plan['backend']} x {plan['workers']} worker(s)",
+        f"- machine: {m['cpu']}, {m['cores']} cores{', ' + m['gpu'] if m.get('gpu') else ''}; torch {m['torch']}; "
+        f"Python {m['python']}; {results['finished_at']}",
+        f"- command: `{results['command']}`",
+        f"- occupancy reference: {results['occupancy_reference']}",
+        "- times are training compute only (evaluation renders and checkpoints excluded for every method); "
+        "LeCO's include its occupancy phase, the grid's its update and culling passes.",
+        "",
+    ]
+    if main:
+        parts += ["## Occupancy (the paper's Table 1)", "", occupancy_table(runs, main, labels), "",
+                  "## Quality, time and memory (the paper's Table 3)", "", quality_table(runs, main, labels), "",
+                  "Peak memory is the process's peak RSS on a CPU (runtime, scene and weights included) and "
+                  "`torch.cuda.max_memory_allocated` on a GPU; activations are the bytes autograd keeps for one "
+                  "main-network step (workers/memory.py).", ""]
+    speed = results["speedups"]
+    if speed:
+        parts += ["## Speed-up of LeCO", ""]
+        rows = [[labels.get(base, base), cell(v["rays_per_s"], ".2f") + "x", cell(v["time_to_equal_psnr"], ".2f") + "x",
+                 cell(v["samples_per_ray_fraction"], ".1%"), cell(v["activation_memory_fraction"], ".1%"),
+                 cell(v["peak_memory_fraction"], ".1%")] for base, v in speed.items()]
+        parts += [table(["over", "rays/s", "time to equal PSNR", "samples per ray (LeCO / it)",
+                         "activations (LeCO / it)", "peak memory (LeCO / it)"], rows), ""]
+        for e in results["equal_psnr"]:
+            times = ", ".join(f"{labels.get(k, k)} {'n/a' if v is None else f'{v / 60:.2f} min'}"
+                              for k, v in e["time_s"].items())
+            parts.append(f"- seed {e['seed']}: equal PSNR {e['target_psnr']:.2f} dB (the best every method reached, "
+                         f"on the first {plan['eval_views']} validation views) reached after {times}")
+        parts.append("")
+    if results["targets"]:
+        parts += ["## Targets", "", table(["target", "measured", "met"], [
+            [t["target"], t["measured"], {True: "yes", False: "**no**", None: "n/a"}[t["met"]]]
+            for t in results["targets"]]), ""]
+        missed = [t for t in results["targets"] if t["met"] is False]
+        if missed:
+            parts += [f"{len(missed)} target(s) missed; docs/BENCHMARKS.md explains why and what would fix it.", ""]
+    if any(r["ablation"] for r in runs):
+        parts += ["## Ablation (the paper's Tables 4 and 5)", "", ablation_table(runs), "",
+                  "Phase-1 HMoE PSNR is the occupancy network's own rendering at the end of phase 1 (Table 4 "
+                  "scores this); guided PSNR is the Switch-NeRF it then guides (Table 5).", ""]
+    if results["figures"]:
+        parts += ["## Figures", ""] + [f"![{k}]({v})" for k, v in results["figures"].items()] + [""]
+    parts += [PAPER_NOTE, ""]
+    tmp = out / "report.md.tmp"
+    tmp.write_text("\n".join(parts))
+    tmp.replace(out / "report.md")
+
+
+def summary_line(results: dict) -> str:
+    speed = results["speedups"].get("switch")
+    psnr = {n: m for n, (m, _) in per_variant(results["runs"], "val.psnr").items()}
+    text = ", ".join(f"{n} {v:.2f} dB" for n, v in psnr.items() if v is not None)
+    if speed and speed["rays_per_s"] is not None:
+        text += f"; LeCO vs Switch-NeRF: {speed['rays_per_s']:.2f}x rays/s"
+        if speed["time_to_equal_psnr"] is not None:
+            text += f", {speed['time_to_equal_psnr']:.2f}x to equal PSNR"
+    return text
+
+
+__all__ = ["machine", "write_report", "write_results", "summary_line", "get"]

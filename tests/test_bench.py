@@ -1,0 +1,148 @@
+"""`leco bench`: the analysis (time to equal PSNR, speed-ups, targets), the exact occupancy reference, the
+activation-memory meter, and the whole command end to end on the tiny city and on a lego subset."""
+
+import json
+import shutil
+
+import pytest
+import torch
+from PIL import Image
+
+from bench.analysis import equal_psnr, speedups, targets, time_to_psnr
+from model.occupancy_eval import evaluate_occupancy_exact
+from service.cli import main
+from workers.memory import SavedTensorBytes
+
+
+def test_time_to_psnr_interpolates_between_evaluations():
+    points = [(10.0, 15.0), (20.0, 19.0), (30.0, 21.0)]
+    assert time_to_psnr(points, 17.0) == pytest.approx(15.0)
+    assert time_to_psnr(points, 14.0) == 10.0  # reached at the first evaluation
+    assert time_to_psnr(points, 21.0) == 30.0
+    assert time_to_psnr(points, 22.0) is None
+
+
+def fake_run(variant, seed, curve, **summary):
+    base = {"rays_per_s": 1000.0, "samples_per_ray": 100.0, "activation_memory_mb": 10.0, "peak_memory_mb": 500.0,
+            "val": {"psnr": 20.0}, "occupancy": None, "config": {"use_gpu": False}}
+    return {"variant": variant, "method": variant, "label": variant, "ablation": False, "seed": seed,
+            "summary": {**base, **summary},
+            "curve": [{"phase": "main", "wall_time_s": t, "val_psnr": v} for t, v in curve]}
+
+
+def test_equal_psnr_speedups_and_targets_from_curves():
+    runs = [fake_run("leco", 0, [(60, 18.0), (120, 22.0)], rays_per_s=3000.0, samples_per_ray=20.0,
+                     activation_memory_mb=4.0, val={"psnr": 22.0},
+                     occupancy={"f1": 0.5, "params": 1000, "occupancy_ratio": 0.1}),
+            fake_run("switch", 0, [(60, 16.0), (240, 20.0)], val={"psnr": 20.0}),
+            fake_run("grid", 0, [(60, 19.0), (240, 21.0)], rays_per_s=2000.0, val={"psnr": 21.0},
+                     occupancy={"f1": 0.4, "params": 128**3, "occupancy_ratio": 0.3})]
+    equal = equal_psnr(runs)
+    assert equal[0]["target_psnr"] == 20.0  # the best PSNR all three reached (the vanilla model's)
+    assert equal[0]["time_s"] == pytest.approx({"leco": 90.0, "switch": 240.0, "grid": 120.0})
+    speed = speedups(runs, equal)
+    assert list(speed) == ["switch", "grid"]
+    assert speed["switch"]["rays_per_s"] == pytest.approx(3.0)
+    assert speed["switch"]["time_to_equal_psnr"] == pytest.approx(240 / 90)
+    assert speed["switch"]["samples_per_ray_fraction"] == pytest.approx(0.2)
+    assert speed["switch"]["activation_memory_fraction"] == pytest.approx(0.4)
+    met = {t["target"]: t["met"] for t in targets(runs, speed)}
+    assert all(met.values()), met
+    runs[0]["summary"]["occupancy"]["occupancy_ratio"] = 0.25
+    assert [t["target"] for t in targets(runs, speed) if t["met"] is False] == ["LeCO occupancy ratio <= 20%"]
+
+
+def test_exact_occupancy_reference_scores_the_truth_one_and_nothing_zero(tiny_scene):
+    truth, views = tiny_scene.occupancy, tiny_scene.splits["val"]
+    perfect = evaluate_occupancy_exact(truth.lookup, truth, views)
+    assert perfect["f1"] == perfect["whole_grid_f1"] == perfect["accuracy"] == 1.0
+    empty = evaluate_occupancy_exact(lambda p: torch.zeros(len(p), dtype=torch.bool), truth, views)
+    assert empty["recall"] == empty["f1"] == 0.0
+    # Observed cells are mostly air: predicting nothing is still "accurate", which is why F1 is the headline.
+    assert empty["accuracy"] == pytest.approx(1 - perfect["reference_occupied_fraction"], abs=1e-9)
+    everything = evaluate_occupancy_exact(lambda p: torch.ones(len(p), dtype=torch.bool), truth, views)
+    assert everything["recall"] == 1.0 and everything["precision"] == pytest.approx(
+        perfect["reference_occupied_fraction"])
+
+
+def test_saved_tensor_bytes_counts_what_backward_keeps():
+    x = torch.randn(1000, 64, requires_grad=True)
+    w = torch.randn(64, 32, requires_grad=True)
+    with SavedTensorBytes() as saved:
+        y = torch.relu(x @ w).sum()  # matmul keeps x and w; relu keeps its output
+    assert saved.megabytes * 2**20 == (1000 * 64 + 64 * 32 + 1000 * 32) * 4
+    y.backward()  # the tensors are handed back unchanged
+    assert w.grad.shape == w.shape
+
+
+def bench(*args):
+    return main(["bench", "--profile", "smoke", "--eval-every-s", "0.3", *args])
+
+
+@pytest.mark.slow
+def test_bench_smoke_on_the_tiny_city(tiny_scene, tmp_path, capsys):
+    out = tmp_path / "bench"
+    assert bench("--scene", str(tiny_scene.root), "--out", str(out), "--ablation") == 0
+    results = json.loads((out / "results.json").read_text())
+    runs = {r["variant"]: r for r in results["runs"]}
+    assert set(runs) == {"leco", "switch", "grid", "leco-homogeneous", "leco-no-density-loss"}
+    assert results["occupancy_reference"].startswith("exact ground truth")
+    leco = runs["leco"]
+    phases = [p["phase"] for p in leco["curve"] if "val_psnr" in p]
+    assert "occupancy" in phases and phases[-1] == "main"  # validation at each phase's end at least
+    assert all("occupancy_f1" in p for p in leco["curve"] if p["phase"] == "occupancy" and "val_psnr" in p)
+    for name in ("leco", "grid"):
+        occupancy = runs[name]["summary"]["occupancy"]
+        assert 0.0 <= occupancy["f1"] <= 1.0 and occupancy["params"] > 0
+    assert runs["grid"]["summary"]["occupancy"]["params"] == 32**3
+    assert leco["summary"]["samples_per_ray"] < runs["switch"]["summary"]["samples_per_ray"] == 8 + 8 + 16
+    assert leco["summary"]["activation_memory_mb"] < runs["switch"]["summary"]["activation_memory_mb"]
+    assert results["speedups"]["switch"]["rays_per_s"] > 0 and results["equal_psnr"][0]["target_psnr"] > 10
+    assert {t["target"] for t in results["targets"]} >= {"occupancy parameters <= 10% of the grid's"}
+    for figure in results["figures"].values():
+        with Image.open(out / figure) as image:
+            assert image.format == "PNG" and image.width > 300
+    assert set(results["figures"]) == {"psnr_vs_time", "occupancy_phase", "samples_per_ray", "occupancy_clouds",
+                                       "renders"}
+    report = (out / "report.md").read_text()
+    for heading in ("Table 1", "Table 3", "Speed-up of LeCO", "Targets", "Tables 4 and 5"):
+        assert heading in report
+    assert "| S+Ours (LeCO) |" in report and "| Homo. MoE, no L_d |" in report
+
+    capsys.readouterr()
+    assert bench("--scene", str(tiny_scene.root), "--out", str(out), "--methods", "leco,switch") == 0
+    assert capsys.readouterr().err.count("finished earlier, reusing") == 2  # nothing retrained
+
+
+@pytest.mark.slow
+def test_bench_on_lego_scores_occupancy_against_the_vanilla_models_depth(tmp_path, lego_dir):
+    root = tmp_path / "lego"
+    for split, names in (("train", ["r_0", "r_1", "r_2", "r_3"]), ("val", ["r_0"])):
+        (root / split).mkdir(parents=True)
+        data = json.loads((lego_dir / f"transforms_{split}.json").read_text())
+        frames = [f for f in data["frames"] if f["file_path"].split("/")[-1] in names]
+        for f in frames:
+            shutil.copy(lego_dir / (f["file_path"] + ".png"), root / split)
+        (root / f"transforms_{split}.json").write_text(json.dumps({**data, "frames": frames}))
+    out = tmp_path / "bench"
+    assert bench("--scene", str(root), "--out", str(out)) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["occupancy_reference"].startswith("depth maps of the validation views rendered by the trained")
+    for run in results["runs"]:
+        occupancy = run["summary"]["occupancy"]
+        if run["variant"] == "switch":
+            assert occupancy is None
+        else:
+            assert occupancy["reference"].startswith("depth of the trained vanilla Switch-NeRF")
+            assert 0.0 <= occupancy["f1"] <= 1.0 and occupancy["observed_fraction"] > 0
+
+
+def test_bench_refuses_bad_arguments_before_training(tiny_scene, tmp_path):
+    scene = str(tiny_scene.root)
+    with pytest.raises(SystemExit, match="unknown method.*nerfacto.*choose from leco, switch, grid"):
+        bench("--scene", scene, "--out", str(tmp_path / "a"), "--methods", "leco,nerfacto")
+    with pytest.raises(SystemExit, match="override 'network.depth': no such setting"):
+        bench("--scene", scene, "--out", str(tmp_path / "b"), "--set", "network.depth=3")
+    with pytest.raises(SystemExit, match="nothing to benchmark"):
+        bench("--scene", scene, "--out", str(tmp_path / "c"), "--methods", "")
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

@@ -1,0 +1,60 @@
+"""Validation while training (rank 0), every `eval_every_s` seconds of training time and at the end of each
+phase: PSNR / SSIM on the first `eval_views` validation views, and, while an occupancy is being learned (LeCO's
+phase 1, the grid all along), its occupancy metrics. This gives the benchmark its PSNR-against-time curves
+(the paper's Fig. 9) and F1-against-step curves (Fig. 5). Its time is not counted as training time.
+"""
+
+from __future__ import annotations
+
+import time
+
+from model.metrics import psnr, ssim
+from model.occupancy import OccupancyPredictor
+from model.occupancy_eval import evaluate_occupancy, evaluate_occupancy_exact
+from model.scenes.rays import PixelTable
+from workers.validation import render_image
+
+OCCUPANCY_RESOLUTION = 64
+
+
+class PeriodicEval:
+    def __init__(self, run) -> None:
+        self.every = run.cfg.eval_every_s
+        views = run.scene.splits.get("val", run.scene.train)
+        self.views, self.table = views, PixelTable(views)
+        self.count = min(run.cfg.eval_views, len(views))
+
+    def due(self, before_s: float, after_s: float, ending: bool) -> bool:
+        """True when this step crossed a multiple of `every` seconds of training time, or ends its phase."""
+        if self.every is None:
+            return False
+        return ending or int(after_s // self.every) > int(before_s // self.every)
+
+    def occupied_fn(self, run, phase: str):
+        if phase == "occupancy":
+            predictor = OccupancyPredictor.from_hmoe(run.models.hmoe)  # a frozen copy of O as it is now
+            predictor.network.to(run.device)
+            return predictor.occupied
+        if run.cfg.method == "grid":
+            return run.models.grid.occupied
+        return None  # LeCO's main phase: O is frozen, its metrics are those at the end of phase 1
+
+    def measure(self, run, phase: str) -> dict:
+        started = time.perf_counter()
+        scores = {"val_psnr": 0.0, "val_ssim": 0.0}
+        for image in range(self.count):
+            rgb, _ = render_image(run.models, run.cfg.method, phase, run.profile, run.predictor, self.table, image,
+                                  run.aabb, run.device)
+            truth = self.views.images[image].float() / 255
+            scores["val_psnr"] += psnr(rgb, truth) / self.count
+            scores["val_ssim"] += ssim(rgb, truth) / self.count
+        occupied = self.occupied_fn(run, phase)
+        occupancy = None
+        if occupied is not None and run.scene.occupancy is not None:
+            occupancy = evaluate_occupancy_exact(occupied, run.scene.occupancy, self.views, OCCUPANCY_RESOLUTION)
+        elif occupied is not None and self.views.depth is not None:
+            occupancy = evaluate_occupancy(occupied, self.views, run.aabb.float(), OCCUPANCY_RESOLUTION)
+        if occupancy is not None:
+            scores.update({f"occupancy_{k}": occupancy[k] for k in ("accuracy", "precision", "recall", "f1")})
+        scores["eval_s"] = time.perf_counter() - started
+        return scores
