@@ -59,9 +59,13 @@ def occupancy_phase(runs: list[dict], path: Path) -> str | None:
             right.plot(*zip(*empty), color=COLOURS.get(run["variant"]), label=label)
     left.set(xlabel="occupancy-phase step", ylabel="occupancy F1", title="Occupancy F1 (paper Fig. 5)")
     right.set(xlabel="occupancy-phase step", ylabel="% of points sent to E_e", title="Empty-expert fraction")
+    if not left.lines:  # no reference to score against while training (e.g. lego)
+        left.text(0.5, 0.5, "no occupancy reference\nduring training", ha="center", va="center",
+                  transform=left.transAxes)
     for ax in (left, right):
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        if ax.lines:
+            ax.legend(fontsize=7)
     return _save(fig, path)
 
 

@@ -1,0 +1,147 @@
+"""The deployment files, checked without a Docker engine: docker-compose.yml's topology (services, dependencies,
+health checks, the shared volume, shm, Ray auth, secrets from .env) and that every command it runs exists in
+the project; the Dockerfiles' pins and sources; the KubeRay manifests' GPU workers and shared storage."""
+
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+LECO_SERVICES = {"migrate", "ray-head", "ray-worker", "api", "dispatcher"}
+
+
+def env_example() -> dict[str, str]:
+    lines = (ROOT / ".env.example").read_text().splitlines()
+    return dict(line.split("=", 1) for line in lines if line.strip() and not line.startswith("#"))
+
+
+def interpolate(text: str, env: dict[str, str]) -> str:
+    """Compose's ${VAR}, ${VAR:-default} and ${VAR:?error}; $$ is a literal $."""
+    def value(match):
+        name, op, arg = match.group(1), match.group(2), match.group(3)
+        if name in env:
+            return env[name]
+        if op == ":-":
+            return arg
+        raise AssertionError(f"compose needs ${{{name}}}, which .env.example does not set")
+    text = text.replace("$$", "\0")
+    text = re.sub(r"\$\{([A-Z0-9_]+)(?:(:-|:\?)([^}]*))?\}", value, text)
+    return text.replace("\0", "$")
+
+
+@pytest.fixture(scope="module")
+def compose() -> dict:
+    return yaml.safe_load(interpolate((ROOT / "docker-compose.yml").read_text(), env_example()))
+
+
+def test_compose_has_the_whole_topology(compose):
+    services = compose["services"]
+    assert set(services) == {"postgres"} | LECO_SERVICES
+    depends = {name: s.get("depends_on", {}) for name, s in services.items()}
+    assert depends["migrate"] == {"postgres": {"condition": "service_healthy"}}
+    for name in ("api", "dispatcher"):
+        assert depends[name]["migrate"] == {"condition": "service_completed_successfully"}
+    assert depends["dispatcher"]["ray-head"] == {"condition": "service_healthy"}
+    assert depends["ray-worker"] == {"ray-head": {"condition": "service_healthy"}}
+    assert services["ray-worker"]["deploy"]["replicas"] >= 2  # scalable CPU workers
+    assert services["migrate"]["restart"] == "no"  # one-shot
+    for name, service in services.items():
+        if name != "migrate":
+            assert service["healthcheck"]["test"][0] == "CMD", name
+
+
+def test_compose_shares_one_volume_auth_and_secrets(compose):
+    services = compose["services"]
+    assert set(compose["volumes"]) == {"leco-data", "postgres-data"}
+    for name in LECO_SERVICES:
+        service = services[name]
+        assert service["volumes"] == ["leco-data:/data"], name  # the same path everywhere
+        env = service["environment"]
+        assert env["LECO_DATA_DIR"] == "/data" and env["LECO_ARTIFACT_ROOT"].startswith("/data/")
+        assert env["RAY_AUTH_MODE"] == "token" and env["RAY_AUTH_TOKEN"] == env_example()["RAY_AUTH_TOKEN"]
+        assert env["DATABASE_URL"].startswith("postgresql+psycopg://leco:") and "@postgres:5432/" in env["DATABASE_URL"]
+        assert service["env_file"] == ".env"
+        gigabytes = int(service["shm_size"].removesuffix("gb"))
+        assert gigabytes >= 1
+    # No secret is written into the compose file itself: each comes from .env.
+    raw = (ROOT / "docker-compose.yml").read_text()
+    for secret in ("POSTGRES_PASSWORD", "RAY_AUTH_TOKEN"):
+        assert f"${{{secret}:?" in raw
+    assert ".env" in (ROOT / ".gitignore").read_text().splitlines()
+
+
+def commands(compose):
+    for name, service in compose["services"].items():
+        if name == "postgres":
+            continue
+        words = service["command"]
+        if words[:2] == ["sh", "-c"]:
+            words = shlex.split(words[2].replace("${RAY_WORKER_CPUS:-2}", "2"))
+        yield name, words
+        check = service.get("healthcheck", {}).get("test", [])[1:]
+        if check and check[0] in ("python", "ray", "leco"):
+            yield f"{name} healthcheck", check
+
+
+def test_every_command_the_compose_file_runs_exists(compose):
+    from ray.scripts.scripts import cli as ray_cli
+
+    from service.cli import build_parser
+
+    seen = set()
+    for name, words in commands(compose):
+        program = words[0]
+        seen.add(program)
+        if program == "leco":
+            build_parser().parse_args(words[1:])  # exits (fails the test) on an unknown command or flag
+        elif program == "ray":
+            command = ray_cli.commands[words[1]]
+            options = {o for p in command.params for o in p.opts}
+            for word in words[2:]:
+                assert word.split("=")[0] in options, f"{name}: ray {words[1]} has no option {word}"
+        elif program == "python":
+            assert words[1] == "-c"
+            exec(compile(words[2].split("; check_schema")[0], name, "exec"), {})  # the imports resolve
+        else:
+            raise AssertionError(f"{name} runs {program}, which this test does not know")
+    assert seen == {"leco", "ray", "python"}
+
+
+def test_dockerfiles_are_pinned_and_copy_what_exists():
+    for variant in ("cpu", "cuda"):
+        text = (ROOT / "deploy" / f"Dockerfile.{variant}").read_text()
+        base = re.search(r"^FROM (\S+)", text, re.M).group(1)
+        assert re.fullmatch(r"python:3\.11\.\d+-slim-bookworm", base), base
+        assert "torch==2.13.0" in text
+        for source in re.findall(r"^COPY (\S+)", text, re.M):
+            assert (ROOT / source).exists(), f"Dockerfile.{variant} copies {source}, which is missing"
+        assert "pip install -e ." in text  # migrations/ must stay beside service/
+        assert re.search(r"^USER (?!root)", text, re.M)
+
+
+def test_kuberay_manifests_give_8_gpu_workers_shared_storage_and_auth():
+    cluster = yaml.safe_load((ROOT / "deploy" / "kuberay" / "raycluster.yaml").read_text())
+    assert cluster["kind"] == "RayCluster" and cluster["spec"]["rayVersion"] == "2.60.0"
+    head = cluster["spec"]["headGroupSpec"]["template"]["spec"]
+    (group,) = cluster["spec"]["workerGroupSpecs"]
+    worker = group["template"]["spec"]
+    assert group["rayStartParams"]["num-gpus"] == "8"
+    assert worker["containers"][0]["resources"]["limits"]["nvidia.com/gpu"] == "8"
+    assert worker["containers"][0]["image"].endswith("-cuda")
+    documents = list(yaml.safe_load_all((ROOT / "deploy" / "kuberay" / "service.yaml").read_text()))
+    (config,) = [d for d in documents if d["kind"] == "ConfigMap"]
+    assert config["data"]["RAY_AUTH_MODE"] == "token" and config["data"]["LECO_DATA_DIR"] == "/data"
+    pods = [head, worker] + [d["spec"]["template"]["spec"] for d in documents if d["kind"] in ("Job", "Deployment")]
+    for spec in pods:  # every pod: the same settings and secrets, so Ray auth and paths agree everywhere
+        assert spec["containers"][0]["envFrom"] == [{"configMapRef": {"name": "leco-env"}},
+                                                    {"secretRef": {"name": "leco-secrets"}}]
+    for spec in (head, worker):
+        container = spec["containers"][0]
+        assert {"name": "leco-data", "mountPath": "/data"} in container["volumeMounts"]
+        assert {"name": "dshm", "mountPath": "/dev/shm"} in container["volumeMounts"]
+    claim = yaml.safe_load((ROOT / "deploy" / "kuberay" / "pvc.yaml").read_text())
+    assert claim["spec"]["accessModes"] == ["ReadWriteMany"]
+    assert [d["kind"] for d in documents] == ["ConfigMap", "Job", "Deployment", "Deployment", "Service"]
