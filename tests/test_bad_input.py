@@ -65,6 +65,34 @@ def test_blender_unreadable_image(blender):
     expect(blender, "image is unreadable", "r_2.png")
 
 
+def png_claiming(width: int, height: int) -> bytes:
+    """A real 1x1 PNG whose header (IHDR, CRC fixed) claims another size: a decompression bomb's header."""
+    import io
+    import struct
+    import zlib
+
+    buffer = io.BytesIO()
+    Image.new("RGB", (1, 1)).save(buffer, "PNG")
+    data = bytearray(buffer.getvalue())
+    ihdr = data.index(b"IHDR")
+    data[ihdr + 4 : ihdr + 12] = struct.pack(">II", width, height)
+    data[ihdr + 17 : ihdr + 21] = struct.pack(">I", zlib.crc32(bytes(data[ihdr : ihdr + 17])))
+    return bytes(data)
+
+
+def test_blender_image_with_huge_dimensions_is_refused_before_decoding(blender):
+    (blender / "train" / "r_1.png").write_bytes(png_claiming(12_000, 10_000))  # our limit
+    expect(blender, "image claims 12000x10000 pixels, more pixels than the 100 megapixel limit", "r_1.png")
+    (blender / "train" / "r_1.png").write_bytes(png_claiming(60_000, 60_000))  # PIL's guard, earlier
+    expect(blender, "image claims more pixels than the 100 megapixel limit", "r_1.png")
+
+
+def test_blender_truncated_image(blender):
+    data = (blender / "train" / "r_2.png").read_bytes()
+    (blender / "train" / "r_2.png").write_bytes(data[: len(data) // 2])
+    expect(blender, "image is unreadable", "r_2.png")
+
+
 def test_blender_image_size_mismatch(blender):
     Image.new("RGBA", (100, 80)).save(blender / "train" / "r_1.png")
     expect(blender, "image is 100x80 pixels but its camera says 200x200", "r_1.png")

@@ -13,6 +13,7 @@ from service.db import transaction
 from service.runstore import DatabaseRunStore
 from service.settings import Settings
 from service.tables import IdempotencyKey, utcnow
+from tests.test_bad_input import png_claiming
 
 TOKEN = "test-token-123"
 
@@ -97,6 +98,51 @@ def test_bad_uploads_are_refused_and_nothing_is_stored(api, archive, status, mes
     scenes_dir = api.settings.scenes_dir
     assert not scenes_dir.exists() or list(scenes_dir.iterdir()) == []
     assert not (tmp_path / "evil.txt").exists()
+
+
+def lego_upload(lego_dir, spoil) -> bytes:
+    """A two-view lego scene (Blender format) as a tar, after `spoil(root)` damaged it."""
+    import json
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp) / "lego"
+        for split, names in (("train", ["r_0", "r_1"]), ("val", ["r_0"])):
+            (root / split).mkdir(parents=True)
+            data = json.loads((lego_dir / f"transforms_{split}.json").read_text())
+            data["frames"] = [f for f in data["frames"] if f["file_path"].split("/")[-1] in names]
+            for f in data["frames"]:
+                shutil.copy(lego_dir / (f["file_path"] + ".png"), root / split)
+            (root / f"transforms_{split}.json").write_text(json.dumps(data))
+        spoil(root)
+        return tar_of(root)
+
+
+def spoil_pose(root):
+    import json
+
+    path = root / "transforms_train.json"
+    data = json.loads(path.read_text())
+    data["frames"][1]["transform_matrix"][1][3] = float("nan")
+    path.write_text(json.dumps(data))
+
+
+@pytest.mark.parametrize("spoil, message", [
+    (spoil_pose, "camera pose (frame 1) has non-finite values"),
+    (lambda root: (root / "train" / "r_1.png").write_bytes(png_claiming(60_000, 60_000)),
+     "image claims more pixels than the 100 megapixel limit"),
+    (lambda root: (root / "train" / "r_1.png").write_bytes((root / "train" / "r_1.png").read_bytes()[:300]),
+     "image is unreadable"),
+], ids=["nan-pose", "huge-image-header", "truncated-image"])
+def test_hostile_scene_contents_are_refused_with_the_file_named(api, lego_dir, spoil, message):
+    answer = api.post("/v1/scenes/upload", params={"name": "hostile"}, content=lego_upload(lego_dir, spoil))
+    assert answer.status_code == 422 and message in answer.json()["detail"], answer.text
+    assert "Traceback" not in answer.text and "/tmp/" not in answer.text  # no server paths leak
+    assert api.get("/v1/scenes").json() == []
+    scenes_dir = api.settings.scenes_dir
+    assert not scenes_dir.exists() or list(scenes_dir.iterdir()) == []
 
 
 def test_job_requests_are_validated_field_by_field(api):

@@ -12,6 +12,9 @@ from torch import Tensor
 from model.scenes.errors import SceneError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG")
+# Checked from the header before any pixel is decoded: a tiny file can claim billions of pixels (a
+# decompression bomb). 100 MP is above any drone or DSLR photo a NeRF dataset holds.
+MAX_PIXELS = 100_000_000
 
 
 def find_image(stem: Path) -> Path:
@@ -29,6 +32,10 @@ def read_image(path: Path, *, background: tuple[float, float, float] | None = No
     """uint8 (H, W, 3). RGBA is composited on `background` (RGB in [0, 1]; black when None)."""
     try:
         with Image.open(path) as im:
+            w, h = im.size
+            if w * h > MAX_PIXELS:
+                raise SceneError(path, f"image claims {w}x{h} pixels, more pixels than the "
+                                       f"{MAX_PIXELS // 10**6} megapixel limit (a corrupt or hostile header?)")
             im.load()
             mode = im.mode
             if mode in ("RGBA", "LA") or (mode == "P" and "transparency" in im.info):
@@ -40,6 +47,9 @@ def read_image(path: Path, *, background: tuple[float, float, float] | None = No
                 array = np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
             else:
                 array = np.asarray(im.convert("RGB"), dtype=np.uint8)
+    except Image.DecompressionBombError as exc:  # PIL's own guard fires first beyond ~179 MP, at open
+        raise SceneError(path, f"image claims more pixels than the {MAX_PIXELS // 10**6} megapixel limit "
+                               f"(a corrupt or hostile header?): {exc}") from None
     except (UnidentifiedImageError, OSError, SyntaxError) as exc:
         raise SceneError(path, f"image is unreadable ({exc.__class__.__name__}: {exc})") from None
     return torch.from_numpy(array.copy())
