@@ -64,10 +64,12 @@ def build_parser() -> argparse.ArgumentParser:
     from service.serve_cli import add_commands as add_service_commands
     from service.train_cli import add_commands
     from bench.cli import add_commands as add_bench_commands
+    from bench.load import add_commands as add_load_commands
 
     add_commands(commands)
     add_service_commands(commands)
     add_bench_commands(commands)
+    add_load_commands(commands)
     return parser
 
 

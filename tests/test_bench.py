@@ -146,3 +146,16 @@ def test_bench_refuses_bad_arguments_before_training(tiny_scene, tmp_path):
     with pytest.raises(SystemExit, match="nothing to benchmark"):
         bench("--scene", scene, "--out", str(tmp_path / "c"), "--methods", "")
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+@pytest.mark.slow
+def test_loadtest_polls_a_training_job_without_errors(database_url, tmp_path):
+    from bench.load import run_loadtest
+
+    url = None if database_url.startswith("sqlite") else database_url
+    result = run_loadtest(url, pollers=20, seconds=4, interval=0.5, profile="smoke",
+                          overrides={"main_steps": 100_000}, data_dir=tmp_path)
+    assert result["errors"] == 0
+    assert result["job"]["count"] >= 20 * 4 and result["metrics"]["count"] == result["job"]["count"]
+    assert 0 < result["all"]["p50_ms"] <= result["all"]["p99_ms"] <= result["all"]["max_ms"]
+    assert result["training_steps_during_test"] > 0  # the job kept training while it was polled

@@ -7,7 +7,7 @@ from fastapi import APIRouter, Depends, HTTPException, Request
 from fastapi.responses import FileResponse, Response
 from sqlalchemy import select
 
-from service.api.deps import not_found, settings_of
+from service.api.deps import RowId, not_found, settings_of
 from service.api.jobs import get_job
 from service.api.schemas import ArtifactOut
 from service.db import reading
@@ -23,7 +23,7 @@ def artifact_out(meta: dict) -> ArtifactOut:
 
 
 @router.get("/jobs/{job_id}/artifacts", response_model=list[ArtifactOut])
-def list_artifacts(job_id: int, kind: str | None = None, settings: Settings = Depends(settings_of)):
+def list_artifacts(job_id: RowId, kind: str | None = None, settings: Settings = Depends(settings_of)):
     if kind is not None and kind not in ARTIFACT_KINDS:
         raise HTTPException(422, [{"loc": ["query", "kind"], "type": "value_error",
                                    "msg": f"unknown kind {kind!r}: one of {', '.join(ARTIFACT_KINDS)}"}])
@@ -44,7 +44,7 @@ def find_artifact(settings: Settings, artifact_id: int) -> dict:
 
 
 @router.get("/artifacts/{artifact_id}", response_model=ArtifactOut)
-def show_artifact(artifact_id: int, settings: Settings = Depends(settings_of)):
+def show_artifact(artifact_id: RowId, settings: Settings = Depends(settings_of)):
     return artifact_out(find_artifact(settings, artifact_id))
 
 
@@ -53,7 +53,7 @@ def show_artifact(artifact_id: int, settings: Settings = Depends(settings_of)):
                   responses={206: {"description": "the requested byte range"}, 304: {"description": "ETag matched"},
                              416: {"description": "range not satisfiable"},
                              500: {"description": "the stored bytes failed their sha256 check"}})
-def download(artifact_id: int, request: Request, settings: Settings = Depends(settings_of)):
+def download(artifact_id: RowId, request: Request, settings: Settings = Depends(settings_of)):
     meta = find_artifact(settings, artifact_id)
     etag = f'"{meta["sha256"]}"'
     if etag in [t.strip() for t in request.headers.get("if-none-match", "").split(",")]:

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import hmac
 
-from fastapi import HTTPException, Request
+from typing import Annotated
+
+from fastapi import HTTPException, Path, Request
 
 from service.settings import Settings
 
@@ -29,3 +31,9 @@ def require_token(request: Request) -> None:
 
 def not_found(what: str, ident) -> HTTPException:
     return HTTPException(404, f"{what} {ident!r} not found")
+
+
+# Row ids and steps are 32-bit integers in PostgreSQL (64-bit in SQLite): a larger number in a path or query is
+# answered 422 by validation, never handed to the database driver to overflow.
+MAX_INT = 2**31 - 1
+RowId = Annotated[int, Path(ge=1, le=MAX_INT)]

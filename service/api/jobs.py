@@ -15,7 +15,7 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 
 from service import queue
-from service.api.deps import not_found, settings_of
+from service.api.deps import MAX_INT, RowId, not_found, settings_of
 from service.api.scenes import find_scene
 from service.api.schemas import JobList, JobOut, JobRequest, MetricsOut, PhaseOut, Point, Series
 from service.db import reading, transaction
@@ -140,7 +140,7 @@ def begin_idempotent(settings: Settings, key: str, digest: str) -> JSONResponse 
 @router.get("", response_model=JobList)
 def list_jobs(state: str | None = Query(None, pattern="^(" + "|".join(JOB_STATES) + ")$"),
               scene: str | None = None, method: str | None = Query(None, pattern="^(leco|switch|grid)$"),
-              limit: int = Query(50, ge=1, le=200), offset: int = Query(0, ge=0),
+              limit: int = Query(50, ge=1, le=200), offset: int = Query(0, ge=0, le=MAX_INT),
               settings: Settings = Depends(settings_of)) -> JobList:
     with reading(settings.db_url) as session:
         query = select(Job)
@@ -166,13 +166,13 @@ def get_job(session, job_id: int) -> Job:
 
 
 @router.get("/{job_id}", response_model=JobOut)
-def show_job(job_id: int, settings: Settings = Depends(settings_of)) -> JobOut:
+def show_job(job_id: RowId, settings: Settings = Depends(settings_of)) -> JobOut:
     with reading(settings.db_url) as session:
         return job_out(session, get_job(session, job_id))
 
 
 @router.post("/{job_id}/cancel", response_model=JobOut, responses={409: {"description": "the job already ended"}})
-def cancel_job(job_id: int, settings: Settings = Depends(settings_of)) -> JobOut:
+def cancel_job(job_id: RowId, settings: Settings = Depends(settings_of)) -> JobOut:
     state = queue.cancel(settings.db_url, job_id)
     if state is None:
         raise not_found("job", job_id)
@@ -182,7 +182,7 @@ def cancel_job(job_id: int, settings: Settings = Depends(settings_of)) -> JobOut
 
 
 @router.delete("/{job_id}", status_code=204, responses={409: {"description": "the job has not ended"}})
-def delete_job(job_id: int, settings: Settings = Depends(settings_of)) -> None:
+def delete_job(job_id: RowId, settings: Settings = Depends(settings_of)) -> None:
     with reading(settings.db_url) as session:
         job = get_job(session, job_id)
         if job.state not in TERMINAL:
@@ -204,8 +204,8 @@ def downsample(points: list, max_points: int) -> list:
 
 
 @router.get("/{job_id}/metrics", response_model=MetricsOut)
-def metrics(job_id: int, phase: str | None = None, name: list[str] | None = Query(None),
-            after_step: int = Query(-1, ge=-1), max_points: int = Query(1000, ge=1, le=100_000),
+def metrics(job_id: RowId, phase: str | None = None, name: list[str] | None = Query(None),
+            after_step: int = Query(-1, ge=-1, le=MAX_INT), max_points: int = Query(1000, ge=1, le=100_000),
             settings: Settings = Depends(settings_of)) -> MetricsOut:
     with reading(settings.db_url) as session:
         get_job(session, job_id)

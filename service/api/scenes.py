@@ -10,7 +10,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from sqlalchemy import func, select
 
 from service import scenes as registry
-from service.api.deps import not_found, settings_of
+from service.api.deps import MAX_INT, not_found, settings_of
 from service.api.schemas import NAME, SceneOut, SyntheticSceneRequest
 from service.db import reading, transaction
 from service.settings import Settings
@@ -27,8 +27,9 @@ def scene_out(row: Scene) -> SceneOut:
 
 
 def find_scene(session, ident: int | str) -> Scene | None:
-    if isinstance(ident, int) or str(ident).isdigit():
-        return session.get(Scene, int(ident))
+    if isinstance(ident, int) or (str(ident).isascii() and str(ident).isdigit()):
+        number = int(ident)
+        return session.get(Scene, number) if 0 < number <= MAX_INT else None
     return session.scalars(select(Scene).where(Scene.name == str(ident))).first()
 
 

@@ -1,0 +1,183 @@
+"""`leco loadtest`: many dashboard-like pollers against a service that is training a job, on loopback.
+
+It starts `leco serve` (API + dispatcher + local Ray) on the given database, registers the tiny synthetic
+city, submits a LeCO job and, once the job reports metrics, runs N concurrent pollers for a bounded time.
+Each poller does what the dashboard's job view does: GET /v1/jobs/{id}, then GET its metrics after the last
+step it has seen, then sleeps `interval` seconds. Every request's latency and every error are recorded; the
+job is cancelled and the service stopped at the end. Reported: p50/p95/p99/max per route, errors, requests/s,
+and how many training steps the job made meanwhile (the pollers must not stall training).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import secrets
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Service:
+    """`leco serve` in a subprocess of its own process group, on `database_url` (None: embedded SQLite)."""
+
+    def __init__(self, data_dir: Path, database_url: str | None, cpus: int = 2):
+        self.data_dir, self.port, self.token = data_dir, free_port(), secrets.token_urlsafe(16)
+        self.env = {**os.environ, "LECO_DATA_DIR": str(data_dir), "LECO_API_TOKENS": self.token,
+                    "LECO_LOCAL_CPUS": str(cpus)}
+        for key in ("DATABASE_URL", "RAY_ADDRESS", "LECO_RAY_JOBS_ADDRESS"):
+            self.env.pop(key, None)
+        if database_url:
+            self.env["DATABASE_URL"] = database_url
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def __enter__(self) -> "Service":
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        if "DATABASE_URL" in self.env:
+            subprocess.run([sys.executable, "-m", "service.cli", "db", "upgrade"], env=self.env, cwd=ROOT,
+                           check=True, capture_output=True)
+        self.log = open(self.data_dir / "serve.log", "w")
+        self.process = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(self.port)],
+                                        env=self.env, cwd=ROOT, stdout=self.log, stderr=subprocess.STDOUT,
+                                        start_new_session=True)
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            try:
+                if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
+                    return self
+            except httpx.TransportError:
+                pass
+            if self.process.poll() is not None:
+                raise RuntimeError("leco serve exited: " + (self.data_dir / "serve.log").read_text()[-2000:])
+            time.sleep(0.5)
+        raise RuntimeError("leco serve did not become ready in 120 s")
+
+    def __exit__(self, *exc) -> None:
+        os.killpg(self.process.pid, signal.SIGTERM)
+        try:
+            self.process.wait(30)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.process.pid, signal.SIGKILL)
+        self.log.close()
+
+    def client(self) -> httpx.Client:
+        return httpx.Client(base_url=self.url, headers={"Authorization": f"Bearer {self.token}"}, timeout=60)
+
+
+def start_job(api: httpx.Client, profile: str, overrides: dict | None = None) -> int:
+    scene = api.post("/v1/scenes/synthetic", json={"preset": "tiny", "seed": 0}).json()
+    while scene["state"] == "generating":
+        time.sleep(0.3)
+        scene = api.get(f"/v1/scenes/{scene['id']}").json()
+    job = api.post("/v1/jobs", json={"scene": scene["id"], "method": "leco", "profile": profile,
+                                     "overrides": overrides or {}, "metrics_every": 5}).json()
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline:
+        state = api.get(f"/v1/jobs/{job['id']}").json()
+        if state["state"] == "running" and state["step"] > 0:
+            return job["id"]
+        if state["state"] in ("failed", "succeeded", "cancelled"):
+            raise RuntimeError(f"the load test's job ended before the test began: {state}")
+        time.sleep(0.5)
+    raise RuntimeError("the load test's job did not start training in 300 s")
+
+
+async def poller(client: httpx.AsyncClient, job: int, until: float, interval: float, samples: dict) -> None:
+    after = 0
+    while time.monotonic() < until:
+        for route, path, params in (("job", f"/v1/jobs/{job}", None),
+                                    ("metrics", f"/v1/jobs/{job}/metrics", {"after_step": after, "max_points": 500})):
+            started = time.perf_counter()
+            try:
+                answer = await client.get(path, params=params)
+                ok = answer.status_code == 200
+                if ok and route == "metrics":
+                    steps = [p["step"] for s in answer.json()["series"] for p in s["points"]]
+                    after = max(steps, default=after)
+            except httpx.HTTPError:
+                ok = False
+            samples[route].append((time.perf_counter() - started) * 1000)
+            if not ok:
+                samples["errors"].append(route)
+        await asyncio.sleep(interval)
+
+
+async def poll_all(url: str, token: str, job: int, pollers: int, seconds: float, interval: float) -> dict:
+    samples = {"job": [], "metrics": [], "errors": []}
+    limits = httpx.Limits(max_connections=pollers, max_keepalive_connections=pollers)
+    async with httpx.AsyncClient(base_url=url, headers={"Authorization": f"Bearer {token}"}, limits=limits,
+                                 timeout=30) as client:
+        until = time.monotonic() + seconds
+        # Staggered starts, as real dashboards open at different moments.
+        tasks = []
+        for i in range(pollers):
+            tasks.append(asyncio.create_task(poller(client, job, until, interval, samples)))
+            await asyncio.sleep(interval / pollers)
+        await asyncio.gather(*tasks)
+    return samples
+
+
+def percentiles(values: list[float]) -> dict:
+    if not values:
+        return {"count": 0}
+    a = np.asarray(values)
+    return {"count": len(a), "p50_ms": float(np.percentile(a, 50)), "p95_ms": float(np.percentile(a, 95)),
+            "p99_ms": float(np.percentile(a, 99)), "max_ms": float(a.max())}
+
+
+def run_loadtest(database_url: str | None, pollers: int = 200, seconds: float = 30.0, interval: float = 1.0,
+                 profile: str = "cpu", overrides: dict | None = None, data_dir: Path | None = None) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        with Service(Path(data_dir or tmp) / "data", database_url) as service, service.client() as api:
+            job = start_job(api, profile, overrides)
+            step_before = api.get(f"/v1/jobs/{job}").json()["step"]
+            started = time.perf_counter()
+            samples = asyncio.run(poll_all(service.url, service.token, job, pollers, seconds, interval))
+            elapsed = time.perf_counter() - started
+            after = api.get(f"/v1/jobs/{job}").json()
+            api.post(f"/v1/jobs/{job}/cancel")
+    requests = len(samples["job"]) + len(samples["metrics"])
+    return {
+        "database": "postgresql" if database_url and database_url.startswith("postgresql") else "sqlite",
+        "pollers": pollers, "seconds": elapsed, "interval_s": interval, "requests": requests,
+        "requests_per_s": requests / elapsed, "errors": len(samples["errors"]),
+        "all": percentiles(samples["job"] + samples["metrics"]), "job": percentiles(samples["job"]),
+        "metrics": percentiles(samples["metrics"]),
+        "training_steps_during_test": after["step"] - step_before, "job_state_after": after["state"],
+    }
+
+
+def loadtest_command(args) -> int:
+    result = run_loadtest(args.database_url, args.pollers, args.seconds, args.interval, args.profile)
+    print(json.dumps(result, indent=2))
+    return 0 if result["errors"] == 0 else 1
+
+
+def add_commands(commands) -> None:
+    load = commands.add_parser("loadtest", help="N concurrent pollers of a training job's status and metrics")
+    load.add_argument("--database-url", default=None, help="PostgreSQL URL (default: embedded SQLite)")
+    load.add_argument("--pollers", type=int, default=200)
+    load.add_argument("--seconds", type=float, default=30.0, help="how long the pollers run")
+    load.add_argument("--interval", type=float, default=1.0, help="each poller's pause between polls (s)")
+    load.add_argument("--profile", default="cpu", help="profile of the job being trained meanwhile")
+    load.set_defaults(func=loadtest_command)
