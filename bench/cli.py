@@ -9,6 +9,8 @@ import sys
 import time
 from pathlib import Path
 
+from pydantic import ValidationError
+
 
 def bench_command(args: argparse.Namespace) -> int:
     from bench import analysis, plots, report
@@ -20,7 +22,7 @@ def bench_command(args: argparse.Namespace) -> int:
     log = lambda text: print(text, file=sys.stderr, flush=True)
     try:
         variants = select([m.strip() for m in args.methods.split(",") if m.strip()], args.ablation)
-        seeds = [int(s) for s in args.seeds.split(",")]
+        seeds = parse_seeds(args.seeds)
         overrides = parse_overrides(args.set or [])
     except ValueError as error:
         raise SystemExit(f"leco bench: {error}")
@@ -33,8 +35,10 @@ def bench_command(args: argparse.Namespace) -> int:
     try:
         for variant in variants:  # every config is valid before the first run starts
             config_for(variant, plan, seeds[0])
-    except ValueError as error:
-        raise SystemExit(f"leco bench: {error}")
+    except ValidationError as error:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'config'}: {e['msg'].removeprefix('Value error, ')}"
+                             for e in error.errors())
+        raise SystemExit(f"leco bench: {problems}")
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     try:
@@ -77,6 +81,16 @@ def bench_command(args: argparse.Namespace) -> int:
     log(f"[bench] {report.summary_line(results)}")
     print(f"{out / 'report.md'}\n{out / 'results.json'}")
     return 0
+
+
+def parse_seeds(text: str) -> list[int]:
+    try:
+        seeds = [int(s) for s in text.split(",")]
+    except ValueError:
+        raise ValueError(f"--seeds {text!r}: expected comma-separated non-negative integers, e.g. 0,1,2") from None
+    if any(s < 0 for s in seeds):
+        raise ValueError(f"--seeds {text!r}: seeds must be non-negative")
+    return seeds
 
 
 def command_line(args: argparse.Namespace) -> str:

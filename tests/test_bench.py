@@ -145,7 +145,11 @@ def test_bench_refuses_bad_arguments_before_training(tiny_scene, tmp_path):
         bench("--scene", scene, "--out", str(tmp_path / "b"), "--set", "network.depth=3")
     with pytest.raises(SystemExit, match="nothing to benchmark"):
         bench("--scene", scene, "--out", str(tmp_path / "c"), "--methods", "")
-    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    with pytest.raises(SystemExit, match="--seeds '0,a': expected comma-separated non-negative integers"):
+        bench("--scene", scene, "--out", str(tmp_path / "d"), "--seeds", "0,a")
+    with pytest.raises(SystemExit, match="^leco bench: profile: unknown profile 'nope': choose one of"):
+        main(["bench", "--scene", scene, "--out", str(tmp_path / "e"), "--profile", "nope"])
+    assert not any((tmp_path / d).exists() for d in "abcde")
 
 
 @pytest.mark.slow
