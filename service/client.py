@@ -18,24 +18,34 @@ class ClientError(RuntimeError):
 
 
 class Api:
-    def __init__(self, url: str, token: str | None, timeout: float = 30.0):
+    def __init__(self, url: str, token: str | None, timeout: float = 30.0, retry_s: float = 120.0):
         import httpx
 
         headers = {"Authorization": f"Bearer {token}"} if token else {}
-        self.url = url.rstrip("/")
+        self.url, self.retry_s = url.rstrip("/"), retry_s
         self.http = httpx.Client(base_url=self.url, headers=headers, timeout=timeout)
 
     def call(self, method: str, path: str, ok=(200, 201, 202, 204), **kwargs):
+        """One request; while the service restarts (no connection) or says it is briefly unavailable (502, 503,
+        504) it is retried for up to `retry_s` seconds. Submits carry an Idempotency-Key, so a retry never
+        makes a second job."""
         import httpx
 
-        for attempt in range(5):  # the service restarting or briefly busy: retry (submits carry an Idempotency-Key)
+        deadline, pause = time.monotonic() + self.retry_s, 0.5
+        while True:
             try:
                 response = self.http.request(method, path, **kwargs)
-                break
+                if response.status_code not in (502, 503, 504):
+                    break
+                problem = f"HTTP {response.status_code}"
             except httpx.TransportError as error:
-                if attempt == 4:
-                    raise ClientError(f"cannot reach the service at {self.url}: {error}") from error
-                time.sleep(1 + attempt)
+                response, problem = None, f"{type(error).__name__}: {error}"
+            if time.monotonic() + pause > deadline:
+                if response is not None:
+                    break
+                raise ClientError(f"cannot reach the service at {self.url} for {self.retry_s:.0f} s: {problem}")
+            time.sleep(pause)
+            pause = min(pause * 2, 5.0)
         if response.status_code not in ok:
             try:
                 detail = response.json().get("detail")

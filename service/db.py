@@ -5,13 +5,25 @@ PostgreSQL is selected by DATABASE_URL. Migrations are applied only by `leco db 
 
 from __future__ import annotations
 
+import logging
+import os
+import time
 from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator, TypeVar
 
 from sqlalchemy import Engine, create_engine, event
+from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
+
+from workers.store import StoreWriteError
+
+log = logging.getLogger("leco.db")
+T = TypeVar("T")
+# Errors of the connection, not of the statement: the server restarting or refusing connections, a dropped
+# connection, SQLite's lock timeout. Worth retrying; a constraint or syntax error is not.
+UNAVAILABLE = (OperationalError, InterfaceError)
 
 MIGRATIONS = Path(__file__).resolve().parents[1] / "migrations"
 
@@ -74,6 +86,37 @@ def reading(url: str) -> Iterator[Session]:
     """A read-only snapshot (on SQLite it does not wait for writers)."""
     with session_factory(url, writes=False)() as session, session.begin():
         yield session
+
+
+class DatabaseUnavailable(StoreWriteError):
+    """The database did not answer within the retry budget."""
+
+
+def retry_budget_s() -> float:
+    return float(os.environ.get("LECO_DB_RETRY_S", "120"))
+
+
+def retrying(what: str, call: Callable[[], T], budget_s: float | None = None) -> T:
+    """Runs `call` (one whole transaction), again after a pause while the database is unavailable, for up to
+    `budget_s` seconds (LECO_DB_RETRY_S, default 120). The dispatcher and training use it so that a database
+    restart pauses them instead of failing jobs; the API does not (it answers 503 at once)."""
+    budget_s = retry_budget_s() if budget_s is None else budget_s
+    deadline, pause = time.monotonic() + budget_s, 0.2
+    while True:
+        try:
+            return call()
+        except UNAVAILABLE as error:
+            if time.monotonic() + pause > deadline:
+                raise DatabaseUnavailable(f"the database was unavailable for {budget_s:.0f} s while {what}: "
+                                          f"{first_line(error)}") from error
+            log.warning("database unavailable while %s (retrying in %.1f s): %s", what, pause, first_line(error))
+            time.sleep(pause)
+            pause = min(pause * 2, 5.0)
+
+
+def first_line(error: BaseException) -> str:
+    text = str(getattr(error, "orig", None) or error).strip()
+    return text.splitlines()[0] if text else type(error).__name__
 
 
 def alembic_config(url: str):

@@ -15,7 +15,7 @@ from pathlib import Path
 from sqlalchemy import select
 
 from service import queue
-from service.db import reading
+from service.db import reading, retrying
 from service.runstore import DatabaseRunStore
 from service.settings import Settings
 from service.tables import Job, Scene
@@ -32,6 +32,11 @@ FINAL_FILES = (  # (kind, path in the run directory)
 
 def run_dir_for(settings: Settings, job_id: int) -> Path:
     return settings.runs_dir / f"job-{job_id}"
+
+
+def finish(url: str, job_id: int, attempt: int, state: str, error: str | None) -> bool:
+    # A job's end must not be lost to a database restart: wait for it (the lease covers the wait).
+    return retrying(f"recording job {job_id} as {state}", lambda: queue.finish(url, job_id, attempt, state, error))
 
 
 def execute(settings: Settings, job_id: int, attempt: int) -> str:
@@ -55,19 +60,22 @@ def execute(settings: Settings, job_id: int, attempt: int) -> str:
         store_final_artifacts(store, run_dir, cfg)
     except RunInterrupted as stopped:
         if job_cancelled(url, job_id):
-            return "cancelled" if queue.finish(url, job_id, attempt, "cancelled", None) else "lost"
+            return "cancelled" if finish(url, job_id, attempt, "cancelled", None) else "lost"
         log.info("job %s attempt %s stopped: %s", job_id, attempt, stopped)
         return "lost"
     except Exception as error:  # the job fails with the reason; the service goes on
         log.exception("job %s attempt %s failed", job_id, attempt)
         reason = str(error) if isinstance(error, RunError) else f"{type(error).__name__}: {error}"
-        return "failed" if queue.finish(url, job_id, attempt, "failed", reason) else "lost"
-    return "succeeded" if queue.finish(url, job_id, attempt, "succeeded", None) else "lost"
+        return "failed" if finish(url, job_id, attempt, "failed", reason) else "lost"
+    return "succeeded" if finish(url, job_id, attempt, "succeeded", None) else "lost"
 
 
 def job_cancelled(url: str, job_id: int) -> bool:
-    with reading(url) as session:
-        return bool(session.scalar(select(Job.cancel_requested).where(Job.id == job_id)))
+    def read() -> bool:
+        with reading(url) as session:
+            return bool(session.scalar(select(Job.cancel_requested).where(Job.id == job_id)))
+
+    return retrying(f"reading job {job_id}", read)
 
 
 def store_final_artifacts(store: DatabaseRunStore, run_dir: Path, cfg: TrainConfig) -> None:

@@ -1,6 +1,8 @@
 """The service's side of workers.store.RunStore: a run's metrics go to the database (one row per
 (job, phase, metric, step), upserted), its files to the artifact store, and every step boundary asks the
 database whether the job was cancelled or its lease passed to another attempt (fencing by attempt number).
+While the database is unavailable, writes wait and retry (service.db.retrying) and the stop check lets the
+run go on; past the retry budget a write raises DatabaseUnavailable, a StoreWriteError that ends the run.
 
 It holds only strings and numbers, so Ray pickles it to the workers; each process opens its own engine."""
 
@@ -15,7 +17,7 @@ from sqlalchemy import delete, select, update
 from sqlalchemy.dialects import postgresql, sqlite
 
 from service import queue
-from service.db import reading, transaction
+from service.db import UNAVAILABLE, reading, retrying, transaction
 from service.store import ArtifactStore
 from service.tables import Job, JobPhase, Metric
 
@@ -37,10 +39,16 @@ class DatabaseRunStore:
         return ArtifactStore(self.db_url, Path(self.artifact_root))
 
     def resume(self, step: int) -> None:
-        with transaction(self.db_url) as session:
-            session.execute(delete(Metric).where(Metric.job_id == self.job_id, Metric.step > step))
+        def forget() -> None:
+            with transaction(self.db_url) as session:
+                session.execute(delete(Metric).where(Metric.job_id == self.job_id, Metric.step > step))
+
+        retrying(f"forgetting job {self.job_id}'s metrics after step {step}", forget)
 
     def write(self, step: int, metrics: dict) -> None:
+        retrying(f"writing job {self.job_id}'s metrics of step {step}", lambda: self._write(step, metrics))
+
+    def _write(self, step: int, metrics: dict) -> None:
         phase = str(metrics.get("phase", "main"))
         wall = metrics.get("wall_time_s")
         rows = [{"job_id": self.job_id, "phase": phase, "name": name, "step": step, "value": float(value),
@@ -68,20 +76,26 @@ class DatabaseRunStore:
 
     def artifact(self, kind: str, path: Path, *, name: str, phase: str | None, step: int | None) -> None:
         store = self.artifacts
-        store.put(self.job_id, kind, name, Path(path), phase=phase, step=step)
+        retrying(f"storing job {self.job_id}'s {name}",
+                 lambda: store.put(self.job_id, kind, name, Path(path), phase=phase, step=step))
         if kind == "checkpoint":
-            store.prune(self.job_id, "checkpoint", self.keep_checkpoints)
+            retrying(f"pruning job {self.job_id}'s checkpoints",
+                     lambda: store.prune(self.job_id, "checkpoint", self.keep_checkpoints))
 
     def phase_started(self, phase: str) -> None:
-        queue.phase_started(self.db_url, self.job_id, self.attempt, phase)
+        retrying(f"starting job {self.job_id}'s {phase} phase",
+                 lambda: queue.phase_started(self.db_url, self.job_id, self.attempt, phase))
 
     def stop_reason(self) -> str | None:
         now = time.monotonic()
         if self._reason is None and now - self._checked_at >= STOP_CHECK_S:
             self._checked_at = now
-            with reading(self.db_url) as session:
-                row = session.execute(select(Job.state, Job.attempts, Job.cancel_requested)
-                                      .where(Job.id == self.job_id)).first()
+            try:
+                with reading(self.db_url) as session:
+                    row = session.execute(select(Job.state, Job.attempts, Job.cancel_requested)
+                                          .where(Job.id == self.job_id)).first()
+            except UNAVAILABLE:
+                return None  # the database is away: train on; the next write waits for it (retrying)
             if row is None:
                 self._reason = f"job {self.job_id} was deleted"
             elif row.cancel_requested:

@@ -21,13 +21,14 @@ from sqlalchemy.orm import Session
 
 from service.db import transaction
 from service.tables import ARTIFACT_KINDS, Artifact, utcnow
+from workers.store import StoreWriteError
 
 CHUNK = 1 << 20
 CONTENT_TYPES = {".png": "image/png", ".json": "application/json", ".jsonl": "application/x-ndjson",
                  ".pt": "application/octet-stream", ".ply": "application/x-ply"}
 
 
-class ArtifactError(RuntimeError):
+class ArtifactError(StoreWriteError):
     """An artifact that cannot be written or read back, with the reason."""
 
 

@@ -101,6 +101,9 @@ class Metric(Base):
     """One value per (job, phase, name, step): a replayed step overwrites, never duplicates."""
 
     __tablename__ = "metrics"
+    # Polling reads "steps after N" and "the latest step of each phase"; both would scan the job's rows without these.
+    __table_args__ = (Index("ix_metrics_job_step", "job_id", "step"),
+                      Index("ix_metrics_job_phase_step", "job_id", "phase", "step"))
 
     job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True)
     phase: Mapped[str] = mapped_column(String(16), primary_key=True)

@@ -28,7 +28,7 @@ from workers.models import RunModels, build_optimizer
 from workers.periodic_eval import PeriodicEval
 from workers.session import Session
 from workers.sinks import JsonlSink
-from workers.store import RunStore
+from workers.store import RunStore, StoreWriteError
 from workers.validation import write_validation_renders
 
 OCCUPANCY_BUDGET_SHARE = 0.25  # with a wall-clock budget, LeCO's phase 1 stops at this share of it
@@ -36,6 +36,10 @@ OCCUPANCY_BUDGET_SHARE = 0.25  # with a wall-clock budget, LeCO's phase 1 stops 
 
 class NonFiniteRun(RuntimeError):
     pass
+
+
+class StoreFailed(RuntimeError):
+    """Rank 0 could not write to the launcher's store (StoreWriteError); every rank stops at a step boundary."""
 
 
 class RunStopped(RuntimeError):
@@ -68,6 +72,7 @@ class RankRun:
         self.predictor: OccupancyPredictor | None = None
         self.sink = JsonlSink(self.run_dir / "metrics.jsonl") if session.rank == 0 else None
         self.store = store if session.rank == 0 else None
+        self.store_error: str | None = None  # rank 0's first StoreWriteError; ends the run on every rank
         self.periodic = PeriodicEval(self) if session.rank == 0 and cfg.eval_every_s else None
 
     # ----- checkpoints -------------------------------------------------------------------------------
@@ -95,11 +100,26 @@ class RankRun:
         }
         with tempfile.TemporaryDirectory() as tmp:
             torch.save(state, Path(tmp) / "state.pt")
-            if self.store is not None:
-                step = self.progress["step"]
-                self.store.artifact("checkpoint", Path(tmp) / "state.pt", name=f"checkpoint-step{step:07d}.pt",
-                                    phase=self.progress["phase"], step=step)
+            step = self.progress["step"]
+            self.to_store("artifact", "checkpoint", Path(tmp) / "state.pt", name=f"checkpoint-step{step:07d}.pt",
+                          phase=self.progress["phase"], step=step)
             self.session.report(metrics, Path(tmp))
+
+    def to_store(self, method: str, *args, **kwargs) -> None:
+        """Rank 0's report to the launcher's store. A write that failed for good (disk full, the database gone
+        past its retries) is remembered, not raised: raising on one rank would leave the others waiting in a
+        collective. `check_store` ends the run on every rank at the next step boundary."""
+        if self.store is None or self.store_error is not None:
+            return
+        try:
+            getattr(self.store, method)(*args, **kwargs)
+        except StoreWriteError as error:
+            self.store_error = str(error)
+
+    def check_store(self) -> None:
+        if any_rank(self.store_error is not None, self.device):
+            raise StoreFailed(f"the run stopped because its store could not be written: {self.store_error}"
+                              if self.store_error else "rank 0 could not write to the run's store")
 
     def restore(self) -> bool:
         with self.session.resume_dir() as path:
@@ -124,8 +144,7 @@ class RankRun:
     # ----- phases ------------------------------------------------------------------------------------
     def start_phase(self, phase: str) -> None:
         self.phase_objects = build_optimizer(self.models, phase, self.profile)
-        if self.store is not None:
-            self.store.phase_started(phase)
+        self.to_store("phase_started", phase)
         if phase == "main" and self.cfg.method == "leco":
             self.predictor = OccupancyPredictor.from_hmoe(self.models.hmoe)  # frozen O (section 3.4)
             self.predictor.network.to(self.device)
@@ -170,7 +189,10 @@ class RankRun:
         window_seconds, window_steps, samples_in_window = 0.0, 0, 0.0
         while self.progress["phase_step"] < total:
             reason = self.store.stop_reason() if self.store is not None else None
-            stop, spent = any_rank_each([reason is not None, not self.budget_left(phase)], self.device)
+            stop, spent, failed = any_rank_each(
+                [reason is not None, not self.budget_left(phase), self.store_error is not None], self.device)
+            if failed:
+                self.check_store()
             if stop:
                 self.save_checkpoint({"step": self.progress["step"], "phase": phase})
                 raise RunStopped(reason or "stopped by the launcher (asked on rank 0)")
@@ -225,13 +247,11 @@ class RankRun:
                     "wall_time_s": sum(self.progress["elapsed"].values()), **(evaluation or {}),
                 }
                 self.sink.write(step, record)
-                if self.store is not None:
-                    self.store.write(step, record)
+                self.to_store("write", step, record)
                 window_seconds, window_steps, samples_in_window = 0.0, 0, 0.0
             if self.cfg.val_every and step % self.cfg.val_every == 0 and self.session.rank == 0:
                 path = write_validation_renders(self, step)
-                if self.store is not None:
-                    self.store.artifact("render", path, name=f"renders/{path.name}", phase=phase, step=step)
+                self.to_store("artifact", "render", path, name=f"renders/{path.name}", phase=phase, step=step)
             if step % self.cfg.checkpoint_every == 0:
                 self.save_checkpoint({"step": step, "phase": phase})
 
@@ -242,8 +262,7 @@ class RankRun:
                 self.sink.resume(self.progress["step"])
             else:
                 self.sink.path.write_text("")
-        if self.store is not None:
-            self.store.resume(self.progress["step"])
+        self.to_store("resume", self.progress["step"])
         if not resumed:
             self.start_phase(self.progress["phase"])
         phases = self.cfg.phases
@@ -253,6 +272,7 @@ class RankRun:
                 self.start_phase(phase)
             self.run_phase(phase)
         self.save_checkpoint({"step": self.progress["step"], "phase": "done"})
+        self.check_store()
         if self.session.rank == 0:
             self.save_final()
 

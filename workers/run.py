@@ -20,7 +20,7 @@ import torch
 
 from workers.config import TrainConfig
 from workers.evaluate import evaluate_run
-from workers.loop import NonFiniteRun, RankRun, RunStopped, write_pid
+from workers.loop import NonFiniteRun, RankRun, RunStopped, StoreFailed, write_pid
 from workers.session import LocalSession, RaySession
 from workers.sinks import read_metrics
 from workers.store import RunStore
@@ -41,7 +41,7 @@ def end_cleanly(run: RankRun, run_dir: Path) -> None:
     (rank 0) instead of an exception Ray Train would answer with a restart."""
     try:
         run.train()
-    except NonFiniteRun as error:
+    except (NonFiniteRun, StoreFailed) as error:
         if run.session.rank == 0:
             write_json(run_dir / "failure.json", {"reason": str(error)})
     except RunStopped as error:

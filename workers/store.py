@@ -8,12 +8,19 @@ from pathlib import Path
 from typing import Protocol
 
 
+class StoreWriteError(RuntimeError):
+    """A write the store cannot make, and retrying would not help (disk full, an unwritable artifact root, the
+    database away for longer than its retries): the run stops on every rank at the next step boundary, keeping
+    its last checkpoint, and fails with this reason."""
+
+
 class RunStore(Protocol):
     def resume(self, step: int) -> None:
         """A restarted attempt continues from the checkpoint at `step`: forget metrics after it."""
 
     def write(self, step: int, metrics: dict) -> None:
-        """One metrics record (numbers, plus 'phase'); idempotent per (phase, name, step)."""
+        """One metrics record (numbers, plus 'phase'); idempotent per (phase, name, step). Every method raises
+        StoreWriteError for a write that failed for good."""
 
     def artifact(self, kind: str, path: Path, *, name: str, phase: str | None, step: int | None) -> None:
         """Stores a file the run wrote (checkpoint, render, ...) under `name`; the same name again replaces it."""

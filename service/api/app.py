@@ -2,17 +2,49 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from collections import Counter
 
 from fastapi import APIRouter, Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from sqlalchemy.exc import InterfaceError, OperationalError
 
 from service.api import artifacts, dashboard, health, jobs, scenes
 from service.api.deps import require_token
-from service.db import check_schema
+from service.db import check_schema, first_line
 from service.settings import Settings
+
+
+log = logging.getLogger("leco.api")
+
+
+class RequestStats:
+    """Counts requests by (method, route, status) and the time spent answering them, for /metrics. A plain ASGI
+    middleware: Starlette's BaseHTTPMiddleware costs about a millisecond per request, which a poll-heavy API
+    cannot afford."""
+
+    def __init__(self, app, stats: dict):
+        self.app, self.stats = app, stats
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        started, status = time.perf_counter(), 500
+
+        async def send_status(message):
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_status)
+        finally:
+            route = scope.get("route")
+            self.stats["count"][(scope["method"], getattr(route, "path", "unmatched"), str(status))] += 1
+            self.stats["seconds"] += time.perf_counter() - started
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -31,16 +63,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(health.router)
     app.include_router(dashboard.router)
 
-    @app.middleware("http")
-    async def count_requests(request: Request, call_next):
-        started = time.perf_counter()
-        response = await call_next(request)
-        route = request.scope.get("route")
-        key = (request.method, getattr(route, "path", "unmatched"), str(response.status_code))
-        stats = app.state.http_stats
-        stats["count"][key] += 1
-        stats["seconds"] += time.perf_counter() - started
-        return response
+    app.add_middleware(RequestStats, stats=app.state.http_stats)
+
+    @app.exception_handler(OperationalError)
+    @app.exception_handler(InterfaceError)
+    async def database_unavailable(request: Request, error: Exception):
+        # A database restart is not the client's fault nor a bug: 503 with a hint to retry, details in the log.
+        log.warning("%s %s: database unavailable: %s", request.method, request.url.path, first_line(error))
+        return JSONResponse({"detail": "the database is unavailable right now; retry in a few seconds"}, 503,
+                            headers={"Retry-After": "2"})
 
     @app.exception_handler(RequestValidationError)
     async def invalid_request(request: Request, error: RequestValidationError):

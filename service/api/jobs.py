@@ -31,13 +31,14 @@ STALE_IN_FLIGHT = timedelta(minutes=5)  # an in-flight key older than this belon
 
 def job_out(session, job: Job) -> JobOut:
     phases = session.scalars(select(JobPhase).where(JobPhase.job_id == job.id).order_by(JobPhase.position)).all()
-    latest = select(Metric.phase, func.max(Metric.step).label("step")).where(Metric.job_id == job.id) \
-        .group_by(Metric.phase).subquery()
-    rows = session.execute(select(Metric.phase, Metric.name, Metric.value).join(
-        latest, (Metric.phase == latest.c.phase) & (Metric.step == latest.c.step)).where(Metric.job_id == job.id)).all()
     metrics: dict[str, dict[str, float]] = {}
-    for phase, name, value in rows:
-        metrics.setdefault(phase, {})[name] = value
+    for phase in phases:  # one index lookup per phase (ix_metrics_job_phase_step), not a scan of the job's rows
+        last = select(func.max(Metric.step)).where(Metric.job_id == job.id, Metric.phase == phase.name) \
+            .scalar_subquery()
+        rows = session.execute(select(Metric.name, Metric.value).where(
+            Metric.job_id == job.id, Metric.phase == phase.name, Metric.step == last)).all()
+        if rows:
+            metrics[phase.name] = dict(rows)
     eta = None
     if job.state == "running" and job.rays_per_s:
         batch = TrainConfig.model_validate(job.config).global_batch
