@@ -23,10 +23,14 @@ def healthz() -> dict:
 
 def ray_status(settings: Settings) -> tuple[bool, str]:
     if settings.ray_address:
+        import os
         import urllib.request
 
+        request = urllib.request.Request(f"{settings.ray_address.rstrip('/')}/api/version")
+        if os.environ.get("RAY_AUTH_TOKEN"):  # a cluster with token auth refuses the call without it
+            request.add_header("Authorization", f"Bearer {os.environ['RAY_AUTH_TOKEN']}")
         try:
-            with urllib.request.urlopen(f"{settings.ray_address.rstrip('/')}/api/version", timeout=2) as answer:
+            with urllib.request.urlopen(request, timeout=2) as answer:
                 return answer.status == 200, f"Ray Jobs API at {settings.ray_address}"
         except OSError as error:
             return False, f"Ray Jobs API at {settings.ray_address} unreachable: {error}"
