@@ -23,6 +23,7 @@ class Settings(BaseModel):
     max_attempts: int = Field(3, ge=1)  # claims of one job before an expired lease fails it
     local_cpus: int = Field(max(2, os.cpu_count() or 2), ge=1)  # the embedded Ray's CPUs: the most workers a job gets
     keep_checkpoints: int = Field(2, ge=1)  # checkpoint artifacts kept per job (older ones are deleted)
+    poll_cache_s: float = Field(0.5, ge=0)  # how old a polled job view or metrics answer may be (0: no cache)
     backend: Literal["ray", "local"] = "ray"  # local: one in-process worker without Ray (debugging, quick tests)
 
     @property
@@ -61,7 +62,7 @@ class Settings(BaseModel):
             values["api_tokens"] = tuple(t.strip() for t in env["LECO_API_TOKENS"].split(",") if t.strip())
         for key, name in (("max_upload_bytes", "LECO_MAX_UPLOAD_BYTES"), ("lease_s", "LECO_LEASE_S"),
                           ("max_attempts", "LECO_MAX_ATTEMPTS"), ("local_cpus", "LECO_LOCAL_CPUS"),
-                          ("backend", "LECO_BACKEND")):
+                          ("backend", "LECO_BACKEND"), ("poll_cache_s", "LECO_POLL_CACHE_S")):
             if env.get(name):
                 values[key] = env[name]
         return cls(**{**values, **overrides})

@@ -13,6 +13,7 @@ from sqlalchemy.exc import InterfaceError, OperationalError
 
 from service.api import artifacts, dashboard, health, jobs, scenes
 from service.api.deps import require_token
+from service.api.poll_cache import PollCache
 from service.db import check_schema, first_line
 from service.settings import Settings
 
@@ -55,6 +56,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                               "follow their metrics, download their artifacts.")
     app.state.settings = settings
     app.state.http_stats = {"count": Counter(), "seconds": 0.0, "started": time.monotonic()}
+    app.state.poll_cache = PollCache(settings.poll_cache_s)
 
     v1 = APIRouter(prefix="/v1", dependencies=[Depends(require_token)])
     for module in (scenes, jobs, artifacts):

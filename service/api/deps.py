@@ -8,15 +8,22 @@ from typing import Annotated
 
 from fastapi import HTTPException, Path, Request
 
+from service.api.poll_cache import PollCache
 from service.settings import Settings
 
 
-def settings_of(request: Request) -> Settings:
+# Both are `async def` although they wait for nothing: FastAPI runs a plain `def` dependency in its threadpool,
+# a thread hop per request that a poll-heavy API cannot afford.
+async def settings_of(request: Request) -> Settings:
     return request.app.state.settings
 
 
-def require_token(request: Request) -> None:
-    tokens = settings_of(request).api_tokens
+def poll_cache_of(request: Request) -> PollCache:
+    return request.app.state.poll_cache
+
+
+async def require_token(request: Request) -> None:
+    tokens = request.app.state.settings.api_tokens
     if not tokens:
         return
     scheme, _, given = request.headers.get("authorization", "").partition(" ")

@@ -75,6 +75,10 @@ def prometheus(request: Request, settings: Settings = Depends(settings_of)) -> s
               "# TYPE leco_http_request_seconds summary",
               f"leco_http_request_seconds_sum {stats['seconds']:.6f}",
               f"leco_http_request_seconds_count {sum(stats['count'].values())}",
+              "# HELP leco_poll_cache_total Polled job views and metrics answered from the poll cache, or read.",
+              "# TYPE leco_poll_cache_total counter",
+              f'leco_poll_cache_total{{result="hit"}} {request.app.state.poll_cache.hits}',
+              f'leco_poll_cache_total{{result="miss"}} {request.app.state.poll_cache.misses}',
               "# HELP leco_uptime_seconds Seconds since the API started.", "# TYPE leco_uptime_seconds gauge",
               f"leco_uptime_seconds {time.monotonic() - stats['started']:.1f}"]
     return "\n".join(lines) + "\n"

@@ -8,14 +8,14 @@ import shutil
 from datetime import timedelta
 
 import numpy as np
-from fastapi import APIRouter, Depends, Header, HTTPException, Query
+from fastapi import APIRouter, Depends, Header, HTTPException, Query, Request
 from fastapi.encoders import jsonable_encoder
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 
 from service import queue
-from service.api.deps import MAX_INT, RowId, not_found, settings_of
+from service.api.deps import MAX_INT, RowId, not_found, poll_cache_of, settings_of
 from service.api.scenes import find_scene
 from service.api.schemas import JobList, JobOut, JobRequest, MetricsOut, PhaseOut, Point, Series
 from service.db import reading, transaction
@@ -166,24 +166,35 @@ def get_job(session, job_id: int) -> Job:
     return job
 
 
-@router.get("/{job_id}", response_model=JobOut)
-def show_job(job_id: RowId, settings: Settings = Depends(settings_of)) -> JobOut:
+def job_view_json(settings: Settings, job_id: int) -> bytes:
     with reading(settings.db_url) as session:
-        return job_out(session, get_job(session, job_id))
+        return job_out(session, get_job(session, job_id)).model_dump_json().encode()
+
+
+@router.get("/{job_id}", response_model=JobOut)
+async def show_job(job_id: RowId, request: Request) -> Response:
+    # Polled by every open dashboard: served from the poll cache (service/api/poll_cache.py), at most
+    # LECO_POLL_CACHE_S old, encoded once for all pollers.
+    settings = request.app.state.settings
+    body = await poll_cache_of(request).job_view(job_id, lambda: job_view_json(settings, job_id))
+    return Response(body, media_type="application/json")
 
 
 @router.post("/{job_id}/cancel", response_model=JobOut, responses={409: {"description": "the job already ended"}})
-def cancel_job(job_id: RowId, settings: Settings = Depends(settings_of)) -> JobOut:
+def cancel_job(job_id: RowId, request: Request) -> Response:
+    settings = request.app.state.settings
     state = queue.cancel(settings.db_url, job_id)
+    poll_cache_of(request).forget(job_id)  # the next poll shows the request
     if state is None:
         raise not_found("job", job_id)
     if state in ("succeeded", "failed"):
         raise HTTPException(409, f"job {job_id} already {state}; there is nothing to cancel")
-    return show_job(job_id, settings)
+    return Response(job_view_json(settings, job_id), media_type="application/json")
 
 
 @router.delete("/{job_id}", status_code=204, responses={409: {"description": "the job has not ended"}})
-def delete_job(job_id: RowId, settings: Settings = Depends(settings_of)) -> None:
+def delete_job(job_id: RowId, request: Request) -> None:
+    settings = request.app.state.settings
     with reading(settings.db_url) as session:
         job = get_job(session, job_id)
         if job.state not in TERMINAL:
@@ -191,6 +202,7 @@ def delete_job(job_id: RowId, settings: Settings = Depends(settings_of)) -> None
     ArtifactStore(settings.db_url, settings.artifacts).delete_job(job_id)
     with transaction(settings.db_url) as session:
         session.execute(Job.__table__.delete().where(Job.id == job_id, Job.state.in_(TERMINAL)))
+    poll_cache_of(request).forget(job_id)
     shutil.rmtree(run_dir_for(settings, job_id), ignore_errors=True)
 
 
@@ -205,9 +217,21 @@ def downsample(points: list, max_points: int) -> list:
 
 
 @router.get("/{job_id}/metrics", response_model=MetricsOut)
-def metrics(job_id: RowId, phase: str | None = None, name: list[str] | None = Query(None),
-            after_step: int = Query(-1, ge=-1, le=MAX_INT), max_points: int = Query(1000, ge=1, le=100_000),
-            settings: Settings = Depends(settings_of)) -> MetricsOut:
+async def metrics(job_id: RowId, request: Request, phase: str | None = None, name: list[str] | None = Query(None),
+                  after_step: int = Query(-1, ge=-1, le=MAX_INT), max_points: int = Query(1000, ge=1, le=100_000)
+                  ) -> Response:
+    # Polled with after_step by every open dashboard: served from the poll cache, never older than the job view
+    # this process serves (see service/api/poll_cache.py).
+    settings = request.app.state.settings
+    key = (phase, tuple(name or ()), after_step, max_points)
+    body = await poll_cache_of(request).metrics(
+        job_id, key, lambda: job_view_json(settings, job_id),
+        lambda: metrics_json(settings, job_id, phase, name, after_step, max_points))
+    return Response(body, media_type="application/json")
+
+
+def metrics_json(settings: Settings, job_id: int, phase: str | None, name: list[str] | None, after_step: int,
+                 max_points: int) -> bytes:
     with reading(settings.db_url) as session:
         get_job(session, job_id)
         query = select(Metric.phase, Metric.name, Metric.step, Metric.value, Metric.wall_time_s) \
@@ -222,4 +246,4 @@ def metrics(job_id: RowId, phase: str | None = None, name: list[str] | None = Qu
         grouped.setdefault((p, n), []).append(Point(step=step, value=value, wall_time_s=wall))
     return MetricsOut(job_id=job_id, series=[
         Series(phase=p, name=n, points=downsample(points, max_points), total_points=len(points))
-        for (p, n), points in grouped.items()])
+        for (p, n), points in grouped.items()]).model_dump_json().encode()

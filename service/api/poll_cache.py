@@ -1,0 +1,100 @@
+"""A short-lived cache of the two answers every dashboard polls: a job's view and its metrics.
+
+Two hundred open dashboards ask for the same job several hundred times a second; the answer changes only when
+training writes (every few steps). So each API process computes a job's view at most once per `ttl_s`
+(LECO_POLL_CACHE_S, 0.5 s by default) and serves the encoded bytes to every poller meanwhile; concurrent
+misses for one key share one database read (single flight) instead of queueing hundreds of identical queries.
+
+Consistency, within one API process:
+- nothing served is older than `ttl_s`;
+- a metrics answer is served only while the job view it was computed under is still the current one. Training
+  writes a step's metrics and the job's progress in one transaction, so once a poller has seen a job view
+  (say `succeeded`), every metrics answer it gets afterwards includes the metrics that view implies;
+- this process's own writes (cancel, delete) drop the job's entries at once, and a read that was already in
+  flight then is not stored.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Callable, Hashable
+
+from starlette.concurrency import run_in_threadpool
+
+
+@dataclass(frozen=True)
+class Entry:
+    body: bytes
+    made_at: float
+    view: bytes | None  # for metrics: the job view current when this answer was computed
+
+
+class PollCache:
+    def __init__(self, ttl_s: float, max_entries: int = 4096, clock: Callable[[], float] = time.monotonic):
+        self.ttl_s, self.max_entries, self.clock = ttl_s, max_entries, clock
+        self.entries: OrderedDict[Hashable, Entry] = OrderedDict()
+        self.in_flight: dict[Hashable, tuple[bytes | None, int, asyncio.Task]] = {}
+        self.epochs: dict[int, int] = {}  # per job, bumped by forget(): reads begun before it are not stored
+        self.lock = threading.Lock()  # forget() runs in worker threads, the rest on the event loop
+        self.hits = self.misses = 0
+
+    @property
+    def enabled(self) -> bool:
+        return self.ttl_s > 0
+
+    async def job_view(self, job_id: int, compute: Callable[[], bytes]) -> bytes:
+        if not self.enabled:
+            return await run_in_threadpool(compute)
+        return (await self._get(("job", job_id), job_id, compute, view=None)).body
+
+    async def metrics(self, job_id: int, key: tuple, compute_view: Callable[[], bytes],
+                      compute: Callable[[], bytes]) -> bytes:
+        """A metrics answer tied to the job view current now (itself normally served from the cache)."""
+        if not self.enabled:
+            return await run_in_threadpool(compute)
+        view = await self.job_view(job_id, compute_view)
+        return (await self._get(("metrics", job_id, key), job_id, compute, view=view)).body
+
+    def forget(self, job_id: int) -> None:
+        """Drops the job's entries; safe to call from a worker thread (a request handler in the threadpool)."""
+        with self.lock:
+            self.epochs[job_id] = self.epochs.get(job_id, 0) + 1
+            for key in [k for k in self.entries if k[1] == job_id]:
+                del self.entries[key]
+
+    async def _get(self, key: tuple, job_id: int, compute: Callable[[], bytes], view: bytes | None) -> Entry:
+        entry = self.entries.get(key)
+        if entry is not None and self.clock() - entry.made_at < self.ttl_s and entry.view == view:
+            self.hits += 1
+            return entry
+        epoch = self.epochs.get(job_id, 0)
+        pending = self.in_flight.get(key)
+        if pending is not None and pending[:2] == (view, epoch):  # the same read is under way: share it
+            self.hits += 1
+            return await asyncio.shield(pending[2])
+        self.misses += 1
+        # A task of its own, so that a requester that goes away does not cancel the read the others wait for.
+        task = asyncio.ensure_future(self._load(key, job_id, epoch, compute, view))
+        task.add_done_callback(lambda t: t.cancelled() or t.exception())  # retrieved even if nobody waits
+        self.in_flight[key] = (view, epoch, task)
+        return await asyncio.shield(task)
+
+    async def _load(self, key: tuple, job_id: int, epoch: int, compute: Callable[[], bytes],
+                    view: bytes | None) -> Entry:
+        made_at = self.clock()
+        try:
+            entry = Entry(await run_in_threadpool(compute), made_at, view)
+        finally:
+            if self.in_flight.get(key, (None, None, None))[2] is asyncio.current_task():
+                del self.in_flight[key]
+        with self.lock:
+            if self.epochs.get(job_id, 0) == epoch:
+                self.entries[key] = entry
+                self.entries.move_to_end(key)
+                while len(self.entries) > self.max_entries:
+                    self.entries.popitem(last=False)
+        return entry
