@@ -21,6 +21,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
@@ -179,17 +180,34 @@ def percentiles(values: list[float]) -> dict:
             "p99_ms": float(np.percentile(a, 99)), "max_ms": float(a.max())}
 
 
+def steps_per_s(api: httpx.Client, job: int, seconds: float) -> tuple[float, dict]:
+    """The job's training rate over `seconds` (from its reported step), and the job as seen at the end."""
+    first, started = api.get(f"/v1/jobs/{job}").json(), time.perf_counter()
+    time.sleep(seconds)
+    last = api.get(f"/v1/jobs/{job}").json()
+    return (last["step"] - first["step"]) / (time.perf_counter() - started), last
+
+
+def poll_cache_counts(api: httpx.Client) -> dict:
+    text = api.get("/metrics").text
+    return {kind: int(float(re.search(rf'leco_poll_cache_total{{result="{kind}"}} (\S+)', text).group(1)))
+            for kind in ("hit", "miss")}
+
+
 def run_loadtest(database_url: str | None, pollers: int = 200, seconds: float = 30.0, interval: float = 1.0,
-                 profile: str = "cpu", overrides: dict | None = None, data_dir: Path | None = None) -> dict:
+                 profile: str = "cpu", overrides: dict | None = None, data_dir: Path | None = None,
+                 baseline_s: float = 10.0) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         with Service(Path(data_dir or tmp) / "data", database_url) as service, service.client() as api:
             job = start_job(api, profile, overrides)
-            step_before = api.get(f"/v1/jobs/{job}").json()["step"]
-            started = time.perf_counter()
+            rate_alone, _ = steps_per_s(api, job, baseline_s)  # the training rate nobody polls
+            cache_before, started = poll_cache_counts(api), time.perf_counter()
             gc.freeze()  # this process's own full collections would stall its pollers, not the server
+            step_before = api.get(f"/v1/jobs/{job}").json()["step"]
             samples = asyncio.run(poll_all(service.url, service.token, job, pollers, seconds, interval))
             elapsed = time.perf_counter() - started
             after = api.get(f"/v1/jobs/{job}").json()
+            cache_after = poll_cache_counts(api)
             api.post(f"/v1/jobs/{job}/cancel")
     requests = len(samples["job"]) + len(samples["metrics"])
     return {
@@ -198,21 +216,76 @@ def run_loadtest(database_url: str | None, pollers: int = 200, seconds: float = 
         "requests_per_s": requests / elapsed, "errors": len(samples["errors"]),
         "all": percentiles(samples["job"] + samples["metrics"]), "job": percentiles(samples["job"]),
         "metrics": percentiles(samples["metrics"]),
+        "poll_cache": {kind: cache_after[kind] - cache_before[kind] for kind in cache_after},
         "training_steps_during_test": after["step"] - step_before, "job_state_after": after["state"],
+        "training_steps_per_s": {"alone": rate_alone, "polled": (after["step"] - step_before) / elapsed},
     }
 
 
+@contextmanager
+def throwaway_database(admin_url: str):
+    """A new PostgreSQL database beside `admin_url`'s, dropped afterwards: the load test's job, scene and metrics
+    never land in a database someone uses."""
+    from sqlalchemy import create_engine, text
+    from sqlalchemy.engine import make_url
+
+    from service.db import normalise_url
+
+    admin = create_engine(normalise_url(admin_url), isolation_level="AUTOCOMMIT")
+    name = f"leco_loadtest_{os.getpid()}_{secrets.token_hex(4)}"
+    with admin.connect() as connection:
+        connection.execute(text(f"CREATE DATABASE {name}"))
+    try:
+        yield make_url(normalise_url(admin_url)).set(database=name).render_as_string(hide_password=False)
+    finally:
+        with admin.connect() as connection:
+            connection.execute(text(f"DROP DATABASE IF EXISTS {name} WITH (FORCE)"))
+        admin.dispose()
+
+
+def refuse_used_database(url: str) -> None:
+    from sqlalchemy import create_engine, inspect
+    from sqlalchemy.engine import make_url
+
+    from service.db import normalise_url, redact
+
+    if make_url(normalise_url(url)).database in ("postgres", "template0", "template1"):
+        raise SystemExit(f"leco loadtest: {redact(url)} is PostgreSQL's maintenance database: use --postgres "
+                         f"{redact(url)} to make and drop a throwaway database on that server instead")
+    engine = create_engine(normalise_url(url))
+    try:
+        tables = inspect(engine).get_table_names()
+    finally:
+        engine.dispose()
+    if tables:
+        raise SystemExit(f"leco loadtest: the database {redact(url)} is not empty (tables: {', '.join(sorted(tables)[:5])}"
+                         f"{', ...' if len(tables) > 5 else ''}): give an empty one, or --postgres ADMIN_URL to make "
+                         "and drop a throwaway database on that server")
+
+
 def loadtest_command(args) -> int:
-    result = run_loadtest(args.database_url, args.pollers, args.seconds, args.interval, args.profile)
+    if args.pollers < 1 or args.seconds <= 0 or args.interval <= 0:
+        raise SystemExit("leco loadtest: --pollers must be at least 1, --seconds and --interval above 0")
+    if args.postgres:
+        with throwaway_database(args.postgres) as url:
+            result = run_loadtest(url, args.pollers, args.seconds, args.interval, args.profile)
+    else:
+        if args.database_url:
+            refuse_used_database(args.database_url)
+        result = run_loadtest(args.database_url, args.pollers, args.seconds, args.interval, args.profile)
     print(json.dumps(result, indent=2))
     return 0 if result["errors"] == 0 else 1
 
 
 def add_commands(commands) -> None:
     load = commands.add_parser("loadtest", help="N concurrent pollers of a training job's status and metrics")
-    load.add_argument("--database-url", default=None, help="PostgreSQL URL (default: embedded SQLite)")
+    where = load.add_mutually_exclusive_group()
+    where.add_argument("--database-url", default=None, help="an empty database (default: embedded SQLite)")
+    where.add_argument("--postgres", metavar="ADMIN_URL", default=None,
+                       help="make a throwaway database on this PostgreSQL server, drop it afterwards "
+                            "(e.g. postgresql://postgres@127.0.0.1:5432/postgres)")
     load.add_argument("--pollers", type=int, default=200)
     load.add_argument("--seconds", type=float, default=30.0, help="how long the pollers run")
-    load.add_argument("--interval", type=float, default=1.0, help="each poller's pause between polls (s)")
+    load.add_argument("--interval", type=float, default=1.0, help="each poller's period between polls (s)")
     load.add_argument("--profile", default="cpu", help="profile of the job being trained meanwhile")
     load.set_defaults(func=loadtest_command)

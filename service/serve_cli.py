@@ -78,7 +78,8 @@ def serve(args: argparse.Namespace) -> int:
     print(f"LeCO-NeRF service at http://{args.host}:{args.port} (API docs: /docs; data: {settings.data_dir.resolve()})",
           flush=True)
     if token:
-        print(f"API token (also in {settings.data_dir / TOKEN_FILE}): {token}", flush=True)
+        # The file only: stdout ends up in log files (make run's serve.log), and tokens are never logged.
+        print(f"API token in {(settings.data_dir / TOKEN_FILE).resolve()} (mode 600; leco submit reads it)", flush=True)
     # Everything imported and built so far lives as long as the process: keep it out of the collector's sweeps,
     # or each full collection (hundreds of thousands of objects: torch, SQLAlchemy, pydantic) stalls every
     # request in flight for ~100 ms.

@@ -158,8 +158,38 @@ def test_loadtest_polls_a_training_job_without_errors(database_url, tmp_path):
 
     url = None if database_url.startswith("sqlite") else database_url
     result = run_loadtest(url, pollers=20, seconds=4, interval=0.5, profile="smoke",
-                          overrides={"main_steps": 100_000}, data_dir=tmp_path)
+                          overrides={"main_steps": 100_000}, data_dir=tmp_path, baseline_s=2)
     assert result["errors"] == 0
     assert result["job"]["count"] >= 20 * 4 and result["metrics"]["count"] == result["job"]["count"]
     assert 0 < result["all"]["p50_ms"] <= result["all"]["p99_ms"] <= result["all"]["max_ms"]
     assert result["training_steps_during_test"] > 0  # the job kept training while it was polled
+    assert result["training_steps_per_s"]["alone"] > 0 and result["training_steps_per_s"]["polled"] > 0
+    # 20 pollers asking for one job: nearly every answer comes from the poll cache.
+    assert result["poll_cache"]["hit"] > 5 * result["poll_cache"]["miss"] > 0
+
+
+def test_loadtest_keeps_off_databases_in_use_and_drops_its_own(database_url):
+    from sqlalchemy import create_engine, text
+
+    from bench.load import refuse_used_database, throwaway_database
+    from service.cli import main
+    from service.db import upgrade
+
+    with pytest.raises(SystemExit, match="--pollers must be at least 1"):
+        main(["loadtest", "--pollers", "0"])
+    upgrade(database_url)
+    with pytest.raises(SystemExit, match=r"is not empty \(tables: alembic_version, artifacts, .*--postgres ADMIN_URL"):
+        refuse_used_database(database_url)
+    if database_url.startswith("sqlite"):
+        return
+    admin = database_url.rsplit("/", 1)[0] + "/postgres"
+    with pytest.raises(SystemExit, match="is PostgreSQL's maintenance database: use --postgres"):
+        refuse_used_database(admin)
+    with throwaway_database(admin) as url:
+        name = url.rsplit("/", 1)[1]
+        assert name.startswith("leco_loadtest_")
+        refuse_used_database(url)  # new and empty: accepted
+    engine = create_engine(admin)
+    with engine.connect() as connection:
+        assert connection.execute(text("SELECT count(*) FROM pg_database WHERE datname = :n"), {"n": name}).scalar() == 0
+    engine.dispose()

@@ -251,3 +251,21 @@ from service.client import Api, follow
 job = follow(Api(sys.argv[1], sys.argv[2]), int(sys.argv[3]), sys.stderr, poll_s=0.5)
 print(json.dumps({"state": job["state"]}))
 """
+
+
+def test_no_log_holds_a_token(topology):
+    """Last: after every test above (refusals, a job, a worker killed, an API restart), plus a few more
+    refused and failing requests, neither the API token nor Ray's appears in any log of the topology."""
+    with topology.client() as api:
+        assert api.get("/v1/jobs/999999").status_code == 404
+        assert api.post("/v1/jobs", json={"scene": topology.scene, "method": "nope"}).status_code == 422
+    for header in (topology.token, f"Bearer {topology.token}x", f"Basic {topology.token}"):  # near misses
+        assert httpx.get(f"{topology.url}/v1/jobs", headers={"Authorization": header}).status_code == 401
+    logs = [p for p in topology.logs.rglob("*") if p.is_file()]
+    logs += [p for p in topology.ray_temp.rglob("*") if p.is_file() and p.suffix in (".log", ".out", ".err")]
+    assert len(logs) > 5
+    for path in logs:
+        text = path.read_text(errors="replace")
+        assert topology.token not in text, f"the API token is in {path}"
+        if path.parent == topology.logs:
+            assert topology.env["RAY_AUTH_TOKEN"] not in text, f"Ray's token is in {path}"

@@ -81,18 +81,12 @@ def device_for(use_gpu: bool) -> torch.device:
     return torch.device("cpu")
 
 
-# Training is batch work: on a machine it shares with the API (the embedded service, docker-compose's CPU
-# workers) the scheduler lets latency-bound requests go first; alone on a node it changes nothing.
-TRAIN_NICE = 10
-
-
 def train_loop_per_worker(config: dict) -> None:
     """Ray Train entry point: every worker runs this."""
     cfg = TrainConfig.model_validate(config["train"])
     session = RaySession()
     run_dir = Path(config["run_dir"])
     write_pid(run_dir, session.rank)
-    os.nice(TRAIN_NICE)
     torch.set_num_threads(max(1, int(config.get("threads", 1))))
     run = RankRun(cfg, Path(config["scene"]), run_dir, session, device_for(cfg.use_gpu), config.get("store"))
     end_cleanly(run, run_dir)
