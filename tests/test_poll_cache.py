@@ -181,3 +181,18 @@ def test_the_api_metrics_answer_follows_the_job_view(api):
     assert client.get(f"/v1/jobs/{job_id}").json()["step"] == 10
     series = client.get(f"/v1/jobs/{job_id}/metrics", params={"after_step": 0}).json()["series"]
     assert [(s["name"], [p["step"] for p in s["points"]]) for s in series] == [("loss", [10])]
+
+
+def test_job_lists_are_cached_and_every_change_through_this_process_shows_at_once(api):
+    client, settings, job_id = api
+    assert [j["id"] for j in client.get("/v1/jobs").json()["items"]] == [job_id]
+    second = client.post("/v1/jobs", json={"scene": "s", "method": "grid", "profile": "smoke"}).json()["id"]
+    assert [j["id"] for j in client.get("/v1/jobs").json()["items"]] == [second, job_id]  # submit dropped the list
+    with transaction(settings.db_url) as session:  # another process moves a job on
+        session.get(Job, job_id).step = 7
+    assert client.get("/v1/jobs").json()["items"][1]["step"] == 0  # served from the cache meanwhile
+    assert client.get("/v1/jobs", params={"state": "queued"}).json()["total"] == 2  # another key: read
+    client.post(f"/v1/jobs/{second}/cancel")
+    listed = client.get("/v1/jobs").json()["items"]
+    assert [(j["id"], j["state"], j["step"]) for j in listed] == [(second, "cancelled", 0), (job_id, "queued", 7)]
+    assert client.get("/v1/jobs", params={"state": "queued"}).json()["total"] == 1

@@ -21,6 +21,8 @@ import httpx
 import pytest
 
 from tests.conftest import drop_postgres_database, free_port, fresh_postgres_database
+from tests.test_service_lifecycle import steps_of
+from tests.test_service_lifecycle import wait_for as wait_for_job
 
 pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[1]
@@ -119,19 +121,12 @@ def topology(tmp_path_factory):
         cluster.down()
 
 
-def wait_for(api: httpx.Client, job_id: int, done, timeout: float = 400) -> dict:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        job = api.get(f"/v1/jobs/{job_id}").json()
-        if done(job):
-            return job
-        time.sleep(0.3)
-    raise AssertionError(f"job {job_id} never got there: {job}")
+def wait_for(api: httpx.Client, job_id: int, done) -> dict:
+    return wait_for_job(api, job_id, done, timeout=400)
 
 
 def main_steps(api: httpx.Client, job_id: int) -> list[int]:
-    series = api.get(f"/v1/jobs/{job_id}/metrics", params={"phase": "main", "name": "loss"}).json()["series"]
-    return [p["step"] for p in series[0]["points"]]
+    return steps_of(api, job_id, "main")
 
 
 def all_artifacts_intact(api: httpx.Client, job_id: int) -> set[str]:

@@ -8,14 +8,14 @@ import shutil
 from datetime import timedelta
 
 import numpy as np
-from fastapi import APIRouter, Depends, Header, HTTPException, Query, Request
+from fastapi import APIRouter, Header, HTTPException, Query, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.responses import JSONResponse, Response
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 
 from service import queue
-from service.api.deps import MAX_INT, RowId, not_found, poll_cache_of, settings_of
+from service.api.deps import MAX_INT, RowId, not_found, poll_cache_of
 from service.api.scenes import find_scene
 from service.api.schemas import JobList, JobOut, JobRequest, MetricsOut, PhaseOut, Point, Series
 from service.db import reading, transaction
@@ -86,11 +86,11 @@ def create_job(body: JobRequest, settings: Settings) -> tuple[int, dict]:
 @router.post("", status_code=201, response_model=JobOut, responses={
     409: {"description": "a request with this Idempotency-Key is still in flight"},
     422: {"description": "invalid body, or the Idempotency-Key was used with another body"}})
-def submit(body: JobRequest, settings: Settings = Depends(settings_of),
-           idempotency_key: str | None = Header(None, max_length=255)):
+def submit(body: JobRequest, request: Request, idempotency_key: str | None = Header(None, max_length=255)):
+    settings = request.app.state.settings
     if idempotency_key is None:
         status, payload = create_job_or_error(body, settings)
-        return JSONResponse(payload, status)
+        return submitted(request, status, payload)
     digest = hashlib.sha256(json.dumps(body.model_dump(mode="json"), sort_keys=True).encode()).hexdigest()
     replay = begin_idempotent(settings, idempotency_key, digest)
     if replay is not None:
@@ -104,6 +104,12 @@ def submit(body: JobRequest, settings: Settings = Depends(settings_of),
     with transaction(settings.db_url) as session:
         row = session.get(IdempotencyKey, idempotency_key)
         row.state, row.status_code, row.response = "done", status, payload
+    return submitted(request, status, payload)
+
+
+def submitted(request: Request, status: int, payload: dict) -> JSONResponse:
+    if status == 201:
+        poll_cache_of(request).forget(payload["id"])  # the job lists this process serves now show it
     return JSONResponse(payload, status)
 
 
@@ -139,10 +145,18 @@ def begin_idempotent(settings: Settings, key: str, digest: str) -> JSONResponse 
 
 
 @router.get("", response_model=JobList)
-def list_jobs(state: str | None = Query(None, pattern="^(" + "|".join(JOB_STATES) + ")$"),
-              scene: str | None = None, method: str | None = Query(None, pattern="^(leco|switch|grid)$"),
-              limit: int = Query(50, ge=1, le=200), offset: int = Query(0, ge=0, le=MAX_INT),
-              settings: Settings = Depends(settings_of)) -> JobList:
+async def list_jobs(request: Request, state: str | None = Query(None, pattern="^(" + "|".join(JOB_STATES) + ")$"),
+                    scene: str | None = None, method: str | None = Query(None, pattern="^(leco|switch|grid)$"),
+                    limit: int = Query(50, ge=1, le=200), offset: int = Query(0, ge=0, le=MAX_INT)) -> Response:
+    # The dashboard's jobs page polls this: served from the poll cache, at most LECO_POLL_CACHE_S old.
+    settings = request.app.state.settings
+    body = await poll_cache_of(request).job_list(
+        (state, scene, method, limit, offset), lambda: job_list_json(settings, state, scene, method, limit, offset))
+    return Response(body, media_type="application/json")
+
+
+def job_list_json(settings: Settings, state: str | None, scene: str | None, method: str | None, limit: int,
+                  offset: int) -> bytes:
     with reading(settings.db_url) as session:
         query = select(Job)
         if state:
@@ -156,7 +170,7 @@ def list_jobs(state: str | None = Query(None, pattern="^(" + "|".join(JOB_STATES
         jobs = session.scalars(query.order_by(Job.id.desc()).limit(limit).offset(offset)).all()
         items = [job_out(session, j) for j in jobs]
     return JobList(items=items, total=total, limit=limit, offset=offset,
-                   next_offset=offset + limit if offset + limit < total else None)
+                   next_offset=offset + limit if offset + limit < total else None).model_dump_json().encode()
 
 
 def get_job(session, job_id: int) -> Job:

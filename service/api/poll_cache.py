@@ -1,4 +1,4 @@
-"""A short-lived cache of the two answers every dashboard polls: a job's view and its metrics.
+"""A short-lived cache of the answers every dashboard polls: a job's view, its metrics, and the job list.
 
 Two hundred open dashboards ask for the same job several hundred times a second; the answer changes only when
 training writes (every few steps). So each API process computes a job's view at most once per `ttl_s`
@@ -10,8 +10,8 @@ Consistency, within one API process:
 - a metrics answer is served only while the job view it was computed under is still the current one. Training
   writes a step's metrics and the job's progress in one transaction, so once a poller has seen a job view
   (say `succeeded`), every metrics answer it gets afterwards includes the metrics that view implies;
-- this process's own writes (cancel, delete) drop the job's entries at once, and a read that was already in
-  flight then is not stored.
+- this process's own writes (submit, cancel, delete) drop the job's entries and every job list at once, and a
+  read that was already in flight then is not stored.
 """
 
 from __future__ import annotations
@@ -24,6 +24,9 @@ from dataclasses import dataclass
 from typing import Callable, Hashable
 
 from starlette.concurrency import run_in_threadpool
+
+
+LISTS = 0  # the job id under which job lists are kept (real ids start at 1): every job's change touches them
 
 
 @dataclass(frozen=True)
@@ -59,11 +62,18 @@ class PollCache:
         view = await self.job_view(job_id, compute_view)
         return (await self._get(("metrics", job_id, key), job_id, compute, view=view)).body
 
+    async def job_list(self, key: tuple, compute: Callable[[], bytes]) -> bytes:
+        if not self.enabled:
+            return await run_in_threadpool(compute)
+        return (await self._get(("jobs", LISTS, key), LISTS, compute, view=None)).body
+
     def forget(self, job_id: int) -> None:
-        """Drops the job's entries; safe to call from a worker thread (a request handler in the threadpool)."""
+        """Drops the job's entries and every job list; safe to call from a worker thread (a request handler in
+        the threadpool)."""
         with self.lock:
-            self.epochs[job_id] = self.epochs.get(job_id, 0) + 1
-            for key in [k for k in self.entries if k[1] == job_id]:
+            for touched in {job_id, LISTS}:
+                self.epochs[touched] = self.epochs.get(touched, 0) + 1
+            for key in [k for k in self.entries if k[1] in (job_id, LISTS)]:
                 del self.entries[key]
 
     async def _get(self, key: tuple, job_id: int, compute: Callable[[], bytes], view: bytes | None) -> Entry:
