@@ -17,7 +17,7 @@ import socket
 import threading
 import time
 import uuid
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 
 from service import queue
 from service.execute import execute
@@ -37,7 +37,7 @@ class Dispatcher:
         self.settings, self.slots, self.poll_s = settings, slots, poll_s
         self.owner = owner or f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
         self.pool = ThreadPoolExecutor(max_workers=slots, thread_name_prefix="leco-job")
-        self.running: dict[int, Future] = {}
+        self.running: dict[int, tuple[int, Future]] = {}  # job id -> (attempt, its run)
         self.stopping = threading.Event()
 
     # ----- the loop ----------------------------------------------------------------------------------
@@ -45,7 +45,7 @@ class Dispatcher:
         """One round: reap expired leases, then claim a job if a slot is free. Returns the claimed job id."""
         for job_id, state in queue.requeue_expired(self.settings.db_url, self.settings.max_attempts):
             log.warning("job %s: lease expired, now %s", job_id, state)
-        self.running = {j: f for j, f in self.running.items() if not f.done()}
+        self.running = {j: (a, f) for j, (a, f) in self.running.items() if not f.done()}
         if len(self.running) >= self.slots or self.stopping.is_set():
             return None
         claimed = queue.claim(self.settings.db_url, self.owner, self.settings.lease_s)
@@ -53,7 +53,7 @@ class Dispatcher:
             return None
         job_id, attempt = claimed
         log.info("job %s: claimed (attempt %s) by %s", job_id, attempt, self.owner)
-        self.running[job_id] = self.pool.submit(self.run_job, job_id, attempt)
+        self.running[job_id] = (attempt, self.pool.submit(self.run_job, job_id, attempt))
         return job_id
 
     def run_forever(self) -> None:
@@ -69,6 +69,33 @@ class Dispatcher:
     def stop(self, wait: bool = True) -> None:
         self.stopping.set()
         self.pool.shutdown(wait=wait)
+
+    def release_all(self) -> list[int]:
+        """Stops claiming and returns every job this dispatcher runs to the queue, for the next claim to resume
+        from its last checkpoint. Called first thing on SIGTERM or Ctrl-C (from the signal handler), before
+        the local Ray goes down under the run and its error could be taken for the job's own failure."""
+        self.stopping.set()
+        released = []
+        for job_id, (attempt, future) in list(self.running.items()):
+            reason = (f"attempt {attempt} was interrupted: its dispatcher ({self.owner}) stopped; the job resumes "
+                      "from its last checkpoint when a dispatcher claims it again")
+            try:
+                if not future.done() and queue.release(self.settings.db_url, job_id, attempt, reason):
+                    log.info("job %s attempt %s: returned to the queue", job_id, attempt)
+                    released.append(job_id)
+            except Exception:  # the database is away: the lease expires instead, with the same outcome
+                log.exception("job %s: could not return it to the queue", job_id)
+        return released
+
+    def shutdown(self, wait_s: float = 20.0) -> None:
+        """release_all(), then up to `wait_s` for the runs to checkpoint and stop (they see the job queued at
+        their next step boundary)."""
+        self.release_all()
+        futures = [f for _, f in self.running.values()]
+        _, left = wait(futures, timeout=wait_s)
+        if left:
+            log.warning("%d run(s) still stopping after %.0f s; leaving them", len(left), wait_s)
+        self.pool.shutdown(wait=False, cancel_futures=True)
 
     # ----- one job -----------------------------------------------------------------------------------
     def run_job(self, job_id: int, attempt: int) -> str:

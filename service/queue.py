@@ -107,12 +107,32 @@ def requeue_expired(db_url: str, max_attempts: int) -> list[tuple[int, str]]:
             if result.rowcount != 1:
                 continue
             if state == "queued":
-                session.execute(update(JobPhase).where(JobPhase.job_id == job_id, JobPhase.state == "running")
-                                .values(state="queued"), execution_options={"synchronize_session": False})
+                requeue_phases(session, job_id)
             else:
                 close_phases(session, job_id, state, now)
             moved.append((job_id, state))
     return moved
+
+
+def release(db_url: str, job_id: int, attempt: int, reason: str) -> bool:
+    """running -> queued for the attempt that holds the job (not asked to cancel): its dispatcher is shutting
+    down. The run sees it at its next step boundary, checkpoints and stops; the next claim resumes from there.
+    False when this attempt no longer holds the job."""
+    with transaction(db_url) as session:
+        result = session.execute(
+            update(Job).where(Job.id == job_id, Job.state == "running", Job.attempts == attempt,
+                              Job.cancel_requested.is_(False))
+            .values(state="queued", error=reason, lease_owner=None, lease_expires_at=None),
+            execution_options={"synchronize_session": False})
+        if result.rowcount != 1:
+            return False
+        requeue_phases(session, job_id)
+    return True
+
+
+def requeue_phases(session: Session, job_id: int) -> None:
+    session.execute(update(JobPhase).where(JobPhase.job_id == job_id, JobPhase.state == "running")
+                    .values(state="queued"), execution_options={"synchronize_session": False})
 
 
 def cancel(db_url: str, job_id: int) -> str | None:

@@ -100,6 +100,9 @@ class DatabaseRunStore:
                 self._reason = f"job {self.job_id} was deleted"
             elif row.cancel_requested:
                 self._reason = "cancelled by the user"
+            elif row.state == "queued" and row.attempts == self.attempt:
+                self._reason = (f"job {self.job_id} was returned to the queue (its dispatcher stopped or its lease "
+                                "expired): it resumes from this checkpoint on its next claim")
             elif row.state != "running" or row.attempts != self.attempt:
                 self._reason = (f"attempt {self.attempt} no longer holds job {self.job_id} "
                                 f"(state {row.state}, attempt {row.attempts}): its lease expired")

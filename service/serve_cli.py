@@ -7,6 +7,7 @@ import gc
 import logging
 import os
 import secrets
+import signal
 import threading
 from pathlib import Path
 
@@ -47,6 +48,20 @@ def start_ray(settings) -> None:
     ensure_ray(settings.local_cpus)  # here, in the main thread: Ray installs signal handlers
 
 
+def Server(config, on_exit):
+    """uvicorn's server, which on SIGTERM or Ctrl-C first calls `on_exit` (returning the running jobs to the
+    queue) and then shuts down gracefully. A subclass made here so that uvicorn is imported only to serve."""
+    import uvicorn
+
+    class ReleasingServer(uvicorn.Server):
+        def handle_exit(self, sig, frame) -> None:
+            if on_exit is not None and not self.should_exit:
+                on_exit()
+            super().handle_exit(sig, frame)
+
+    return ReleasingServer(config)
+
+
 def serve(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -84,15 +99,20 @@ def serve(args: argparse.Namespace) -> int:
     # or each full collection (hundreds of thousands of objects: torch, SQLAlchemy, pydantic) stalls every
     # request in flight for ~100 ms.
     gc.freeze()
+    server = Server(uvicorn.Config(app, host=args.host, port=args.port, log_level="warning"),
+                    on_exit=dispatcher.release_all if dispatcher else None)
     try:
-        uvicorn.run(app, host=args.host, port=args.port, log_level="warning")
+        server.run()
+    except KeyboardInterrupt:
+        pass  # uvicorn raises Ctrl-C again once it has shut down; the jobs are already back in the queue
     finally:
         if dispatcher is not None:
-            dispatcher.stop(wait=False)
+            dispatcher.shutdown()
     return 0
 
 
 def dispatch(args: argparse.Namespace) -> int:
+    from service.db import redact
     from service.dispatcher import Dispatcher
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
@@ -101,11 +121,15 @@ def dispatch(args: argparse.Namespace) -> int:
     prepare(settings, upgrade_embedded=False)
     start_ray(settings)
     dispatcher = Dispatcher(settings, slots=args.slots)
-    print(f"dispatcher {dispatcher.owner} polling {settings.db_url.split('@')[-1]}", flush=True)
-    try:
-        dispatcher.run_forever()
-    except KeyboardInterrupt:
-        dispatcher.stop(wait=False)
+    print(f"dispatcher {dispatcher.owner} polling {redact(settings.db_url)}", flush=True)
+
+    def stop(signum, frame) -> None:  # SIGTERM (docker stop) or Ctrl-C: hand the running jobs back first
+        dispatcher.release_all()
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    dispatcher.run_forever()  # returns once release_all() has set `stopping`
+    dispatcher.shutdown()
     return 0
 
 

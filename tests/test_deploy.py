@@ -48,6 +48,8 @@ def test_compose_has_the_whole_topology(compose):
     assert depends["ray-worker"] == {"ray-head": {"condition": "service_healthy"}}
     assert services["ray-worker"]["deploy"]["replicas"] >= 2  # scalable CPU workers
     assert services["migrate"]["restart"] == "no"  # one-shot
+    # Stopped, the dispatcher hands its jobs back and waits up to 20 s for their runs to checkpoint.
+    assert int(services["dispatcher"]["stop_grace_period"].rstrip("s")) > 20
     for name, service in services.items():
         if name != "migrate":
             assert service["healthcheck"]["test"][0] == "CMD", name
@@ -142,6 +144,8 @@ def test_kuberay_manifests_give_8_gpu_workers_shared_storage_and_auth():
         container = spec["containers"][0]
         assert {"name": "leco-data", "mountPath": "/data"} in container["volumeMounts"]
         assert {"name": "dshm", "mountPath": "/dev/shm"} in container["volumeMounts"]
+    (dispatcher,) = [d for d in documents if d["metadata"]["name"] == "leco-dispatcher"]
+    assert dispatcher["spec"]["template"]["spec"]["terminationGracePeriodSeconds"] > 20
     claim = yaml.safe_load((ROOT / "deploy" / "kuberay" / "pvc.yaml").read_text())
     assert claim["spec"]["accessModes"] == ["ReadWriteMany"]
     assert [d["kind"] for d in documents] == ["ConfigMap", "Job", "Deployment", "Deployment", "Service"]

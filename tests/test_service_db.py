@@ -127,6 +127,26 @@ def test_lease_expiry_requeues_then_fails_with_the_last_error(service_settings):
     assert set(phases) == {"failed"}
 
 
+def test_release_hands_a_running_job_back_only_for_the_attempt_holding_it(service_settings):
+    url = service_settings.db_url
+    job, cancelled = add_jobs(url, add_scene(url), 2)
+    assert queue.claim(url, "d1", 60) == (job, 1)
+    queue.phase_started(url, job, 1, "occupancy")
+    assert not queue.release(url, job, 2, "not mine")  # another attempt cannot
+    assert queue.release(url, job, 1, "dispatcher d1 stopped")
+    assert not queue.release(url, job, 1, "twice")  # it is queued now
+    with transaction(url) as session:
+        row = session.get(Job, job)
+        phases = session.scalars(select(JobPhase.state).where(JobPhase.job_id == job)).all()
+    assert (row.state, row.attempts, row.lease_owner, row.error) == ("queued", 1, None, "dispatcher d1 stopped")
+    assert set(phases) == {"queued"}
+    assert not queue.heartbeat(url, job, 1, "d1", 60) and not queue.finish(url, job, 1, "failed", "late error")
+    assert queue.claim(url, "d2", 60) == (job, 2)  # the next claim resumes it
+    assert queue.claim(url, "d2", 60) == (cancelled, 1)
+    queue.cancel(url, cancelled)
+    assert not queue.release(url, cancelled, 1, "stopping")  # a cancel asked for is not undone by a restart
+
+
 def test_cancel_queued_at_once_running_by_request_and_not_after_the_end(service_settings):
     url = service_settings.db_url
     scene = add_scene(url)

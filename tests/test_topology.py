@@ -239,6 +239,28 @@ def test_the_api_restarted_mid_job_loses_nothing_and_pollers_recover(topology):
         assert {"summary.json", "final/models.pt"} <= all_artifacts_intact(api, job_id)
 
 
+def test_a_dispatcher_stopped_mid_job_hands_it_back_and_the_next_one_resumes_it(topology):
+    """`docker stop` on the dispatcher: SIGTERM to its main process only. The job goes back to the queue at
+    once (not failed, not waiting for a lease to expire), its run checkpoints and stops, and a new dispatcher
+    resumes it from there."""
+    with topology.client() as api:
+        job_id = submit_long(api, topology)
+        wait_for(api, job_id, lambda j: j["step"] >= 80)
+        dispatcher = topology.processes.pop("dispatcher")
+        started = time.monotonic()
+        dispatcher.send_signal(signal.SIGTERM)
+        dispatcher.wait(60)
+        assert time.monotonic() - started < 40  # within a compose stop_grace_period
+        job = api.get(f"/v1/jobs/{job_id}").json()
+        assert job["state"] == "queued" and job["attempts"] == 1, job
+        assert "its dispatcher" in job["error"] and "resumes from its last checkpoint" in job["error"]
+        topology.start("dispatcher", "dispatch", "--slots", "1")
+        job = wait_for(api, job_id, lambda j: j["state"] in TERMINAL)
+        assert job["state"] == "succeeded" and job["attempts"] == 2, job
+        assert main_steps(api, job_id) == list(range(10, 301, 10))  # no gap, no duplicate
+        assert "final/models.pt" in all_artifacts_intact(api, job_id)
+
+
 # `leco submit`'s own follower (service.client.follow through Api.call, which retries while the API restarts).
 FOLLOW = """
 import json, sys
