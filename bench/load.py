@@ -231,10 +231,19 @@ def throwaway_database(admin_url: str):
 
     from service.db import normalise_url
 
+    from sqlalchemy.exc import SQLAlchemyError
+
+    from service.db import first_line, redact
+
     admin = create_engine(normalise_url(admin_url), isolation_level="AUTOCOMMIT")
     name = f"leco_loadtest_{os.getpid()}_{secrets.token_hex(4)}"
-    with admin.connect() as connection:
-        connection.execute(text(f"CREATE DATABASE {name}"))
+    try:
+        with admin.connect() as connection:
+            connection.execute(text(f"CREATE DATABASE {name}"))
+    except SQLAlchemyError as error:
+        admin.dispose()
+        raise SystemExit(f"leco loadtest: --postgres {redact(admin_url)}: cannot create a throwaway database "
+                         f"there: {first_line(error)}") from None
     try:
         yield make_url(normalise_url(admin_url)).set(database=name).render_as_string(hide_password=False)
     finally:

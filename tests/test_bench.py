@@ -177,6 +177,9 @@ def test_loadtest_keeps_off_databases_in_use_and_drops_its_own(database_url):
 
     with pytest.raises(SystemExit, match="--pollers must be at least 1"):
         main(["loadtest", "--pollers", "0"])
+    with pytest.raises(SystemExit, match=r"--postgres .*:1/postgres: cannot create a throwaway database there: "
+                                         "connection failed"):
+        main(["loadtest", "--postgres", "postgresql://postgres@127.0.0.1:1/postgres"])
     upgrade(database_url)
     with pytest.raises(SystemExit, match=r"is not empty \(tables: alembic_version, artifacts, .*--postgres ADMIN_URL"):
         refuse_used_database(database_url)
