@@ -70,22 +70,19 @@ class Dispatcher:
         self.stopping.set()
         self.pool.shutdown(wait=wait)
 
-    def release_all(self) -> list[int]:
+    def release_all(self) -> None:
         """Stops claiming and returns every job this dispatcher runs to the queue, for the next claim to resume
         from its last checkpoint. Called first thing on SIGTERM or Ctrl-C (from the signal handler), before
         the local Ray goes down under the run and its error could be taken for the job's own failure."""
         self.stopping.set()
-        released = []
         for job_id, (attempt, future) in list(self.running.items()):
             reason = (f"attempt {attempt} was interrupted: its dispatcher ({self.owner}) stopped; the job resumes "
                       "from its last checkpoint when a dispatcher claims it again")
             try:
                 if not future.done() and queue.release(self.settings.db_url, job_id, attempt, reason):
                     log.info("job %s attempt %s: returned to the queue", job_id, attempt)
-                    released.append(job_id)
             except Exception:  # the database is away: the lease expires instead, with the same outcome
                 log.exception("job %s: could not return it to the queue", job_id)
-        return released
 
     def shutdown(self, wait_s: float = 20.0) -> None:
         """release_all(), then up to `wait_s` for the runs to checkpoint and stop (they see the job queued at

@@ -48,7 +48,7 @@ def start_ray(settings) -> None:
     ensure_ray(settings.local_cpus)  # here, in the main thread: Ray installs signal handlers
 
 
-def Server(config, on_exit):
+def releasing_server(config, on_exit):
     """uvicorn's server, which on SIGTERM or Ctrl-C first calls `on_exit` (returning the running jobs to the
     queue) and then shuts down gracefully. A subclass made here so that uvicorn is imported only to serve."""
     import uvicorn
@@ -99,7 +99,7 @@ def serve(args: argparse.Namespace) -> int:
     # or each full collection (hundreds of thousands of objects: torch, SQLAlchemy, pydantic) stalls every
     # request in flight for ~100 ms.
     gc.freeze()
-    server = Server(uvicorn.Config(app, host=args.host, port=args.port, log_level="warning"),
+    server = releasing_server(uvicorn.Config(app, host=args.host, port=args.port, log_level="warning"),
                     on_exit=dispatcher.release_all if dispatcher else None)
     try:
         server.run()

@@ -46,6 +46,12 @@ def run_service(settings: Settings):
     return client, dispatcher, thread
 
 
+def submit_switch(api, **config) -> int:
+    """A Switch-NeRF smoke job on two Ray workers on the tiny city, with `config` on top; returns its id."""
+    body = {"scene": ready_scene(api), "method": "switch", "profile": "smoke", "workers": 2, **config}
+    return api.post("/v1/jobs", json=body).json()["id"]
+
+
 def assert_store_consistent(settings: Settings, job_id: int) -> list[dict]:
     """Every artifact row has its bytes (sha256 checked), no blob is unreferenced, nothing is half-staged."""
     store = ArtifactStore(settings.db_url, settings.artifacts)
@@ -76,10 +82,7 @@ def test_a_database_outage_pauses_the_job_and_loses_nothing(tmp_path):
     upgrade(url)
     api, dispatcher, thread = run_service(settings)
     try:
-        scene = ready_scene(api)
-        body = {"scene": scene, "method": "switch", "profile": "smoke", "workers": 2, "metrics_every": 10,
-                "checkpoint_every": 50, "overrides": {"main_steps": 200}}
-        job_id = api.post("/v1/jobs", json=body).json()["id"]
+        job_id = submit_switch(api, metrics_every=10, checkpoint_every=50, overrides={"main_steps": 200})
         wait_for(api, job_id, lambda j: j["step"] >= 40)
         block_connections(url, True)
         try:
@@ -128,10 +131,7 @@ def test_a_failing_artifact_root_fails_the_job_with_that_reason(fault, service_s
     settings = Settings(**{**service_settings.model_dump(), "artifact_root": root})
     api, dispatcher, thread = run_service(settings)
     try:
-        scene = ready_scene(api)
-        body = {"scene": scene, "method": "switch", "profile": "smoke", "workers": 2, "metrics_every": 5,
-                "checkpoint_every": 10, "overrides": {"main_steps": 60}}
-        job_id = api.post("/v1/jobs", json=body).json()["id"]
+        job_id = submit_switch(api, metrics_every=5, checkpoint_every=10, overrides={"main_steps": 60})
         job = wait_for(api, job_id, lambda j: j["state"] in ("succeeded", "failed"), timeout=300)
         assert job["state"] == "failed" and job["attempts"] == 1
         assert expected in job["error"] and "could not be written" in job["error"], job["error"]
@@ -154,12 +154,9 @@ def test_a_failing_artifact_root_fails_the_job_with_that_reason(fault, service_s
 def test_repeated_non_finite_losses_fail_the_job_and_keep_its_last_good_checkpoint(service_settings):
     api, dispatcher, thread = run_service(service_settings)
     try:
-        scene = ready_scene(api)
         # A learning rate of 1e20 blows the weights up after the first step: every later loss is non-finite.
-        body = {"scene": scene, "method": "switch", "profile": "smoke", "workers": 2, "metrics_every": 1,
-                "checkpoint_every": 1, "max_nonfinite_steps": 5,
-                "overrides": {"main_steps": 200, "lr": 1e20, "lr_final": 1e20}}
-        job_id = api.post("/v1/jobs", json=body).json()["id"]
+        job_id = submit_switch(api, metrics_every=1, checkpoint_every=1, max_nonfinite_steps=5,
+                               overrides={"main_steps": 200, "lr": 1e20, "lr_final": 1e20})
         job = wait_for(api, job_id, lambda j: j["state"] in ("succeeded", "failed"), timeout=300)
         assert job["state"] == "failed" and job["attempts"] == 1  # not retried: a retry would only repeat it
         assert "5 consecutive steps had a non-finite loss or gradient" in job["error"]
