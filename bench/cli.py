@@ -21,7 +21,7 @@ def bench_command(args: argparse.Namespace) -> int:
 
     log = lambda text: print(text, file=sys.stderr, flush=True)
     try:
-        variants = select([m.strip() for m in args.methods.split(",") if m.strip()], args.ablation)
+        variants = select([m.strip() for m in args.methods.split(",") if m.strip()], args.ablation, args.ladder)
         seeds = parse_seeds(args.seeds)
         overrides = parse_overrides(args.set or [])
     except ValueError as error:
@@ -102,7 +102,7 @@ def command_line(args: argparse.Namespace) -> str:
             words += [flag, str(value)]
     if args.backend != "local":
         words += ["--backend", args.backend, "--workers", str(args.workers)]
-    words += ["--ablation"] * args.ablation + ["--gpu"] * args.gpu
+    words += ["--ablation"] * args.ablation + ["--ladder"] * args.ladder + ["--gpu"] * args.gpu
     for item in args.set or []:
         words += ["--set", item]
     return " ".join(shlex.quote(w) for w in words)
@@ -117,6 +117,9 @@ def add_commands(commands) -> None:
                        help="wall-clock training budget per method in minutes (LeCO's includes its occupancy "
                             "phase); without it every method runs the profile's step counts")
     bench.add_argument("--methods", default="leco,switch,grid", help="comma-separated: leco, switch, grid")
+    bench.add_argument("--ladder", action="store_true",
+                       help="also train the ablation ladder: LeCO from the paper's formulation to the profile's "
+                            "defaults, one change at a time (bench/variants.py RUNGS)")
     bench.add_argument("--ablation", action="store_true",
                        help="also train the ablations: homogeneous MoE and HMoE without the density loss")
     bench.add_argument("--seeds", default="0", help="comma-separated seeds, e.g. 0,1,2")

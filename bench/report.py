@@ -9,7 +9,8 @@ from pathlib import Path
 
 import torch
 
-from bench.analysis import get, mean_std, per_variant
+from bench.variants import RUNGS
+from bench.analysis import get, main_curve, mean_std, per_variant, time_to_psnr
 
 PAPER_NOTE = ("Paper (Mega-NeRF scenes, 8 GPUs): LeCO ~2.5x faster than Switch-NeRF at equal or better PSNR, "
               "occupancy network 0.15M parameters vs a 2.1M-cell grid, occupancy ratio below the grid's.")
@@ -68,8 +69,31 @@ def quality_table(runs: list[dict], names: list[str], labels: dict) -> str:
                   "rays/s (main)", "samples/ray", "steps"], rows)
 
 
+def ladder_table(runs: list[dict]) -> str:
+    """Each rung's PSNR, when it reached vanilla's best tracked PSNR, and what its occupancy and sampler did."""
+    names = [n for n in dict.fromkeys(r["variant"] for r in runs if r.get("ladder"))]
+    names += ["leco"] if any(r["variant"] == "leco" for r in runs) else []
+    labels = {r["variant"]: r["label"] for r in runs}
+    labels["leco"] = RUNGS[-1][1]
+    reach = {n: [] for n in names}
+    for r in runs:
+        vanilla = [v for v in runs if v["variant"] == "switch" and v["seed"] == r["seed"]]
+        if r["variant"] in reach and vanilla and main_curve(vanilla[0]):
+            target = max(p for _, p in main_curve(vanilla[0]))
+            reach[r["variant"]].append(time_to_psnr(main_curve(r), target))
+    s = {k: per_variant(runs, k) for k in ("val.psnr", "occupancy.recall", "occupancy.f1",
+                                           "occupancy.occupancy_ratio", "samples_per_ray", "rays_per_s")}
+    minutes = lambda values: ("never" if not values or None in values
+                              else cell(mean_std([v / 60 for v in values]), ".2f"))
+    rows = [[labels[n], cell(s["val.psnr"][n], ".2f"), minutes(reach[n]), cell(s["occupancy.recall"][n], ".3f"),
+             cell(s["occupancy.f1"][n], ".3f"), cell(s["occupancy.occupancy_ratio"][n], ".1%"),
+             cell(s["samples_per_ray"][n], ".1f"), cell(s["rays_per_s"][n], ",.0f")] for n in names]
+    return table(["rung (cumulative)", "val PSNR", "min to vanilla's best tracked PSNR", "recall", "F1",
+                  "occupancy ratio", "samples/ray", "rays/s (main)"], rows)
+
+
 def ablation_table(runs: list[dict]) -> str:
-    names = [n for n in dict.fromkeys(r["variant"] for r in runs) if n.startswith("leco")]
+    names = [n for n in dict.fromkeys(r["variant"] for r in runs if not r.get("ladder")) if n.startswith("leco")]
     labels = {r["variant"]: r["label"] for r in runs}
     hmoe = {}
     for n in names:  # the HMoE's own rendering at the end of phase 1 (what Table 4 scores)
@@ -142,7 +166,11 @@ def write_report(results: dict, out: Path) -> None:
         missed = [t for t in results["targets"] if t["met"] is False]
         if missed:
             parts += [f"{len(missed)} target(s) missed; docs/BENCHMARKS.md explains why and what would fix it.", ""]
-    if any(r["ablation"] for r in runs):
+    if any(r.get("ladder") for r in runs):
+        parts += ["## Ablation ladder (issue 16)", "", ladder_table(runs), "",
+                  "Each rung adds one change to the one above it; the last is the profile's defaults. Time to "
+                  "vanilla's best PSNR is on the tracked validation views, LeCO's phase 1 included.", ""]
+    if any(r["ablation"] and not r.get("ladder") for r in runs):
         parts += ["## Ablation (the paper's Tables 4 and 5)", "", ablation_table(runs), "",
                   "Phase-1 HMoE PSNR is the occupancy network's own rendering at the end of phase 1 (Table 4 "
                   "scores this); guided PSNR is the Switch-NeRF it then guides (Table 5).", ""]

@@ -88,6 +88,7 @@ def run_variant(variant: Variant, plan: Plan, seed: int, log=print) -> dict:
         log(f"[bench] {variant.name} seed {seed}: done in {time.perf_counter() - started:.0f} s, "
             f"val PSNR {summary['val']['psnr']:.2f}")
     return {"variant": variant.name, "method": variant.method, "label": variant.label, "ablation": variant.ablation,
+            "ladder": variant.ladder,
             "seed": seed, "run_dir": str(run_dir), "summary": summary,
             "curve": curve(read_metrics(run_dir / "metrics.jsonl"))}
 

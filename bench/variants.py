@@ -14,6 +14,7 @@ class Variant:
     label: str  # as the paper's tables name it
     overrides: dict = field(default_factory=dict)
     ablation: bool = False
+    ladder: bool = False  # a rung of the ablation ladder (issue 16); like an ablation, not a compared method
 
 
 METHODS = {
@@ -31,7 +32,42 @@ ABLATIONS = {
 }
 
 
-def select(methods: list[str], ablation: bool) -> list[Variant]:
+# The paper's formulation at the profile's sizes: every setting issue 16 added, back at the paper's value.
+PAPER_FORMULATION = {
+    "occupancy.lr_final": None, "occupancy.w_g_final": None, "occupancy.w_v": 0.0,
+    "occupancy.empty_gate_grad": True, "guided.jitter": False, "guided.dilate": 0, "guided.fallback": False,
+    "guided.warm_start": False, "guided.split": 8,
+}
+
+# The ablation ladder: from the paper's formulation, one change at a time (cumulative) up to the `cpu`
+# defaults. The last rung is the profile's defaults, so the `leco` run itself stands for it (a test checks
+# that the changes add up to the `cpu` profile). Measured in docs/BENCHMARKS.md.
+RUNGS: list[tuple[str, str, dict]] = [
+    ("leco-paper", "paper's formulation", {}),
+    ("leco-rung-empty-gate", "+ E_e gate detached from L_r", {"occupancy.empty_gate_grad": False}),
+    ("leco-rung-warm-start", "+ warm start of the main phase", {"guided.warm_start": True}),
+    ("leco-rung-fallback", "+ fallback for rays with nothing kept", {"guided.fallback": True}),
+    ("leco-rung-jitter", "+ jittered O queries", {"guided.jitter": True}),
+    ("leco", "+ dilation by 1 bin, split 8 -> 4 (the cpu defaults)", {"guided.dilate": 1, "guided.split": 4}),
+]
+
+
+def rung_overrides() -> list[dict]:
+    """Each rung's overrides of the profile: the paper's formulation plus every change up to that rung."""
+    out, overrides = [], dict(PAPER_FORMULATION)
+    for _, _, change in RUNGS:
+        overrides = {**overrides, **change}
+        out.append(dict(overrides))
+    return out
+
+
+def ladder() -> list[Variant]:
+    """The rungs to train besides `leco` (the last rung)."""
+    return [Variant(name, "leco", label, overrides, ablation=True, ladder=True)
+            for (name, label, _), overrides in zip(RUNGS[:-1], rung_overrides()[:-1])]
+
+
+def select(methods: list[str], ablation: bool, with_ladder: bool = False) -> list[Variant]:
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"--methods: unknown method(s) {', '.join(unknown)}: choose from {', '.join(METHODS)}")
@@ -42,4 +78,8 @@ def select(methods: list[str], ablation: bool) -> list[Variant]:
         chosen += list(ABLATIONS.values())
         if "leco" not in methods:
             chosen.append(METHODS["leco"])  # the full method (HMoE + L_d) is the ablations' reference row
+    if with_ladder:
+        chosen += ladder()
+        if "leco" not in [v.name for v in chosen]:
+            chosen.append(METHODS["leco"])  # the last rung: the profile's defaults
     return chosen

@@ -79,8 +79,9 @@ def render_guided(field: SwitchNeRF, background: BackgroundField, rays: RayBatch
                   occupied: Callable[[Tensor], Tensor], generator: torch.Generator | None) -> MainRender:
     behind = render_background(background, rays, profile.background.samples, generator).rgb
     with torch.no_grad():
+        g = profile.guided
         samples, ratio = guided_samples(rays.near, rays.far, rays.origins, rays.directions, occupied,
-                                        profile.guided.coarse_samples, profile.guided.split, generator)
+                                        g.coarse_samples, g.split, generator, g.jitter, g.dilate, g.fallback)
     out = field_on_packed(field, rays, samples)
     return MainRender(composite_field(out, rays, samples, behind), out, len(samples) / len(rays), float(ratio))
 

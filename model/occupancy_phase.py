@@ -9,10 +9,11 @@ from torch import Tensor
 from model.fields.background import BackgroundField, background_samples
 from model.fields.hmoe import HMoE
 from model.fields.output import FieldOutput
-from model.losses import density_loss, gate_statistics, imbalanced_gate_loss, rendering_loss
+from model.losses import density_loss, gate_statistics, imbalanced_gate_loss, rendering_loss, visibility_loss
 from model.profiles import OccupancyPhaseConfig
 from model.rendering import Rendered, composite_batched
 from model.samplers import stratified_edges
+from model.schedules import log_linear
 from model.scenes.rays import RayBatch
 
 
@@ -46,18 +47,24 @@ def render_hmoe(model: HMoE, background: BackgroundField, rays: RayBatch, sample
 
 
 def occupancy_step(model: HMoE, background: BackgroundField, rays: RayBatch, cfg: OccupancyPhaseConfig,
-                   background_samples_per_ray: int, generator: torch.Generator | None) -> tuple[Tensor, dict]:
-    """The total loss and its parts (floats) for one batch of rays."""
+                   background_samples_per_ray: int, generator: torch.Generator | None,
+                   progress: float = 0.0) -> tuple[Tensor, dict]:
+    """The total loss and its parts (floats) for one batch of rays; `progress` in [0, 1] drives the w_g schedule."""
     rendered, out, deltas = render_hmoe(model, background, rays, cfg.samples_per_ray, background_samples_per_ray,
                                         generator)
     l_r = rendering_loss(rendered.rgb, rays.rgb)
     l_g = imbalanced_gate_loss(out.gate_probs, out.expert, cfg.v)
     l_d = density_loss(out.gate_probs, out.expert, out.sigma)
-    loss = cfg.w_r * l_r + cfg.w_g * l_g + cfg.w_d * l_d  # L_f, section 3.3
+    w_g = log_linear(cfg.w_g, cfg.w_g_final, progress)
+    loss = cfg.w_r * l_r + w_g * l_g + cfg.w_d * l_d  # L_f, section 3.3
+    terms = [("loss", loss), ("rendering_loss", l_r), ("imbalanced_gate_loss", l_g), ("density_loss", l_d)]
+    if cfg.w_v > 0:
+        l_v = visibility_loss(out.gate_probs, rendered.weights)
+        loss = loss + cfg.w_v * l_v
+        terms += [("loss", loss), ("visibility_loss", l_v)]
     alpha = -torch.expm1(-(out.sigma.detach() * deltas.reshape(-1)))
-    values = {k: float(v.detach()) for k, v in
-              (("loss", loss), ("rendering_loss", l_r), ("imbalanced_gate_loss", l_g), ("density_loss", l_d))}
+    values = {k: float(v.detach()) for k, v in terms}
     parts = {**values, "psnr": -10.0 * torch.log10(torch.tensor(max(values["rendering_loss"], 1e-10))).item(),
-             "samples_per_ray": float(cfg.samples_per_ray),
+             "samples_per_ray": float(cfg.samples_per_ray), "w_g": w_g,
              **gate_statistics(out.gate_probs.detach(), out.expert, out.sigma, alpha)}
     return loss, parts

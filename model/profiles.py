@@ -33,16 +33,26 @@ class OccupancyPhaseConfig(Frozen):
     samples_per_ray: int = Field(512, ge=2)
     steps: int = Field(40_000, ge=1)
     lr: float = Field(5e-4, gt=0)
+    lr_final: float | None = Field(None, gt=0)  # decay to this by the phase's end; None: constant (the paper)
     w_r: float = Field(1.0, ge=0)
     w_g: float = Field(5e-4, ge=0)
+    w_g_final: float | None = Field(None, ge=0)  # w_g decays log-linearly to this by the phase's end; None: constant
     w_d: float = Field(0.1, ge=0)
     v: float = Field(80.0, gt=0)
     homogeneous: bool = False
+    # Not in the paper (issue 16, docs/BENCHMARKS.md "ablation ladder"); 0 / True keep the paper's formulation.
+    w_v: float = Field(0.0, ge=0)  # visibility loss: visible samples (detached render weights) away from E_e
+    empty_gate_grad: bool = True  # False: the rendering loss cannot raise E_e's gate (its value is detached)
 
 
 class GuidedConfig(Frozen):
     coarse_samples: int = Field(128, ge=1)
     split: int = Field(8, ge=1)
+    # Not in the paper (issue 16); the defaults keep the paper's sampler and its from-scratch main network.
+    jitter: bool = False  # while training, query O at a random point of each coarse bin, not its mid-point
+    dilate: int = Field(0, ge=0)  # also keep bins up to this many bins before / after a kept bin
+    fallback: bool = False  # a ray with no kept bin samples every coarse bin once instead of none
+    warm_start: bool = False  # the main network starts from phase 1's experts, heads, background, embeddings
 
 
 class VanillaConfig(Frozen):
@@ -81,8 +91,10 @@ PROFILES: dict[str, Profile] = {
         name="cpu",
         network=NetworkConfig(width=64, num_experts=8, expert_layers=4),
         background=BackgroundConfig(width=32, layers=2, samples=16),
-        occupancy=OccupancyPhaseConfig(samples_per_ray=64, steps=1500, lr=2e-3, w_g=5e-2),
-        guided=GuidedConfig(coarse_samples=16, split=8),
+        # Issue 16's measured settings (docs/BENCHMARKS.md, ablation ladder); bench/variants.py PAPER_FORMULATION
+        # undoes them.
+        occupancy=OccupancyPhaseConfig(samples_per_ray=64, steps=1500, lr=2e-3, w_g=5e-2, empty_gate_grad=False),
+        guided=GuidedConfig(coarse_samples=16, split=4, dilate=1, jitter=True, fallback=True, warm_start=True),
         vanilla=VanillaConfig(coarse_samples=32, fine_samples=64),
         grid=GridConfig(resolution=128, march_steps=256),
         rays_per_device=256,

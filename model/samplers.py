@@ -71,21 +71,58 @@ def pack_edges(edges: Tensor) -> PackedSamples:
                          torch.arange(r, device=edges.device).repeat_interleave(m - 1))
 
 
+def dilate_bins(keep: Tensor, radius: int) -> Tensor:
+    """Also keep every bin within `radius` bins of a kept one along its ray (a 1-D max filter)."""
+    if radius == 0 or keep.shape[1] == 0:
+        return keep
+    pooled = torch.nn.functional.max_pool1d(keep[:, None].float(), 2 * radius + 1, stride=1, padding=radius)
+    return pooled[:, 0] > 0
+
+
+def split_bins(lo: Tensor, hi: Tensor, ray: Tensor, counts: Tensor, generator: torch.Generator | None) -> PackedSamples:
+    """Bin k of [lo_k, hi_k) split into counts_k stratified sub-intervals (inner edges jittered with a
+    generator); bins must come grouped by ray in increasing t, and so do the samples."""
+    bin_of = torch.repeat_interleave(torch.arange(len(lo), device=lo.device), counts)
+    first = torch.cumsum(counts, 0) - counts
+    j = torch.arange(len(bin_of), device=lo.device) - first[bin_of]  # sub-interval index inside its bin
+    c, width = counts[bin_of].to(lo.dtype), (hi - lo)[bin_of]
+    shift = torch.zeros_like(c)
+    if generator is not None:
+        shift = torch.rand(len(c), generator=generator, device=lo.device, dtype=lo.dtype) - 0.5
+        shift = torch.where(j > 0, shift, torch.zeros_like(shift))  # the bin's own start edge stays put
+    starts = lo[bin_of] + width * (j + shift) / c
+    last = j == counts[bin_of] - 1
+    ends = torch.where(last, hi[bin_of], torch.roll(starts, -1))
+    return PackedSamples(starts, ends, ray[bin_of])
+
+
 def guided_samples(
     near: Tensor, far: Tensor, origins: Tensor, directions: Tensor, occupied: Callable[[Tensor], Tensor],
-    num_coarse: int, split: int, generator: torch.Generator | None,
+    num_coarse: int, split: int, generator: torch.Generator | None, jitter: bool = False, dilate: int = 0,
+    fallback: bool = False,
 ) -> tuple[PackedSamples, Tensor]:
     """LeCO guided sampling; returns the packed fine samples and the kept fraction of coarse samples
-    (the occupancy ratio). Rays with nothing occupied get no samples and render the background."""
+    (the occupancy ratio). The paper's sampler is the default: O at fixed bin mid-points, kept bins split in
+    `split`, rays with nothing kept render the background only. Options (issue 16): `jitter` queries O at a
+    random point of each bin while training (a generator is given), so a surface between mid-points is found
+    on some steps; `dilate` keeps the neighbours of kept bins along the ray; `fallback` gives a ray with no
+    kept bin one sample per coarse bin."""
     edges = stratified_edges(near, far, num_coarse, None)  # coarse bins are fixed; jitter happens inside them
-    mids = 0.5 * (edges[:, :-1] + edges[:, 1:])
-    points = origins[:, None, :] + directions[:, None, :] * mids[..., None]
-    keep = occupied(points.reshape(-1, 3)).reshape(mids.shape) & (far > near)[:, None]
+    lo_all, hi_all = edges[:, :-1], edges[:, 1:]
+    u = 0.5
+    if jitter and generator is not None:
+        u = torch.rand(lo_all.shape, generator=generator, device=near.device, dtype=near.dtype)
+    t = lo_all + (hi_all - lo_all) * u
+    points = origins[:, None, :] + directions[:, None, :] * t[..., None]
+    valid = (far > near)[:, None]
+    occupied_bins = occupied(points.reshape(-1, 3)).reshape(t.shape) & valid
+    keep = dilate_bins(occupied_bins, dilate) & valid
+    counts = torch.full_like(keep, split, dtype=torch.long)
+    if fallback:
+        lost = ~keep.any(dim=1) & valid[:, 0]
+        keep = keep | lost[:, None]
+        counts[lost] = 1
     ray, bin_ = torch.nonzero(keep, as_tuple=True)  # row-major: grouped by ray, increasing t
-    lo, hi = edges[ray, bin_], edges[ray, bin_ + 1]
-    u = torch.arange(split + 1, device=near.device, dtype=near.dtype) / split
-    sub = lo[:, None] + (hi - lo)[:, None] * u  # (K, split + 1) sub-edges
-    if generator is not None and split > 1:
-        sub[:, 1:-1] += (torch.rand(len(lo), split - 1, generator=generator, device=near.device) - 0.5) * ((hi - lo) / split)[:, None]
-    samples = PackedSamples(sub[:, :-1].reshape(-1), sub[:, 1:].reshape(-1), ray.repeat_interleave(split))
-    return samples, keep.float().mean()
+    samples = split_bins(edges[ray, bin_], edges[ray, bin_ + 1], ray, counts[ray, bin_],
+                         generator if split > 1 else None)
+    return samples, occupied_bins.float().mean()

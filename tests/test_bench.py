@@ -9,6 +9,7 @@ import torch
 from PIL import Image
 
 from bench.analysis import equal_psnr, speedups, targets, time_to_psnr
+from bench.variants import RUNGS
 from model.occupancy_eval import evaluate_occupancy_exact
 from service.cli import main
 from workers.memory import SavedTensorBytes
@@ -50,6 +51,22 @@ def test_equal_psnr_speedups_and_targets_from_curves():
     assert all(met.values()), met
     runs[0]["summary"]["occupancy"]["occupancy_ratio"] = 0.25
     assert [t["target"] for t in targets(runs, speed) if t["met"] is False] == ["LeCO occupancy ratio <= 20%"]
+
+
+def test_ladder_climbs_from_the_papers_formulation_to_the_cpu_defaults():
+    from bench.variants import RUNGS, rung_overrides
+    from model.profiles import OccupancyPhaseConfig
+    from workers.config import TrainConfig
+
+    steps = rung_overrides()
+    paper = TrainConfig(method="leco", profile="cpu", overrides=steps[0]).resolved_profile()
+    assert paper.occupancy.model_dump(exclude={"samples_per_ray", "steps", "lr", "w_g"}) == \
+        OccupancyPhaseConfig().model_dump(exclude={"samples_per_ray", "steps", "lr", "w_g"})
+    assert not (paper.guided.jitter or paper.guided.dilate or paper.guided.fallback or paper.guided.warm_start)
+    assert paper.guided.split == 8  # the paper's split factor
+    top = TrainConfig(method="leco", profile="cpu", overrides=steps[-1]).resolved_profile()
+    assert top == TrainConfig(method="leco", profile="cpu").resolved_profile() and RUNGS[-1][0] == "leco"
+    assert all(len(b) >= len(a) for a, b in zip(steps, steps[1:]))  # each rung adds to the one before
 
 
 def test_exact_occupancy_reference_scores_the_truth_one_and_nothing_zero(tiny_scene):
@@ -110,8 +127,15 @@ def test_bench_smoke_on_the_tiny_city(tiny_scene, tmp_path, capsys):
     assert "| S+Ours (LeCO) |" in report and "| Homo. MoE, no L_d |" in report
 
     capsys.readouterr()
-    assert bench("--scene", str(tiny_scene.root), "--out", str(out), "--methods", "leco,switch") == 0
-    assert capsys.readouterr().err.count("finished earlier, reusing") == 2  # nothing retrained
+    assert bench("--scene", str(tiny_scene.root), "--out", str(out), "--methods", "leco,switch", "--ladder") == 0
+    assert capsys.readouterr().err.count("finished earlier, reusing") == 2  # leco and switch are not retrained
+    results = json.loads((out / "results.json").read_text())
+    rungs = [r["variant"] for r in results["runs"] if r.get("ladder")]
+    assert rungs == [name for name, _, _ in RUNGS[:-1]] and rungs[0] == "leco-paper"
+    report = (out / "report.md").read_text()
+    assert "## Ablation ladder" in report and "| paper's formulation |" in report
+    assert f"| {RUNGS[-1][1]} |" in report
+    assert list(results["speedups"]) == ["switch"]  # rungs are not compared methods
 
 
 @pytest.mark.slow

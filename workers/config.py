@@ -33,6 +33,9 @@ class TrainConfig(BaseModel):
     # time and at each phase's end; not counted as training time (workers/periodic_eval.py).
     eval_every_s: float | None = Field(None, gt=0)
     eval_views: int = Field(4, ge=1)
+    # Validation protocol (workers/appearance.py): right halves scored, appearance embeddings fitted on the left
+    # halves for this many steps with the networks frozen (0: the mean of the training embeddings).
+    val_appearance_steps: int = Field(32, ge=0, le=1000)
     max_failures: int = Field(3, ge=0)  # worker-group restarts Ray Train may make from the last checkpoint
     max_nonfinite_steps: int = Field(20, ge=1)  # consecutive skipped steps before the run fails
 

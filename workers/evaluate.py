@@ -19,6 +19,7 @@ from model.scenes import load_scene
 from model.scenes.rays import PixelTable
 from workers.config import TrainConfig
 from workers.models import RunModels
+from workers.appearance import prepare_validation_appearance, protocol, right_columns, scored_truth
 from workers.validation import render_image, save_triptych
 
 OCCUPANCY_RESOLUTION = 64
@@ -96,22 +97,31 @@ def evaluate_run(run_dir: str | Path, device: str | torch.device = "cpu") -> dic
     profile = cfg.resolved_profile()
     views = scene.splits.get("val", scene.train)
     table = PixelTable(views)
+    has_val = "val" in scene.splits
+    if has_val:  # the validation protocol: embeddings from the left halves, right halves scored
+        prepare_validation_appearance(models, cfg.method, "main", profile, predictor, views, scene.train,
+                                      list(range(len(views))), scene.bounds.aabb, device, cfg.val_appearance_steps)
     lpips_model, lpips_reason = load_lpips()
     scores = {"psnr": [], "ssim": [], "lpips": []}
     for image in range(len(views)):
+        scored = right_columns(views, image) if has_val else None
+        picture = image < MAX_RENDERS
         rgb, depth = render_image(models, cfg.method, "main", profile, predictor, table, image, scene.bounds.aabb,
-                                  device)
-        truth = views.images[image].float() / 255
+                                  device, None if picture else scored)
+        if picture:
+            save_triptych(run_dir / "renders" / f"final_{views.names[image]}.png", rgb, views.images[image], depth)
+            if scored is not None:
+                rgb = rgb[:, scored[0] : scored[1]]
+        truth = scored_truth(views, image, scored)
         scores["psnr"].append(psnr(rgb, truth))
         scores["ssim"].append(ssim(rgb, truth))
         if lpips_model is not None:
             scores["lpips"].append(lpips_model(rgb, truth))
-        if image < MAX_RENDERS:
-            save_triptych(run_dir / "renders" / f"final_{views.names[image]}.png", rgb, views.images[image], depth)
     val = {"psnr": float(np.mean(scores["psnr"])), "ssim": float(np.mean(scores["ssim"])),
            "lpips": float(np.mean(scores["lpips"])) if scores["lpips"] else None,
            "lpips_note": lpips_reason or None, "views": len(views),
-           "split": "val" if "val" in scene.splits else "train"}
+           "split": "val" if has_val else "train",
+           "protocol": protocol(cfg.val_appearance_steps) if has_val else "whole training views scored (no val split)"}
 
     occupied = occupied_fn(cfg, models, predictor)
     occupancy = {}

@@ -20,6 +20,8 @@ import torch
 from model.main_phase import grid_step_size, main_loss, render_grid, render_guided, render_vanilla
 from model.occupancy import OccupancyPredictor
 from model.occupancy_phase import occupancy_step
+from model.schedules import phase_progress
+from model.warm_start import warm_start_main
 from model.scenes import RaySampler, load_scene
 from workers.config import TrainConfig
 from workers.distributed import any_rank, any_rank_each, average_gradients, grads_finite, is_distributed
@@ -91,10 +93,10 @@ class RankRun:
         if self.session.rank != 0:
             self.session.report(metrics, None)
             return
-        _, optimizer, scheduler = self.phase_objects
+        _, optimizer, _ = self.phase_objects
         state = {
             "progress": self.progress, "models": self.models.state_dict(), "grid": self.models.grid_state(),
-            "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+            "optimizer": optimizer.state_dict(),
             "sampler": self.sampler.state_dict(), "generators": generator_states,
             "torch_rng": torch.get_rng_state(), "config": self.cfg.model_dump(),
         }
@@ -132,9 +134,8 @@ class RankRun:
         self.models.load_grid_state(state["grid"])
         self.models.to(self.device)
         self.start_phase(self.progress["phase"])
-        _, optimizer, scheduler = self.phase_objects
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
+        _, optimizer, _ = self.phase_objects
+        optimizer.load_state_dict(state["optimizer"])  # the lr follows from progress (phase_progress)
         self.sampler.load_state_dict(state["sampler"])
         states = state["generators"]
         self.generator.set_state(states[self.session.rank] if self.session.rank < len(states) else states[0])
@@ -142,7 +143,13 @@ class RankRun:
         return True
 
     # ----- phases ------------------------------------------------------------------------------------
-    def start_phase(self, phase: str) -> None:
+    def start_phase(self, phase: str, fresh: bool = False) -> None:
+        """Optimizer and frozen parts of a phase; `fresh` when the phase begins now (not on a resume)."""
+        if fresh and phase == "main" and self.cfg.method == "leco" and self.profile.guided.warm_start:
+            m = self.models
+            copied = warm_start_main(m.field, m.background, m.hmoe, m.occupancy_background)
+            if self.session.rank == 0:
+                print(f"[leco] main phase warm-started from phase 1: {', '.join(copied)}", flush=True)
         self.phase_objects = build_optimizer(self.models, phase, self.profile)
         self.to_store("phase_started", phase)
         if phase == "main" and self.cfg.method == "leco":
@@ -159,13 +166,25 @@ class RankRun:
             return self.progress["elapsed"].get("occupancy", 0.0) < OCCUPANCY_BUDGET_SHARE * budget
         return spent < budget
 
-    def step_once(self, phase: str) -> tuple[torch.Tensor, dict]:
+    def phase_progress(self, phase: str) -> float:
+        """Fraction of the phase done: of its steps, or under a budget of its training-time allotment (phase 1:
+        its share of the budget; the main phase: whatever phase 1 left), whichever is larger."""
+        elapsed = self.progress["elapsed"]
+        allotted = None
+        if self.cfg.budget_min is not None:
+            budget = self.cfg.budget_min * 60
+            allotted = (OCCUPANCY_BUDGET_SHARE * budget if phase == "occupancy"
+                        else budget - elapsed.get("occupancy", 0.0))
+        return phase_progress(self.progress["phase_step"], self.cfg.phase_steps(phase), elapsed.get(phase, 0.0),
+                              allotted)
+
+    def step_once(self, phase: str, progress: float) -> tuple[torch.Tensor, dict]:
         rays = self.sampler.next().to(self.device)
         generator = self.generator if self.profile.perturb else None
         m = self.models
         if phase == "occupancy":
             return occupancy_step(m.hmoe, m.occupancy_background, rays, self.profile.occupancy,
-                                  self.profile.background.samples, generator)
+                                  self.profile.background.samples, generator, progress)
         if self.cfg.method == "leco":
             render = render_guided(m.field, m.background, rays, self.profile, self.predictor.occupied, generator)
         elif self.cfg.method == "grid":
@@ -184,7 +203,7 @@ class RankRun:
         return main_loss(render, rays, self.profile.balance_weight)
 
     def run_phase(self, phase: str) -> None:
-        params, optimizer, scheduler = self.phase_objects
+        params, optimizer, lr_at = self.phase_objects
         total = self.cfg.phase_steps(phase)
         window_seconds, window_steps, samples_in_window = 0.0, 0, 0.0
         while self.progress["phase_step"] < total:
@@ -199,9 +218,12 @@ class RankRun:
             if spent:
                 break
             t0 = time.perf_counter()
+            progress = self.phase_progress(phase)
+            for group in optimizer.param_groups:
+                group["lr"] = lr_at(progress)
             measure_memory = (self.progress["step"] + 1) % self.cfg.metrics_every == 0
             with SavedTensorBytes() if measure_memory else contextlib.nullcontext() as saved:
-                loss, parts = self.step_once(phase)
+                loss, parts = self.step_once(phase, progress)
             if saved is not None:
                 self.activation_mb = saved.megabytes
             optimizer.zero_grad(set_to_none=True)
@@ -222,7 +244,6 @@ class RankRun:
                 self.progress["nonfinite"] = 0
                 average_gradients(params)
                 optimizer.step()
-            scheduler.step()
             self.progress["phase_step"] += 1
             self.progress["step"] += 1
             self.progress["steps"][phase] = self.progress["steps"].get(phase, 0) + 1
@@ -264,12 +285,12 @@ class RankRun:
                 self.sink.path.write_text("")
         self.to_store("resume", self.progress["step"])
         if not resumed:
-            self.start_phase(self.progress["phase"])
+            self.start_phase(self.progress["phase"], fresh=True)
         phases = self.cfg.phases
         for phase in phases[phases.index(self.progress["phase"]):]:
             if phase != self.progress["phase"]:
                 self.progress.update(phase=phase, phase_step=0)
-                self.start_phase(phase)
+                self.start_phase(phase, fresh=True)
             self.run_phase(phase)
         self.save_checkpoint({"step": self.progress["step"], "phase": "done"})
         self.check_store()

@@ -9,6 +9,7 @@ from torch import nn
 from model.model_info import background as build_background, hmoe as build_hmoe, switch_nerf as build_switch
 from model.occupancy_grid import OccupancyGrid
 from model.profiles import Profile
+from model.schedules import log_linear
 
 
 class RunModels(nn.Module):
@@ -44,12 +45,14 @@ class RunModels(nn.Module):
 
 
 def build_optimizer(models: RunModels, phase: str, profile: Profile):
-    """Phase 1: Adam at the occupancy lr (constant, as in the paper). Main phase: Adam decaying exponentially
-    from lr to lr_final over main_steps (Switch-NeRF)."""
+    """Adam over the phase's modules, and its learning rate as a function of the phase's progress in [0, 1]:
+    phase 1 at the occupancy lr, constant as in the paper unless occupancy.lr_final is set; the main phase
+    decaying exponentially from lr to lr_final (Switch-NeRF). Progress counts steps or, under a wall-clock
+    budget, training time (model/schedules.py), so a budgeted run ends at lr_final too."""
     params = [p for m in models.phase_modules(phase) for p in m.parameters()]
     if phase == "occupancy":
-        optimizer = torch.optim.Adam(params, lr=profile.occupancy.lr)
-        return params, optimizer, torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: 1.0)
-    optimizer = torch.optim.Adam(params, lr=profile.lr)
-    gamma = (profile.lr_final / profile.lr) ** (1.0 / profile.main_steps)
-    return params, optimizer, torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma)
+        start, final = profile.occupancy.lr, profile.occupancy.lr_final
+    else:
+        start, final = profile.lr, profile.lr_final
+    optimizer = torch.optim.Adam(params, lr=start)
+    return params, optimizer, lambda progress: log_linear(start, final, progress)

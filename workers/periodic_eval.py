@@ -12,6 +12,7 @@ from model.metrics import psnr, ssim
 from model.occupancy import OccupancyPredictor
 from model.occupancy_eval import evaluate_occupancy, evaluate_occupancy_exact
 from model.scenes.rays import PixelTable
+from workers.appearance import prepare_validation_appearance, right_columns, scored_truth
 from workers.validation import render_image
 
 OCCUPANCY_RESOLUTION = 64
@@ -42,10 +43,16 @@ class PeriodicEval:
     def measure(self, run, phase: str) -> dict:
         started = time.perf_counter()
         scores = {"val_psnr": 0.0, "val_ssim": 0.0}
-        for image in range(self.count):
+        images = list(range(self.count))
+        columns = lambda image: None
+        if "val" in run.scene.splits:  # the protocol; a scene without a val split is scored on training views
+            prepare_validation_appearance(run.models, run.cfg.method, phase, run.profile, run.predictor, self.views,
+                                          run.scene.train, images, run.aabb, run.device, run.cfg.val_appearance_steps)
+            columns = lambda image: right_columns(self.views, image)
+        for image in images:
             rgb, _ = render_image(run.models, run.cfg.method, phase, run.profile, run.predictor, self.table, image,
-                                  run.aabb, run.device)
-            truth = self.views.images[image].float() / 255
+                                  run.aabb, run.device, columns(image))
+            truth = scored_truth(self.views, image, columns(image))
             scores["val_psnr"] += psnr(rgb, truth) / self.count
             scores["val_ssim"] += ssim(rgb, truth) / self.count
         occupied = self.occupied_fn(run, phase)

@@ -16,37 +16,42 @@ from model.scenes.rays import PixelTable, RayBatch
 CHUNK = 4096  # rays per forward pass while rendering an image
 
 
+def render_rays_with_grad(models, method: str, phase: str, profile, predictor, rays: RayBatch):
+    """The `Rendered` of `phase`'s networks as they are (train or eval mode), keeping the autograd graph."""
+    if phase == "occupancy":
+        return render_hmoe(models.hmoe, models.occupancy_background, rays, profile.occupancy.samples_per_ray,
+                           profile.background.samples, None)[0]
+    if method == "leco":
+        return render_guided(models.field, models.background, rays, profile, predictor.occupied, None).rendered
+    if method == "grid":
+        return render_grid(models.field, models.background, rays, profile, models.grid, None).rendered
+    return render_vanilla(models.field, models.background, rays, profile, None).rendered
+
+
 @torch.no_grad()
 def render_rays(models, method: str, phase: str, profile, predictor, rays: RayBatch) -> tuple[torch.Tensor, torch.Tensor]:
     """(rgb (R, 3), depth (R,)) with the networks of `phase` in eval mode."""
     was = models.training
     models.eval()
     try:
-        if phase == "occupancy":
-            rendered, _, _ = render_hmoe(models.hmoe, models.occupancy_background, rays,
-                                         profile.occupancy.samples_per_ray, profile.background.samples, None)
-        elif method == "leco":
-            rendered = render_guided(models.field, models.background, rays, profile, predictor.occupied, None).rendered
-        elif method == "grid":
-            rendered = render_grid(models.field, models.background, rays, profile, models.grid, None).rendered
-        else:
-            rendered = render_vanilla(models.field, models.background, rays, profile, None).rendered
+        rendered = render_rays_with_grad(models, method, phase, profile, predictor, rays)
     finally:
         models.train(was)
     return rendered.rgb.float().clamp(0, 1), rendered.depth.float()
 
 
 def render_image(models, method, phase, profile, predictor, table: PixelTable, image: int, aabb,
-                 device) -> tuple[torch.Tensor, torch.Tensor]:
-    rays = table.image_rays(image, aabb)
+                 device, columns: tuple[int, int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """A whole validation image, or its columns u0 <= u < u1: (rgb (H, W', 3), depth (H, W'))."""
+    rays = table.image_rays(image, aabb, columns)
     rgb, depth = [], []
     for s in range(0, len(rays), CHUNK):
         chunk = RayBatch(*(getattr(rays, f)[s : s + CHUNK] for f in RayBatch.__dataclass_fields__)).to(device)
         c, d = render_rays(models, method, phase, profile, predictor, chunk)
         rgb.append(c.cpu())
         depth.append(d.cpu())
-    h, w = table.views.images[image].shape[:2]
-    return torch.cat(rgb).reshape(h, w, 3), torch.cat(depth).reshape(h, w)
+    h = table.views.images[image].shape[0]
+    return torch.cat(rgb).reshape(h, -1, 3), torch.cat(depth).reshape(h, -1)
 
 
 def depth_to_image(depth: torch.Tensor) -> np.ndarray:

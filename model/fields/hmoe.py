@@ -56,9 +56,13 @@ class HMoE(nn.Module):
         appearance_dim: int = 48,
         homogeneous: bool = False,
         density_noise: float = 1.0,
+        empty_gate_grad: bool = True,
     ):
-        """homogeneous=True makes E_e a full expert (the paper's ablation) instead of an identity layer."""
+        """homogeneous=True makes E_e a full expert (the paper's ablation) instead of an identity layer.
+        empty_gate_grad=False detaches E_e's gate value where it scales E_e's output, so the rendering loss
+        cannot lock a visible surface into E_e by raising that gate; L_g and L_d still train it."""
         super().__init__()
+        self.empty_gate_grad = empty_gate_grad
         self.gate = OccupancyNetwork(num_scene_experts, width, xyz_frequencies)
         self.dir_encoding = FrequencyEncoding(dir_frequencies)
         self.appearance = nn.Embedding(num_images, appearance_dim)
@@ -82,6 +86,7 @@ class HMoE(nn.Module):
             sigma, rgb = sigma.index_copy(0, scene, s.to(sigma.dtype)), rgb.index_copy(0, scene, c.to(rgb.dtype))
         void = torch.nonzero(empty).squeeze(1)
         if len(void):
-            _, s, c = self.empty_head(self.empty_expert(h[void]) * chosen[void, None])
+            gate = chosen[void, None] if self.empty_gate_grad else chosen[void, None].detach()
+            _, s, c = self.empty_head(self.empty_expert(h[void]) * gate)
             sigma, rgb = sigma.index_copy(0, void, s.to(sigma.dtype)), rgb.index_copy(0, void, c.to(rgb.dtype))
         return FieldOutput(sigma, rgb, probs, index, keep)

@@ -56,9 +56,17 @@ class PixelTable:
         rgb = self.colours[pixel].float() / 255.0
         return RayBatch(origins, directions, near, far, self.views.appearance[image], rgb, pixel)
 
-    def image_rays(self, image: int, aabb: Tensor) -> RayBatch:
-        """Every ray of one image, row-major (for validation renders)."""
-        return self.rays(torch.arange(int(self.offsets[image]), int(self.offsets[image + 1])), aabb)
+    def image_pixels(self, image: int, columns: tuple[int, int] | None = None) -> Tensor:
+        """Pixel ids of one image, row-major; with columns=(u0, u1) only the columns u0 <= u < u1."""
+        ids = torch.arange(int(self.offsets[image]), int(self.offsets[image + 1]))
+        if columns is None:
+            return ids
+        width = int(self.views.cameras.width[image])
+        return ids.reshape(-1, width)[:, columns[0] : columns[1]].reshape(-1)
+
+    def image_rays(self, image: int, aabb: Tensor, columns: tuple[int, int] | None = None) -> RayBatch:
+        """The rays of one image (or of its columns u0 <= u < u1), row-major, for validation renders."""
+        return self.rays(self.image_pixels(image, columns), aabb)
 
 
 def shard(batch: Tensor, rank: int, world_size: int) -> Tensor:

@@ -1,0 +1,92 @@
+"""The guided sampler's options (issue 16): jittered queries, dilation, the fallback for rays with nothing kept.
+Every option must keep the packed invariants: samples grouped by ray in increasing t, inside [near, far]."""
+
+import pytest
+import torch
+
+from model.samplers import dilate_bins, guided_samples
+
+SLAB = (2.0, 2.2)  # a thin wall at x in [2, 2.2]: between the mid-points 1.5 and 2.5 of unit coarse bins
+
+
+def rays(n=64, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    origins = torch.zeros(n, 3)
+    dirs = torch.nn.functional.normalize(torch.randn(n, 3, generator=g).abs() + torch.tensor([3.0, 0, 0]), dim=-1)
+    near = torch.rand(n, generator=g) * 0.5
+    far = near + 6.0 + torch.rand(n, generator=g)
+    far[:4] = near[:4]  # rays that miss the box
+    return near, far, origins, dirs
+
+
+def wall(points):
+    return (points[:, 0] > SLAB[0]) & (points[:, 0] < SLAB[1])
+
+
+def nothing(points):
+    return torch.zeros(len(points), dtype=torch.bool)
+
+
+def check_invariants(samples, near, far):
+    i = samples.ray_index
+    assert (i[1:] >= i[:-1]).all(), "samples are grouped by ray"
+    same = i[1:] == i[:-1]
+    assert (samples.starts[1:][same] >= samples.ends[:-1][same] - 1e-6).all(), "increasing t along each ray"
+    assert (samples.ends >= samples.starts).all()
+    assert (samples.starts >= near[i] - 1e-6).all() and (samples.ends <= far[i] + 1e-6).all(), "inside [near, far]"
+
+
+@pytest.mark.parametrize("options", [
+    {}, {"jitter": True}, {"dilate": 1}, {"fallback": True}, {"jitter": True, "dilate": 2, "fallback": True}])
+def test_every_option_keeps_samples_sorted_and_inside_the_segment(options):
+    near, far, origins, dirs = rays()
+    for occupied in (wall, nothing):
+        samples, ratio = guided_samples(near, far, origins, dirs, occupied, 8, 4, torch.Generator().manual_seed(1),
+                                        **options)
+        check_invariants(samples, near, far)
+        assert 0 <= float(ratio) <= 1
+        assert not torch.isin(torch.arange(4), samples.ray_index).any(), "rays that miss the box get nothing"
+
+
+def test_jittered_queries_find_a_wall_between_mid_points():
+    n = 60
+    near, far = torch.zeros(n), torch.full((n,), 8.0)  # unit coarse bins along x: mid-points 0.5, 1.5, 2.5, ...
+    origins = torch.stack([torch.zeros(n), torch.linspace(-1, 1, n), torch.zeros(n)], -1)
+    dirs = torch.tensor([[1.0, 0.0, 0.0]]).expand(n, 3)
+    fixed, _ = guided_samples(near, far, origins, dirs, wall, 8, 4, torch.Generator().manual_seed(0))
+    assert len(fixed) == 0  # mid-point queries never see the thin wall
+    hits, g = torch.zeros(n, dtype=torch.bool), torch.Generator().manual_seed(0)
+    for _ in range(30):
+        jittered, _ = guided_samples(near, far, origins, dirs, wall, 8, 4, g, jitter=True)
+        check_invariants(jittered, near, far)
+        hits[jittered.ray_index] = True
+    assert hits.all()  # every ray samples the wall on some step (p = 0.2 per step)
+    # Without a generator (validation) jitter is off: the same samples as the paper's sampler.
+    a, _ = guided_samples(*rays(), wall, 8, 4, None, jitter=True)
+    b, _ = guided_samples(*rays(), wall, 8, 4, None)
+    assert torch.equal(a.starts, b.starts) and torch.equal(a.ray_index, b.ray_index)
+
+
+def test_dilation_keeps_the_neighbours_of_kept_bins():
+    keep = torch.tensor([[0, 0, 0, 1, 0, 0, 0, 0], [1, 0, 0, 0, 0, 0, 0, 1], [0] * 8], dtype=torch.bool)
+    assert dilate_bins(keep, 0).equal(keep)
+    assert dilate_bins(keep, 1).int().tolist() == [[0, 0, 1, 1, 1, 0, 0, 0], [1, 1, 0, 0, 0, 0, 1, 1], [0] * 8]
+    assert dilate_bins(keep, 2)[0].int().tolist() == [0, 1, 1, 1, 1, 1, 0, 0]
+    near, far, origins, dirs = torch.zeros(1), torch.full((1,), 8.0), torch.zeros(1, 3), torch.tensor([[1.0, 0, 0]])
+    slab = lambda p: (p[:, 0] > 3.0) & (p[:, 0] < 4.0)  # only the bin [3, 4)
+    samples, ratio = guided_samples(near, far, origins, dirs, slab, 8, 2, None, dilate=1)
+    assert samples.starts.tolist() == [2.0, 2.5, 3.0, 3.5, 4.0, 4.5] and ratio.item() == pytest.approx(1 / 8)
+
+
+def test_a_ray_with_nothing_kept_still_renders_its_foreground_with_the_fallback():
+    near, far, origins, dirs = rays(8)
+    samples, ratio = guided_samples(near, far, origins, dirs, nothing, 8, 4, torch.Generator().manual_seed(0),
+                                    fallback=True)
+    assert ratio.item() == 0.0
+    # One sample per coarse bin on each of the 4 rays inside the box: 8, not 8 x split.
+    assert samples.ray_index.tolist() == [r for r in range(4, 8) for _ in range(8)]
+    check_invariants(samples, near, far)
+    per_ray = torch.zeros(8).index_add_(0, samples.ray_index, samples.deltas)
+    assert torch.allclose(per_ray[4:], (far - near)[4:])  # the whole segment is covered
+    without, _ = guided_samples(near, far, origins, dirs, nothing, 8, 4, None)
+    assert len(without) == 0  # the paper's sampler: background only

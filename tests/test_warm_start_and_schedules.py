@@ -1,0 +1,73 @@
+"""Warm start of LeCO's main phase from phase 1, and learning-rate / w_g schedules that end with the budget."""
+
+import pytest
+import torch
+
+from model.schedules import log_linear, phase_progress
+from model.warm_start import warm_start_main
+from workers.config import TrainConfig
+from workers.models import RunModels, build_optimizer
+from workers.run import run_training
+from workers.sinks import read_metrics
+
+
+def test_schedules_reach_their_final_value_at_the_end_of_steps_or_time():
+    assert log_linear(2e-3, 2e-4, 0.0) == 2e-3 and log_linear(2e-3, 2e-4, 1.0) == pytest.approx(2e-4)
+    assert log_linear(2e-3, 2e-4, 0.5) == pytest.approx((2e-3 * 2e-4) ** 0.5)
+    assert log_linear(5e-4, None, 0.7) == 5e-4  # the paper's constant phase-1 rate
+    assert log_linear(0.1, 0.0, 0.25) == pytest.approx(0.075)  # to zero: linear
+    # With a budget the step count may be unbounded: time decides.
+    assert phase_progress(100, 10_000_000, 30.0, 120.0) == pytest.approx(0.25)
+    assert phase_progress(900, 1000, 1.0, 120.0) == pytest.approx(0.9)  # steps end first
+    assert phase_progress(5, 10, 500.0, None) == 0.5 and phase_progress(50, 10, 0.0, None) == 1.0
+
+
+def test_optimizer_lr_follows_the_profile(tiny_scene):
+    cfg = TrainConfig(method="leco", profile="smoke", overrides={"occupancy.lr_final": 5e-5})
+    profile = cfg.resolved_profile()
+    models = RunModels("leco", profile, tiny_scene.num_images, tiny_scene.bounds.aabb, 0)
+    _, _, lr_at = build_optimizer(models, "occupancy", profile)
+    assert lr_at(0.0) == profile.occupancy.lr and lr_at(1.0) == pytest.approx(5e-5)
+    _, _, lr_at = build_optimizer(models, "main", profile)
+    assert lr_at(1.0) == pytest.approx(profile.lr_final)
+
+
+def test_budgeted_run_ends_its_main_phase_at_lr_final(tiny_scene, tmp_path):
+    cfg = TrainConfig(method="switch", profile="smoke", budget_min=1.5 / 60, metrics_every=1,
+                      overrides={"main_steps": 10_000_000})
+    run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")
+    rows = read_metrics(tmp_path / "run" / "metrics.jsonl")
+    profile = cfg.resolved_profile()
+    assert rows[0]["lr"] == pytest.approx(profile.lr, rel=0.05)
+    # The last step started within one step of the budget's end: lr within a few % of lr_final (10x below lr).
+    assert rows[-1]["lr"] == pytest.approx(profile.lr_final, rel=0.1)
+
+
+def test_warm_start_copies_phase_one_into_the_main_network(tiny_scene):
+    profile = TrainConfig(method="leco", profile="smoke").resolved_profile()
+    models = RunModels("leco", profile, tiny_scene.num_images, tiny_scene.bounds.aabb, 0)
+    hmoe, field = models.hmoe, models.field
+    copied = warm_start_main(field, models.background, hmoe, models.occupancy_background)
+    assert set(copied) >= {"input_layer", "head", "appearance", "background", "gate.proj", "experts.0", "experts.1"}
+    for a, b in zip(field.experts, hmoe.scene_experts):
+        assert all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values()))
+    assert torch.equal(models.background.trunk[0].weight, models.occupancy_background.trunk[0].weight)
+    # Every point a scene expert rendered in phase 1 goes to the same expert in the main network.
+    xyz = torch.rand(2000, 3) * 2 - 1
+    with torch.no_grad():
+        logits = hmoe.gate(xyz)
+        scene = logits.argmax(-1) != hmoe.gate.empty_index
+        routed = field.gate(field.input_layer(field.xyz_encoding(xyz))).argmax(-1)
+    assert scene.any() and torch.equal(routed[scene], logits[scene].argmax(-1))
+
+
+def test_warm_started_leco_run_starts_its_main_phase_where_phase_one_ended(tiny_scene, tmp_path):
+    """The main phase's first loss is far below a from-scratch start's when phase 1 has learned the scene."""
+    first_main_loss = {}
+    for warm in (False, True):
+        cfg = TrainConfig(method="leco", profile="smoke", metrics_every=1, seed=0, overrides={
+            "occupancy.steps": 150, "main_steps": 1, "guided.warm_start": warm, "guided.fallback": True})
+        run_training(cfg, tiny_scene.root, tmp_path / f"run-{warm}", backend="local")
+        rows = read_metrics(tmp_path / f"run-{warm}" / "metrics.jsonl")
+        first_main_loss[warm] = [r for r in rows if r["phase"] == "main"][0]["rendering_loss"]
+    assert first_main_loss[True] < 0.7 * first_main_loss[False]
