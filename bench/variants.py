@@ -36,7 +36,7 @@ ABLATIONS = {
 PAPER_FORMULATION = {
     "occupancy.lr_final": None, "occupancy.w_g_final": None, "occupancy.w_v": 0.0,
     "occupancy.empty_gate_grad": True, "guided.jitter": False, "guided.dilate": 0, "guided.fallback": False,
-    "guided.warm_start": False, "guided.split": 8,
+    "guided.warm_start": False, "guided.split": 8, "guided.empty_threshold": None,
 }
 
 # The ablation ladder: from the paper's formulation, one change at a time (cumulative) up to the `cpu`

@@ -16,16 +16,18 @@ FORMAT = "leco-occupancy-v1"
 class OccupancyPredictor:
     """`occupied(points)` for world-frame points, batched so any number of points fits in memory."""
 
-    def __init__(self, network: OccupancyNetwork, chunk: int = 1 << 16):
+    def __init__(self, network: OccupancyNetwork, chunk: int = 1 << 16, empty_threshold: float | None = None):
+        """empty_threshold: keep points whose E_e probability is below it instead of the top-1 decision."""
         self.network = network.eval().requires_grad_(False)
         self.chunk = chunk
+        self.empty_threshold = empty_threshold
 
     @classmethod
-    def from_hmoe(cls, model: HMoE) -> "OccupancyPredictor":
+    def from_hmoe(cls, model: HMoE, empty_threshold: float | None = None) -> "OccupancyPredictor":
         network = OccupancyNetwork(model.gate.num_scene_experts, model.gate.input_layer.out_features,
                                    len(model.gate.xyz_encoding.freqs))
         network.load_state_dict(model.gate.state_dict())
-        return cls(network)
+        return cls(network, empty_threshold=empty_threshold)
 
     @property
     def num_parameters(self) -> int:
@@ -33,7 +35,8 @@ class OccupancyPredictor:
 
     @torch.no_grad()
     def occupied(self, points: Tensor) -> Tensor:
-        out = [self.network.occupied(points[s : s + self.chunk]) for s in range(0, len(points), self.chunk)]
+        out = [self.network.occupied(points[s : s + self.chunk], self.empty_threshold)
+               for s in range(0, len(points), self.chunk)]
         return torch.cat(out) if out else torch.zeros(0, dtype=torch.bool, device=points.device)
 
     def save(self, path: str | Path) -> None:
@@ -43,10 +46,10 @@ class OccupancyPredictor:
         torch.save({"format": FORMAT, "config": config, "state_dict": net.state_dict()}, path)
 
     @classmethod
-    def load(cls, path: str | Path) -> "OccupancyPredictor":
+    def load(cls, path: str | Path, empty_threshold: float | None = None) -> "OccupancyPredictor":
         data = torch.load(path, map_location="cpu", weights_only=True)
         if not isinstance(data, dict) or data.get("format") != FORMAT:
             raise ValueError(f"{path}: not a LeCO occupancy model (expected format {FORMAT!r})")
         network = OccupancyNetwork(**data["config"])
         network.load_state_dict(data["state_dict"])
-        return cls(network)
+        return cls(network, empty_threshold=empty_threshold)

@@ -53,6 +53,7 @@ class GuidedConfig(Frozen):
     dilate: int = Field(0, ge=0)  # also keep bins up to this many bins before / after a kept bin
     fallback: bool = False  # a ray with no kept bin samples every coarse bin once instead of none
     warm_start: bool = False  # the main network starts from phase 1's experts, heads, background, embeddings
+    empty_threshold: float | None = Field(None, gt=0, le=1)  # keep p(E_e) < this; None: O's top-1 (the paper)
 
 
 class VanillaConfig(Frozen):

@@ -90,3 +90,19 @@ def test_a_ray_with_nothing_kept_still_renders_its_foreground_with_the_fallback(
     assert torch.allclose(per_ray[4:], (far - near)[4:])  # the whole segment is covered
     without, _ = guided_samples(near, far, origins, dirs, nothing, 8, 4, None)
     assert len(without) == 0  # the paper's sampler: background only
+
+
+def test_empty_threshold_keeps_a_superset_of_the_top1_decision():
+    from model.fields.hmoe import OccupancyNetwork
+    from model.occupancy import OccupancyPredictor
+
+    torch.manual_seed(0)
+    network = OccupancyNetwork(num_scene_experts=4, width=16, xyz_frequencies=4)
+    with torch.no_grad():
+        network.output.bias[-1] = 1.5  # E_e wins on most points, as after phase 1
+    xyz = torch.rand(4000, 3) * 2 - 1
+    top1 = OccupancyPredictor(network).occupied(xyz)
+    loose = OccupancyPredictor(network, empty_threshold=0.9).occupied(xyz)
+    p_empty = torch.softmax(network(xyz), -1)[:, -1]
+    assert torch.equal(loose, p_empty < 0.9)
+    assert (loose | ~top1).all() and loose.sum() > top1.sum() > 0  # every top-1 point kept, and more

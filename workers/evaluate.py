@@ -40,7 +40,7 @@ def load_final(run_dir: Path, device: torch.device):
     models.load_grid_state(saved["grid"])
     predictor = None
     if (final / "occupancy.pt").is_file():
-        predictor = OccupancyPredictor.load(final / "occupancy.pt")
+        predictor = OccupancyPredictor.load(final / "occupancy.pt", cfg.resolved_profile().guided.empty_threshold)
         predictor.network.to(device)
     return cfg, scene, models, predictor
 

@@ -153,7 +153,8 @@ class RankRun:
         self.phase_objects = build_optimizer(self.models, phase, self.profile)
         self.to_store("phase_started", phase)
         if phase == "main" and self.cfg.method == "leco":
-            self.predictor = OccupancyPredictor.from_hmoe(self.models.hmoe)  # frozen O (section 3.4)
+            self.predictor = OccupancyPredictor.from_hmoe(  # frozen O (section 3.4)
+                self.models.hmoe, self.profile.guided.empty_threshold)
             self.predictor.network.to(self.device)
             self.models.hmoe.requires_grad_(False)
 

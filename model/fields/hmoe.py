@@ -39,9 +39,13 @@ class OccupancyNetwork(nn.Module):
         return self.features_and_logits(xyz)[1]
 
     @torch.no_grad()
-    def occupied(self, xyz: Tensor) -> Tensor:
-        """True where the top-1 gate is a scene expert."""
-        return self(xyz).argmax(dim=-1) != self.empty_index
+    def occupied(self, xyz: Tensor, empty_threshold: float | None = None) -> Tensor:
+        """True where the top-1 gate is a scene expert (the paper); with a threshold, where E_e's gate
+        probability is below it (a threshold above 0.5 keeps a superset of the top-1 decision's points)."""
+        logits = self(xyz)
+        if empty_threshold is None:
+            return logits.argmax(dim=-1) != self.empty_index
+        return torch.softmax(logits.float(), dim=-1)[:, self.empty_index] < empty_threshold
 
 
 class HMoE(nn.Module):

@@ -277,7 +277,8 @@ async function showCompare(sceneId) {
   }).join("");
   const view = document.getElementById("view");
   view.innerHTML = `<h1>Compare jobs on ${esc(scene.name)}</h1>
-    <p class="muted">${useVal ? "Validation PSNR of the main phase (jobs submitted with eval_every_s)"
+    <p class="muted">${useVal ? "Validation PSNR of the main phase (jobs submitted with eval_every_s; Mega-NeRF's protocol: " +
+        "right halves of the validation views scored, their appearance embeddings fitted on the left halves)"
       : "Training-batch PSNR of the main phase (moving average of 5 points; submit with eval_every_s for validation PSNR)"}
       against training time; LeCO's time includes its occupancy phase, as in the paper's Fig. 9.</p>
     <div class="card" id="compare-chart"><h3>PSNR against training time (s)</h3></div>
