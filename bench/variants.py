@@ -48,7 +48,8 @@ RUNGS: list[tuple[str, str, dict]] = [
     ("leco-rung-warm-start", "+ warm start of the main phase", {"guided.warm_start": True}),
     ("leco-rung-fallback", "+ fallback for rays with nothing kept", {"guided.fallback": True}),
     ("leco-rung-jitter", "+ jittered O queries", {"guided.jitter": True}),
-    ("leco", "+ dilation by 1 bin, split 8 -> 4 (the cpu defaults)", {"guided.dilate": 1, "guided.split": 4}),
+    ("leco-rung-dilate-1", "+ dilation by 1 bin, split 8 -> 4", {"guided.dilate": 1, "guided.split": 4}),
+    ("leco", "+ dilation by 2 bins (the cpu defaults)", {"guided.dilate": 2}),
 ]
 
 
