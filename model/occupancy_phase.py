@@ -57,11 +57,12 @@ def occupancy_step(model: HMoE, background: BackgroundField, rays: RayBatch, cfg
     l_d = density_loss(out.gate_probs, out.expert, out.sigma)
     w_g = log_linear(cfg.w_g, cfg.w_g_final, progress)
     loss = cfg.w_r * l_r + w_g * l_g + cfg.w_d * l_d  # L_f, section 3.3
-    terms = [("loss", loss), ("rendering_loss", l_r), ("imbalanced_gate_loss", l_g), ("density_loss", l_d)]
-    if cfg.w_v > 0:
+    terms = [("rendering_loss", l_r), ("imbalanced_gate_loss", l_g), ("density_loss", l_d)]
+    if cfg.w_v > 0:  # not in the paper: L_f + w_v L_v
         l_v = visibility_loss(out.gate_probs, rendered.weights)
         loss = loss + cfg.w_v * l_v
-        terms += [("loss", loss), ("visibility_loss", l_v)]
+        terms.append(("visibility_loss", l_v))
+    terms.append(("loss", loss))
     alpha = -torch.expm1(-(out.sigma.detach() * deltas.reshape(-1)))
     values = {k: float(v.detach()) for k, v in terms}
     parts = {**values, "psnr": -10.0 * torch.log10(torch.tensor(max(values["rendering_loss"], 1e-10))).item(),

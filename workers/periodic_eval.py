@@ -33,7 +33,8 @@ class PeriodicEval:
 
     def occupied_fn(self, run, phase: str):
         if phase == "occupancy":
-            predictor = OccupancyPredictor.from_hmoe(run.models.hmoe)  # a frozen copy of O as it is now
+            # A frozen copy of O as it is now, deciding as the main phase will (final eval does the same).
+            predictor = OccupancyPredictor.from_hmoe(run.models.hmoe, run.profile.guided.empty_threshold)
             predictor.network.to(run.device)
             return predictor.occupied
         if run.cfg.method == "grid":
