@@ -17,14 +17,19 @@ def bench_command(args: argparse.Namespace) -> int:
     from bench.runner import BenchError, Plan, config_for, run_variant
     from bench.variants import select
     from model.scenes import load_scene
-    from workers.config import parse_overrides
+    from workers.config import TrainConfig, parse_overrides
 
     log = lambda text: print(text, file=sys.stderr, flush=True)
     try:
-        variants = select([m.strip() for m in args.methods.split(",") if m.strip()], args.ablation, args.ladder)
         seeds = parse_seeds(args.seeds)
         overrides = parse_overrides(args.set or [])
-    except ValueError as error:
+        # The sweep's points are relative to the profile the runs train, --set included.
+        swept = None
+        if args.sweep:
+            swept = TrainConfig(method="leco", profile=args.profile, overrides=overrides).resolved_profile()
+        variants = select([m.strip() for m in args.methods.split(",") if m.strip()], args.ablation, args.ladder,
+                          swept)
+    except (ValueError, ValidationError) as error:
         raise SystemExit(f"leco bench: {error}")
     scene_dir, out = Path(args.scene), Path(args.out)
     scene = load_scene(scene_dir)  # a broken scene fails here, naming what is wrong
@@ -102,7 +107,8 @@ def command_line(args: argparse.Namespace) -> str:
             words += [flag, str(value)]
     if args.backend != "local":
         words += ["--backend", args.backend, "--workers", str(args.workers)]
-    words += ["--ablation"] * args.ablation + ["--ladder"] * args.ladder + ["--gpu"] * args.gpu
+    words += ["--ablation"] * args.ablation + ["--ladder"] * args.ladder + ["--sweep"] * args.sweep
+    words += ["--gpu"] * args.gpu
     for item in args.set or []:
         words += ["--set", item]
     return " ".join(shlex.quote(w) for w in words)
@@ -120,6 +126,9 @@ def add_commands(commands) -> None:
     bench.add_argument("--ladder", action="store_true",
                        help="also train the ablation ladder: LeCO from the paper's formulation to the profile's "
                             "defaults, one change at a time (bench/variants.py RUNGS)")
+    bench.add_argument("--sweep", action="store_true",
+                       help="also train each method at a leaner and a richer sampling budget (and LeCO with "
+                            "transmittance culling): PSNR against samples per ray and rays/s in the report")
     bench.add_argument("--ablation", action="store_true",
                        help="also train the ablations: homogeneous MoE and HMoE without the density loss")
     bench.add_argument("--seeds", default="0", help="comma-separated seeds, e.g. 0,1,2")

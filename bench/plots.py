@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import matplotlib
+import matplotlib.ticker
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -134,6 +135,63 @@ def render_grid(runs: list[dict], path: Path) -> str | None:
     return _save(fig, path)
 
 
+def sweep_points(runs: list[dict]) -> dict[str, list[dict]]:
+    """Per method, its default run and its `--sweep` runs (first seed), ordered by samples per ray."""
+    seed = runs[0]["seed"] if runs else None
+    out: dict[str, list[dict]] = {}
+    for r in runs:
+        if r["seed"] == seed and (r.get("sweep") or r["variant"] == r["method"]):
+            out.setdefault(r["method"], []).append(r)
+    return {m: sorted(rs, key=lambda r: r["summary"].get("samples_per_ray") or 0) for m, rs in out.items()
+            if any(r.get("sweep") for r in rs)}
+
+
+def speed_vs_error(runs: list[dict], path: Path) -> str | None:
+    """Final PSNR against main-network samples per ray and against rays/s: each method's Pareto curve."""
+    points = sweep_points(runs)
+    if not points:
+        return None
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for method, rs in points.items():
+        psnr = [r["summary"]["val"]["psnr"] for r in rs]
+        for ax, key in zip(axes, ("samples_per_ray", "rays_per_s")):
+            x = [r["summary"].get(key) for r in rs]
+            ax.plot(x, psnr, marker="o", color=COLOURS.get(method), label=rs[0]["label"].split(",")[0])
+            for xi, yi, r in zip(x, psnr, rs):
+                ax.annotate(r["label"].split(", ", 1)[1] if r.get("sweep") else "default", (xi, yi), fontsize=6,
+                            textcoords="offset points", xytext=(3, 3))
+    axes[0].set(xscale="log", xlabel="main-network samples per ray (log)", ylabel="final validation PSNR (dB)",
+                title="PSNR against samples per ray")
+    axes[1].set(xscale="log", xlabel="rays/s of the main phase (log)", title="PSNR against speed")
+    for ax in axes:
+        # Ticks at the measured points, in plain numbers: a log axis's default labels collide at this range.
+        ticks = sorted({round(x) for line in ax.get_lines() for x in line.get_xdata() if x})
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax.set_xticks(ticks, [f"{t:,}" for t in ticks], rotation=45, fontsize=7)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    return _save(fig, path)
+
+
+def sweep_curves(runs: list[dict], path: Path) -> str | None:
+    """PSNR against training time for every sweep point, one panel per method."""
+    points = sweep_points(runs)
+    if not points:
+        return None
+    fig, axes = plt.subplots(1, len(points), figsize=(4.6 * len(points), 3.8), squeeze=False)
+    for ax, (method, rs) in zip(axes[0], points.items()):
+        for r in rs:
+            curve = main_curve(r)
+            if curve:
+                t, v = zip(*curve)
+                ax.plot(np.array(t) / 60, v, marker=".", label=r["label"].split(", ", 1)[1] if r.get("sweep")
+                        else "default", alpha=1.0 if not r.get("sweep") else 0.7)
+        ax.set(xlabel="training time (min)", ylabel="validation PSNR (dB)", title=rs[0]["label"].split(",")[0])
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    return _save(fig, path)
+
+
 def all_figures(runs: list[dict], out: Path) -> dict[str, str]:
     out.mkdir(parents=True, exist_ok=True)
     main = [r for r in runs if not r["ablation"]]
@@ -143,5 +201,7 @@ def all_figures(runs: list[dict], out: Path) -> dict[str, str]:
         "samples_per_ray": samples_per_ray(runs, out / "samples_per_ray.png"),
         "occupancy_clouds": occupancy_clouds(runs, out / "occupancy_leco_vs_grid.png"),
         "renders": render_grid(runs, out / "renders.png"),
+        "speed_vs_error": speed_vs_error(runs, out / "speed_vs_error.png"),
+        "sweep_psnr_vs_time": sweep_curves(runs, out / "sweep_psnr_vs_time.png"),
     }
     return {k: f"figures/{v}" for k, v in figures.items() if v}

@@ -92,8 +92,24 @@ def ladder_table(runs: list[dict]) -> str:
                   "occupancy ratio", "samples/ray", "rays/s (main)"], rows)
 
 
+def sweep_table(runs: list[dict]) -> str:
+    """Every method at each sampling budget: cost (samples per ray, rays/s) against final quality."""
+    from bench.plots import sweep_points
+
+    rows = []
+    for method, rs in sweep_points(runs).items():
+        for r in rs:
+            s = r["summary"]
+            label = r["label"] if r.get("sweep") else f"{r['label']} (default)"
+            rows.append([label, cell(s.get("samples_per_ray"), ".1f"), cell(s.get("rays_per_s"), ",.0f"),
+                         cell(get(s, "val.psnr"), ".2f"), cell(get(s, "val.ssim"), ".3f"),
+                         cell(get(s, "steps.total"), ",.0f")])
+    return table(["method, sampling budget", "samples/ray", "rays/s (main)", "val PSNR", "SSIM", "steps"], rows)
+
+
 def ablation_table(runs: list[dict]) -> str:
-    names = [n for n in dict.fromkeys(r["variant"] for r in runs if not r.get("ladder")) if n.startswith("leco")]
+    names = [n for n in dict.fromkeys(r["variant"] for r in runs if not r.get("ladder") and not r.get("sweep"))
+             if n.startswith("leco")]
     labels = {r["variant"]: r["label"] for r in runs}
     hmoe = {}
     for n in names:  # the HMoE's own rendering at the end of phase 1 (what Table 4 scores)
@@ -170,7 +186,12 @@ def write_report(results: dict, out: Path) -> None:
         parts += ["## Ablation ladder (issue 16)", "", ladder_table(runs), "",
                   "Each rung adds one change to the one above it; the last is the profile's defaults. Time to "
                   "vanilla's best PSNR is on the tracked validation views, LeCO's phase 1 included.", ""]
-    if any(r["ablation"] and not r.get("ladder") for r in runs):
+    if any(r.get("sweep") for r in runs):
+        parts += ["## Speed against error: sampling budgets (issue 16)", "", sweep_table(runs), "",
+                  "Each method's own run is its middle point; samples per ray count every main-network "
+                  "evaluation (vanilla's coarse pass and LeCO's culling pass included). Figures: "
+                  "`speed_vs_error.png` (PSNR against samples per ray and rays/s), `sweep_psnr_vs_time.png`.", ""]
+    if any(r["ablation"] and not r.get("ladder") and not r.get("sweep") for r in runs):
         parts += ["## Ablation (the paper's Tables 4 and 5)", "", ablation_table(runs), "",
                   "Phase-1 HMoE PSNR is the occupancy network's own rendering at the end of phase 1 (Table 4 "
                   "scores this); guided PSNR is the Switch-NeRF it then guides (Table 5).", ""]

@@ -15,10 +15,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench.variants import Variant
+from model.profiles import MAX_STEPS
 from workers.config import TrainConfig
 from workers.sinks import read_metrics
 
-UNBOUNDED_STEPS = 10_000_000  # with a budget, the clock ends the run, not a step count
+UNBOUNDED_STEPS = MAX_STEPS  # with a budget, the clock ends the run, not a step count
 CHECKPOINT_EVERY = 1000  # checkpoints are not training time, but they are wall time: keep them rare
 
 
@@ -88,7 +89,7 @@ def run_variant(variant: Variant, plan: Plan, seed: int, log=print) -> dict:
         log(f"[bench] {variant.name} seed {seed}: done in {time.perf_counter() - started:.0f} s, "
             f"val PSNR {summary['val']['psnr']:.2f}")
     return {"variant": variant.name, "method": variant.method, "label": variant.label, "ablation": variant.ablation,
-            "ladder": variant.ladder,
+            "ladder": variant.ladder, "sweep": variant.sweep,
             "seed": seed, "run_dir": str(run_dir), "summary": summary,
             "curve": curve(read_metrics(run_dir / "metrics.jsonl"))}
 

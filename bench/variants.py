@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from model.profiles import Profile
+
 
 @dataclass(frozen=True)
 class Variant:
@@ -15,6 +17,7 @@ class Variant:
     overrides: dict = field(default_factory=dict)
     ablation: bool = False
     ladder: bool = False  # a rung of the ablation ladder (issue 16); like an ablation, not a compared method
+    sweep: bool = False  # another sampling budget of `method` (`--sweep`); like an ablation, not a compared method
 
 
 METHODS = {
@@ -69,7 +72,29 @@ def ladder() -> list[Variant]:
             for (name, label, _), overrides in zip(RUNGS[:-1], rung_overrides()[:-1])]
 
 
-def select(methods: list[str], ablation: bool, with_ladder: bool = False) -> list[Variant]:
+def sweep(methods: list[str], profile: Profile) -> list[Variant]:
+    """`--sweep` (issue 16, item 6): each method at a leaner and a richer sampling budget than the profile's,
+    whose own run is the middle point, so PSNR can be read against samples per ray and rays/s. LeCO also
+    gets the transmittance-culling point (it changes cost, not the samples O keeps)."""
+    g, v, grid = profile.guided, profile.vanilla, profile.grid
+    lean_leco = ((f"dilation {g.dilate - 1}", {"guided.dilate": g.dilate - 1}) if g.dilate > 0
+                 else (f"split {max(g.split // 2, 1)}", {"guided.split": max(g.split // 2, 1)}))
+    points = {
+        "leco": [("lean", *lean_leco),
+                 ("rich", f"{2 * g.coarse_samples} coarse bins", {"guided.coarse_samples": 2 * g.coarse_samples}),
+                 ("cull", "culling T < 1e-3", {"guided.cull_transmittance": 1e-3})],
+        "switch": [(tag, f"{c} + {f} samples", {"vanilla.coarse_samples": c, "vanilla.fine_samples": f})
+                   for tag, c, f in (("lean", max(v.coarse_samples // 2, 2), v.fine_samples // 2),
+                                     ("rich", 2 * v.coarse_samples, 2 * v.fine_samples))],
+        "grid": [(tag, f"{n} march steps", {"grid.march_steps": n})
+                 for tag, n in (("lean", max(grid.march_steps // 2, 8)), ("rich", 2 * grid.march_steps))],
+    }
+    return [Variant(f"{m}-sweep-{tag}", m, f"{METHODS[m].label}, {text}", overrides, ablation=True, sweep=True)
+            for m in methods for tag, text, overrides in points[m]]
+
+
+def select(methods: list[str], ablation: bool, with_ladder: bool = False,
+           sweep_profile: Profile | None = None) -> list[Variant]:
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"--methods: unknown method(s) {', '.join(unknown)}: choose from {', '.join(METHODS)}")
@@ -84,4 +109,6 @@ def select(methods: list[str], ablation: bool, with_ladder: bool = False) -> lis
         chosen += ladder()
         if "leco" not in [v.name for v in chosen]:
             chosen.append(METHODS["leco"])  # the last rung: the profile's defaults
+    if sweep_profile is not None:
+        chosen += sweep([m for m in dict.fromkeys(methods)], sweep_profile)
     return chosen

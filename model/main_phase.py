@@ -23,7 +23,7 @@ from model.losses import balance_loss, dispatch_fractions, rendering_loss
 from model.occupancy_grid import OccupancyGrid
 from model.occupancy_phase import field_on_edges, render_background
 from model.profiles import Profile
-from model.rendering import Rendered, composite_batched, composite_packed
+from model.rendering import Rendered, composite_batched, composite_packed, packed_transmittance
 from model.samplers import PackedSamples, guided_samples, inverse_cdf_edges, merge_edges, stratified_edges
 from model.scenes.rays import RayBatch
 
@@ -82,8 +82,25 @@ def render_guided(field: SwitchNeRF, background: BackgroundField, rays: RayBatch
         g = profile.guided
         samples, ratio = guided_samples(rays.near, rays.far, rays.origins, rays.directions, occupied,
                                         g.coarse_samples, g.split, generator, g.jitter, g.dilate, g.fallback)
+    evaluated = 0
+    if g.cull_transmittance is not None:
+        evaluated = len(samples)
+        samples = cull_occluded(field, rays, samples, g.cull_transmittance)
     out = field_on_packed(field, rays, samples)
-    return MainRender(composite_field(out, rays, samples, behind), out, len(samples) / len(rays), float(ratio))
+    # Culled samples still ran the network once (without gradient), so they count, as vanilla's coarse ones do.
+    return MainRender(composite_field(out, rays, samples, behind), out, (evaluated + len(samples)) / len(rays),
+                      float(ratio))
+
+
+def cull_occluded(field: SwitchNeRF, rays: RayBatch, samples: PackedSamples, eps: float) -> PackedSamples:
+    """nerfacc's early stop for a learned sampler: one gradient-free pass of the main field finds the samples
+    its current density already hides (T_i < eps), so the pass with gradient runs on the visible ones only."""
+    if len(samples) == 0:
+        return samples
+    with torch.no_grad():
+        out = field_on_packed(field, rays, samples)
+        reach = packed_transmittance(out.sigma, samples.deltas, samples.ray_index, len(rays))
+    return samples.subset(reach >= eps)
 
 
 def grid_step_size(grid: OccupancyGrid, march_steps: int) -> float:

@@ -24,8 +24,7 @@ class OccupancyPredictor:
 
     @classmethod
     def from_hmoe(cls, model: HMoE, empty_threshold: float | None = None) -> "OccupancyPredictor":
-        network = OccupancyNetwork(model.gate.num_scene_experts, model.gate.input_layer.out_features,
-                                   len(model.gate.xyz_encoding.freqs))
+        network = OccupancyNetwork(**model.gate.config)
         network.load_state_dict(model.gate.state_dict())
         return cls(network, empty_threshold=empty_threshold)
 
@@ -41,9 +40,7 @@ class OccupancyPredictor:
 
     def save(self, path: str | Path) -> None:
         net = self.network
-        config = {"num_scene_experts": net.num_scene_experts, "width": net.input_layer.out_features,
-                  "xyz_frequencies": len(net.xyz_encoding.freqs)}
-        torch.save({"format": FORMAT, "config": config, "state_dict": net.state_dict()}, path)
+        torch.save({"format": FORMAT, "config": net.config, "state_dict": net.state_dict()}, path)
 
     @classmethod
     def load(cls, path: str | Path, empty_threshold: float | None = None) -> "OccupancyPredictor":

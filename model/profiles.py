@@ -5,69 +5,79 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
+MAX_STEPS = 10_000_000  # per phase; `leco bench --budget-min` uses this as "until the clock stops"
+# Far past any rate that trains (Adam's steps are ~lr), low enough to stay finite in every product of the loop;
+# the fault tests use it to blow a run up on purpose.
+LR_MAX = 1e6
+
 
 class Frozen(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    # Every number bounded on both sides and finite (issue 17): a job that asks for more than any machine has
+    # is refused at the API, not OOM-killed on a worker.
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
 
 class NetworkConfig(Frozen):
-    width: int = Field(256, ge=8)
-    num_experts: int = Field(8, ge=1)
-    expert_layers: int = Field(7, ge=1)
-    xyz_frequencies: int = Field(12, ge=0)
-    dir_frequencies: int = Field(4, ge=0)
-    appearance_dim: int = Field(48, ge=1)
-    capacity_factor: float | None = Field(None, gt=0)
-    density_noise: float = Field(1.0, ge=0)  # N(0, s) on raw density while training (Switch-NeRF)
+    width: int = Field(256, ge=8, le=2048)
+    num_experts: int = Field(8, ge=1, le=64)
+    expert_layers: int = Field(7, ge=1, le=16)
+    xyz_frequencies: int = Field(12, ge=0, le=24)
+    dir_frequencies: int = Field(4, ge=0, le=12)
+    appearance_dim: int = Field(48, ge=1, le=512)
+    capacity_factor: float | None = Field(None, gt=0, le=64)
+    density_noise: float = Field(1.0, ge=0, le=100)  # N(0, s) on raw density while training (Switch-NeRF)
 
 
 class BackgroundConfig(Frozen):
-    width: int = Field(128, ge=8)
-    layers: int = Field(4, ge=1)
-    samples: int = Field(64, ge=1)
+    width: int = Field(128, ge=8, le=2048)
+    layers: int = Field(4, ge=1, le=16)
+    samples: int = Field(64, ge=1, le=1024)
 
 
 class OccupancyPhaseConfig(Frozen):
     """Phase 1 of LeCO: the HMoE and its losses (paper section 4.3)."""
 
-    samples_per_ray: int = Field(512, ge=2)
-    steps: int = Field(40_000, ge=1)
-    lr: float = Field(5e-4, gt=0)
-    lr_final: float | None = Field(None, gt=0)  # decay to this by the phase's end; None: constant (the paper)
-    w_r: float = Field(1.0, ge=0)
-    w_g: float = Field(5e-4, ge=0)
-    w_g_final: float | None = Field(None, ge=0)  # w_g decays log-linearly to this by the phase's end; None: constant
-    w_d: float = Field(0.1, ge=0)
-    v: float = Field(80.0, gt=0)
+    samples_per_ray: int = Field(512, ge=2, le=4096)
+    steps: int = Field(40_000, ge=1, le=MAX_STEPS)
+    lr: float = Field(5e-4, gt=0, le=LR_MAX)
+    lr_final: float | None = Field(None, gt=0, le=LR_MAX)  # decay to this by the phase's end; None: constant (the paper)
+    w_r: float = Field(1.0, ge=0, le=1e4)
+    w_g: float = Field(5e-4, ge=0, le=1e4)
+    w_g_final: float | None = Field(None, ge=0, le=1e4)  # w_g decays log-linearly to this by the phase's end; None: constant
+    w_d: float = Field(0.1, ge=0, le=1e4)
+    v: float = Field(80.0, gt=0, le=1e6)
     homogeneous: bool = False
     # Not in the paper (issue 16, docs/BENCHMARKS.md "ablation ladder"); 0 / True keep the paper's formulation.
-    w_v: float = Field(0.0, ge=0)  # visibility loss: visible samples (detached render weights) away from E_e
+    w_v: float = Field(0.0, ge=0, le=1e4)  # visibility loss: visible samples (detached render weights) away from E_e
     empty_gate_grad: bool = True  # False: the rendering loss cannot raise E_e's gate (its value is detached)
+    gate_width: int | None = Field(None, ge=8, le=2048)  # O's layers after the shared input layer; None: network.width
 
 
 class GuidedConfig(Frozen):
-    coarse_samples: int = Field(128, ge=1)
-    split: int = Field(8, ge=1)
+    coarse_samples: int = Field(128, ge=1, le=4096)
+    split: int = Field(8, ge=1, le=64)
     # Not in the paper (issue 16); the defaults keep the paper's sampler and its from-scratch main network.
     jitter: bool = False  # while training, query O at a random point of each coarse bin, not its mid-point
-    dilate: int = Field(0, ge=0)  # also keep bins up to this many bins before / after a kept bin
+    dilate: int = Field(0, ge=0, le=64)  # also keep bins up to this many bins before / after a kept bin
     fallback: bool = False  # a ray with no kept bin samples every coarse bin once instead of none
     warm_start: bool = False  # the main network starts from phase 1's experts, heads, background, embeddings
     empty_threshold: float | None = Field(None, gt=0, le=1)  # keep p(E_e) < this; None: O's top-1 (the paper)
+    # nerfacc's early stop: a gradient-free pass drops samples the main field hides (T_i below this); None: off
+    cull_transmittance: float | None = Field(None, gt=0, lt=1)
 
 
 class VanillaConfig(Frozen):
-    coarse_samples: int = Field(256, ge=2)
-    fine_samples: int = Field(512, ge=0)
+    coarse_samples: int = Field(256, ge=2, le=4096)
+    fine_samples: int = Field(512, ge=0, le=8192)
 
 
 class GridConfig(Frozen):
-    resolution: int = Field(128, ge=4)
-    update_every: int = Field(16, ge=1)
+    resolution: int = Field(128, ge=4, le=512)
+    update_every: int = Field(16, ge=1, le=MAX_STEPS)
     decay: float = Field(0.95, gt=0, lt=1)
-    threshold: float = Field(0.01, gt=0)
-    warmup_steps: int = Field(256, ge=0)
-    march_steps: int = Field(1024, ge=8)  # samples across the box diagonal: sets the marching step size
+    threshold: float = Field(0.01, gt=0, le=1e6)
+    warmup_steps: int = Field(256, ge=0, le=MAX_STEPS)
+    march_steps: int = Field(1024, ge=8, le=16384)  # samples across the box diagonal: sets the marching step size
 
 
 class Profile(Frozen):
@@ -78,12 +88,12 @@ class Profile(Frozen):
     guided: GuidedConfig = GuidedConfig()
     vanilla: VanillaConfig = VanillaConfig()
     grid: GridConfig = GridConfig()
-    rays_per_device: int = Field(1024, ge=1)
-    main_steps: int = Field(500_000, ge=1)  # Switch-NeRF (guided or not) steps after any occupancy phase
-    balance_weight: float = Field(5e-4, ge=0)  # Switch-NeRF's balance loss
+    rays_per_device: int = Field(1024, ge=1, le=65536)
+    main_steps: int = Field(500_000, ge=1, le=MAX_STEPS)  # Switch-NeRF (guided or not) steps after any occupancy phase
+    balance_weight: float = Field(5e-4, ge=0, le=1e4)  # Switch-NeRF's balance loss
     perturb: bool = True  # jittered samples while training; off makes a step deterministic given the rays
-    lr: float = Field(5e-4, gt=0)
-    lr_final: float = Field(5e-5, gt=0)
+    lr: float = Field(5e-4, gt=0, le=LR_MAX)
+    lr_final: float = Field(5e-5, gt=0, le=LR_MAX)
 
 
 PROFILES: dict[str, Profile] = {

@@ -24,8 +24,8 @@ class Rendered:
     transmittance: Tensor  # (R,) left after the foreground: the background's share
 
 
-def packed_weights(sigma: Tensor, deltas: Tensor, ray_index: Tensor, num_rays: int) -> tuple[Tensor, Tensor]:
-    """Per-sample weights T_i alpha_i and per-ray remaining transmittance; samples grouped by ray in order."""
+def packed_optical_depth(sigma: Tensor, deltas: Tensor, ray_index: Tensor, num_rays: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-sample tau_i, the optical depth before each sample (sum_{j<i} tau_j on its ray) and per ray."""
     tau = (sigma.double() * deltas.double()).clamp(0.0, TAU_MAX)
     total = torch.zeros(num_rays, dtype=torch.float64, device=tau.device).index_add_(0, ray_index, tau)
     inclusive = tau.cumsum(0)
@@ -35,7 +35,17 @@ def packed_weights(sigma: Tensor, deltas: Tensor, ray_index: Tensor, num_rays: i
         first = torch.ones_like(ray_index, dtype=torch.bool)
         first[1:] = ray_index[1:] != ray_index[:-1]
         start[ray_index[first]] = (inclusive - tau)[first]
-    exclusive = inclusive - tau - start[ray_index]
+    return tau, inclusive - tau - start[ray_index], total
+
+
+def packed_transmittance(sigma: Tensor, deltas: Tensor, ray_index: Tensor, num_rays: int) -> Tensor:
+    """T_i, the light that reaches each sample (1 at a ray's first sample)."""
+    return torch.exp(-packed_optical_depth(sigma, deltas, ray_index, num_rays)[1]).to(sigma.dtype)
+
+
+def packed_weights(sigma: Tensor, deltas: Tensor, ray_index: Tensor, num_rays: int) -> tuple[Tensor, Tensor]:
+    """Per-sample weights T_i alpha_i and per-ray remaining transmittance; samples grouped by ray in order."""
+    tau, exclusive, total = packed_optical_depth(sigma, deltas, ray_index, num_rays)
     alpha = -torch.expm1(-tau)
     weights = (torch.exp(-exclusive) * alpha).to(sigma.dtype)
     return weights, torch.exp(-total).to(sigma.dtype)

@@ -32,6 +32,10 @@ class PackedSamples:
     def __len__(self) -> int:
         return len(self.starts)
 
+    def subset(self, keep: Tensor) -> "PackedSamples":
+        """The samples where keep is true, in the same order (so still grouped by ray, increasing t)."""
+        return PackedSamples(self.starts[keep], self.ends[keep], self.ray_index[keep])
+
 
 def stratified_edges(near: Tensor, far: Tensor, n: int, generator: torch.Generator | None) -> Tensor:
     """(R, n + 1) bin edges; with a generator the inner edges are jittered inside their bins (training)."""

@@ -137,6 +137,32 @@ def test_bench_smoke_on_the_tiny_city(tiny_scene, tmp_path, capsys):
     assert f"| {RUNGS[-1][1]} |" in report
     assert list(results["speedups"]) == ["switch"]  # rungs are not compared methods
 
+    capsys.readouterr()
+    assert bench("--scene", str(tiny_scene.root), "--out", str(out), "--sweep") == 0
+    assert capsys.readouterr().err.count("finished earlier, reusing") == 3  # the defaults are the middle points
+    results = json.loads((out / "results.json").read_text())
+    swept = {r["variant"]: r["summary"] for r in results["runs"] if r.get("sweep")}
+    assert len(swept) == 7 and list(results["speedups"]) == ["switch", "grid"]  # sweep points are not compared
+    spr = lambda name: (swept.get(name) or runs[name]["summary"])["samples_per_ray"]
+    assert spr("switch-sweep-lean") < spr("switch") < spr("switch-sweep-rich")
+    assert spr("grid-sweep-lean") < spr("grid") < spr("grid-sweep-rich")
+    assert spr("leco-sweep-lean") < spr("leco") < spr("leco-sweep-rich")
+    assert {"speed_vs_error", "sweep_psnr_vs_time"} <= set(results["figures"])
+    report = (out / "report.md").read_text()
+    assert "## Speed against error" in report and "| S-NeRF* (vanilla) (default) |" in report
+
+
+def test_sweep_points_are_leaner_and_richer_than_the_profile():
+    from bench.variants import sweep
+    from model.profiles import get_profile
+
+    cpu = {v.name: v.overrides for v in sweep(["leco", "switch", "grid"], get_profile("cpu"))}
+    assert cpu["leco-sweep-lean"] == {"guided.dilate": 1} and cpu["leco-sweep-rich"] == {"guided.coarse_samples": 32}
+    assert cpu["switch-sweep-lean"] == {"vanilla.coarse_samples": 16, "vanilla.fine_samples": 32}
+    assert cpu["grid-sweep-rich"] == {"grid.march_steps": 512}
+    paper = {v.name: v.overrides for v in sweep(["leco"], get_profile("paper"))}
+    assert paper["leco-sweep-lean"] == {"guided.split": 4}  # no dilation to take away at the paper's sampler
+
 
 @pytest.mark.slow
 def test_bench_on_lego_scores_occupancy_against_the_vanilla_models_depth(tmp_path, lego_dir):

@@ -68,6 +68,8 @@ def test_the_dashboard_follows_a_job_and_cancels_another(service):
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
         page = browser.new_page(viewport={"width": 1280, "height": 1600})
+        blocked = []  # the Content-Security-Policy must not block anything the dashboard itself does
+        page.on("console", lambda m: blocked.append(m.text) if "Content Security Policy" in m.text else None)
         page.goto(f"{url}/")
         expect(page.locator("#token-dialog")).to_be_visible()  # the page asks for the token once
         page.fill("#token-input", token)
@@ -108,9 +110,12 @@ def test_the_dashboard_follows_a_job_and_cancels_another(service):
         page.goto(f"{url}/dashboard/#/compare/{scene['id']}")
         expect(page.locator("#compare tbody tr")).to_have_count(2)
         assert int(page.get_attribute("#compare-chart svg.chart", "data-points")) >= 10
+        for chart in ("#pareto-samples svg.scatter", "#pareto-speed svg.scatter"):  # one point per job
+            assert int(page.get_attribute(chart, "data-points")) == 2
         switch_row = page.locator(f'#compare tr[data-job="{second["id"]}"] td.speedup').inner_text()
         assert switch_row.endswith("x") and float(switch_row[:-1]) > 0  # LeCO's speed-up at equal PSNR
         page.screenshot(path=SHOTS / "compare.png", full_page=True)
+        assert blocked == [], blocked
         browser.close()
     job = api.get(f"/v1/jobs/{second['id']}").json()
     assert job["state"] == "cancelled" and job["step"] < 20000

@@ -106,3 +106,68 @@ def test_empty_threshold_keeps_a_superset_of_the_top1_decision():
     p_empty = torch.softmax(network(xyz), -1)[:, -1]
     assert torch.equal(loose, p_empty < 0.9)
     assert (loose | ~top1).all() and loose.sum() > top1.sum() > 0  # every top-1 point kept, and more
+
+
+class WallField(torch.nn.Module):
+    """An analytic scene: an opaque red slab at x in SLAB, empty elsewhere (density 1e3 per unit length)."""
+
+    def forward(self, xyz, dirs, image_index):
+        from model.fields.output import FieldOutput
+
+        sigma = wall(xyz).float() * 1e3
+        rgb = torch.tensor([1.0, 0.0, 0.0]).expand(len(xyz), 3)
+        n = len(xyz)
+        return FieldOutput(sigma, rgb, torch.ones(n, 1), torch.zeros(n, dtype=torch.long), torch.ones(n, dtype=torch.bool))
+
+
+def straight_rays(n=16):
+    from model.scenes.rays import RayBatch
+
+    origins = torch.stack([torch.zeros(n), torch.linspace(-1, 1, n), torch.zeros(n)], -1)
+    dirs = torch.tensor([[1.0, 0.0, 0.0]]).expand(n, 3).contiguous()
+    return RayBatch(origins, dirs, torch.zeros(n), torch.full((n,), 8.0), torch.zeros(n, dtype=torch.long),
+                    torch.zeros(n, 3), torch.arange(n))
+
+
+def test_transmittance_culling_drops_only_samples_behind_an_opaque_wall():
+    from model.main_phase import composite_field, cull_occluded, field_on_packed
+
+    rays, field = straight_rays(), WallField()
+    everything = lambda points: torch.ones(len(points), dtype=torch.bool)
+    samples, _ = guided_samples(rays.near, rays.far, rays.origins, rays.directions, everything, 8, 8,
+                                torch.Generator().manual_seed(0))
+    culled = cull_occluded(field, rays, samples, 1e-3)
+    check_invariants(culled, rays.near, rays.far)
+    assert (culled.starts < SLAB[1]).all(), "nothing behind the wall survives"
+    in_front = samples.ends <= SLAB[0]
+    assert in_front.sum() > 0 and len(culled) >= int(in_front.sum()), "every sample in front of the wall is kept"
+    assert len(culled) < 0.5 * len(samples)  # the wall is at x = 2 of 8: most samples are behind it
+    behind = torch.zeros(len(rays), 3)
+    full = composite_field(field_on_packed(field, rays, samples), rays, samples, behind).rgb
+    cut = composite_field(field_on_packed(field, rays, culled), rays, culled, behind).rgb
+    assert torch.allclose(full, cut, atol=1e-3)  # what culling removes was at most eps of light
+    assert torch.allclose(full, torch.tensor([1.0, 0.0, 0.0]).expand_as(full), atol=1e-3)
+
+
+def test_transmittance_culling_in_the_guided_render_counts_both_passes():
+    from model.fields.background import BackgroundField
+    from model.fields.switch_nerf import SwitchNeRF
+    from model.main_phase import render_guided
+    from model.profiles import get_profile
+
+    torch.manual_seed(0)
+    profile = get_profile("smoke")
+    rays = straight_rays()
+    field = SwitchNeRF(1, width=16, num_experts=2, expert_layers=2, xyz_frequencies=4, dir_frequencies=2,
+                       appearance_dim=4)
+    field.eval()  # no density noise: both renders see the same field
+    with torch.no_grad():
+        field.head.sigma.bias.fill_(8.0)  # opaque from the first samples: most of each ray is hidden
+    background = BackgroundField(1, width=8, layers=1, frequencies=2, dir_frequencies=2, appearance_dim=4)
+    everything = lambda points: torch.ones(len(points), dtype=torch.bool)
+    plain = render_guided(field, background, rays, profile, everything, None)
+    culled_profile = profile.model_copy(update={"guided": profile.guided.model_copy(update={"cull_transmittance": 1e-4})})
+    culled = render_guided(field, background, rays, culled_profile, everything, None)
+    assert torch.allclose(plain.rendered.rgb, culled.rendered.rgb, atol=1e-3)
+    evaluated = plain.samples_per_ray  # every sample, once
+    assert evaluated < culled.samples_per_ray < 2 * evaluated  # all once without gradient, the visible again

@@ -61,6 +61,28 @@ def test_warm_start_copies_phase_one_into_the_main_network(tiny_scene):
     assert scene.any() and torch.equal(routed[scene], logits[scene].argmax(-1))
 
 
+def test_a_wider_occupancy_network_saves_loads_and_warm_starts_what_still_fits(tiny_scene, tmp_path):
+    from model.occupancy import OccupancyPredictor
+
+    profile = TrainConfig(method="leco", profile="smoke", overrides={"occupancy.gate_width": 32}).resolved_profile()
+    models = RunModels("leco", profile, tiny_scene.num_images, tiny_scene.bounds.aabb, 0)
+    gate = models.hmoe.gate
+    assert gate.input_layer.out_features == 16 and gate.inner[0].weight.shape == (32, 16)  # experts stay 16 wide
+    own = lambda w: (16 * w + w) + (w * w + w) + 2 * w + (w * 3 + 3)  # inner, LayerNorm, 2 experts + E_e logits
+    narrow = RunModels("leco", TrainConfig(method="leco", profile="smoke").resolved_profile(), tiny_scene.num_images,
+                       tiny_scene.bounds.aabb, 0).hmoe.gate
+    count = lambda m: sum(p.numel() for p in m.parameters())
+    assert count(gate) - count(narrow) == own(32) - own(16)
+    predictor = OccupancyPredictor.from_hmoe(models.hmoe, empty_threshold=0.9)
+    predictor.save(tmp_path / "o.pt")
+    loaded = OccupancyPredictor.load(tmp_path / "o.pt", empty_threshold=0.9)
+    xyz = torch.rand(500, 3) * 2 - 1
+    assert torch.equal(loaded.occupied(xyz), predictor.occupied(xyz))
+    copied = warm_start_main(models.field, models.background, models.hmoe, models.occupancy_background)
+    assert "experts.0" in copied and "input_layer" in copied  # the shared parts still match the main network
+    assert not any(name.startswith("gate.body") for name in copied) and "gate.proj" not in copied
+
+
 def test_warm_started_leco_run_starts_its_main_phase_where_phase_one_ended(tiny_scene, tmp_path):
     """The main phase's first loss is far below a from-scratch start's when phase 1 has learned the scene."""
     first_main_loss = {}

@@ -10,34 +10,36 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from model.profiles import PROFILES, Profile
+from model.profiles import MAX_STEPS, PROFILES, Profile
 
 Method = Literal["leco", "switch", "grid"]
 MAX_WORKERS = 8
 
 
 class TrainConfig(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    # Bounded on both sides and finite (issue 17), like the profile it overrides.
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     method: Method
     profile: str = "cpu"
     overrides: dict[str, Any] = Field(default_factory=dict)
     workers: int = Field(1, ge=1, le=MAX_WORKERS)
     use_gpu: bool = False
-    budget_min: float | None = Field(None, gt=0)  # wall-clock budget for the whole run (both phases)
-    seed: int = Field(0, ge=0)
-    checkpoint_every: int = Field(200, ge=1)
-    metrics_every: int = Field(10, ge=1)
-    val_every: int | None = Field(None, ge=1)  # validation renders during training (None: only at the end)
+    budget_min: float | None = Field(None, gt=0, le=7 * 24 * 60)  # wall-clock budget for the whole run (both phases)
+    seed: int = Field(0, ge=0, le=2**31 - 1)
+    checkpoint_every: int = Field(200, ge=1, le=MAX_STEPS)
+    metrics_every: int = Field(10, ge=1, le=MAX_STEPS)
+    # Validation renders during training (None: only at the end); at least every 10 steps, or it only renders.
+    val_every: int | None = Field(None, ge=10, le=MAX_STEPS)
     # Validation PSNR/SSIM (and occupancy metrics while one is learned) every this many seconds of training
     # time and at each phase's end; not counted as training time (workers/periodic_eval.py).
-    eval_every_s: float | None = Field(None, gt=0)
-    eval_views: int = Field(4, ge=1)
+    eval_every_s: float | None = Field(None, gt=0, le=86_400)
+    eval_views: int = Field(4, ge=1, le=1000)
     # Validation protocol (workers/appearance.py): right halves scored, appearance embeddings fitted on the left
     # halves for this many steps with the networks frozen (0: the mean of the training embeddings).
     val_appearance_steps: int = Field(32, ge=0, le=1000)
-    max_failures: int = Field(3, ge=0)  # worker-group restarts Ray Train may make from the last checkpoint
-    max_nonfinite_steps: int = Field(20, ge=1)  # consecutive skipped steps before the run fails
+    max_failures: int = Field(3, ge=0, le=100)  # worker-group restarts Ray Train may make from the last checkpoint
+    max_nonfinite_steps: int = Field(20, ge=1, le=10_000)  # consecutive skipped steps before the run fails
 
     @field_validator("profile")
     @classmethod

@@ -16,14 +16,23 @@ class OccupancyNetwork(nn.Module):
     """O: input layer, 2 inner layers, LayerNorm, output layer of n + 1 gate logits (the last is E_e).
     Its input layer's output also feeds the experts, as Switch-NeRF's shared input layer does."""
 
-    def __init__(self, num_scene_experts: int = 8, width: int = 256, xyz_frequencies: int = 12):
+    def __init__(self, num_scene_experts: int = 8, width: int = 256, xyz_frequencies: int = 12,
+                 inner_width: int | None = None):
+        """inner_width: O's own layers after the shared input layer (None: `width`, the paper's)."""
         super().__init__()
+        inner = inner_width or width
         self.xyz_encoding = FrequencyEncoding(xyz_frequencies)
         self.input_layer = nn.Linear(self.xyz_encoding.out_dim, width)
-        self.inner = nn.Sequential(nn.Linear(width, width), nn.ReLU(), nn.Linear(width, width))
-        self.norm = nn.LayerNorm(width)
-        self.output = nn.Linear(width, num_scene_experts + 1)
+        self.inner = nn.Sequential(nn.Linear(width, inner), nn.ReLU(), nn.Linear(inner, inner))
+        self.norm = nn.LayerNorm(inner)
+        self.output = nn.Linear(inner, num_scene_experts + 1)
         self.num_scene_experts = num_scene_experts
+
+    @property
+    def config(self) -> dict:
+        """The constructor's arguments, to rebuild O alone (model/occupancy.py)."""
+        return {"num_scene_experts": self.num_scene_experts, "width": self.input_layer.out_features,
+                "xyz_frequencies": len(self.xyz_encoding.freqs), "inner_width": self.norm.normalized_shape[0]}
 
     @property
     def empty_index(self) -> int:
@@ -61,13 +70,14 @@ class HMoE(nn.Module):
         homogeneous: bool = False,
         density_noise: float = 1.0,
         empty_gate_grad: bool = True,
+        gate_width: int | None = None,
     ):
         """homogeneous=True makes E_e a full expert (the paper's ablation) instead of an identity layer.
         empty_gate_grad=False detaches E_e's gate value where it scales E_e's output, so the rendering loss
         cannot lock a visible surface into E_e by raising that gate; L_g and L_d still train it."""
         super().__init__()
         self.empty_gate_grad = empty_gate_grad
-        self.gate = OccupancyNetwork(num_scene_experts, width, xyz_frequencies)
+        self.gate = OccupancyNetwork(num_scene_experts, width, xyz_frequencies, gate_width)
         self.dir_encoding = FrequencyEncoding(dir_frequencies)
         self.appearance = nn.Embedding(num_images, appearance_dim)
         self.scene_experts = nn.ModuleList(Expert(width, expert_layers) for _ in range(num_scene_experts))

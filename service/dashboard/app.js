@@ -63,7 +63,7 @@ async function showJobs() {
   const sceneName = Object.fromEntries(scenes.map(s => [s.id, s.name]));
   const rows = jobs.items.map(j => {
     const psnr = (j.latest_metrics[j.phase || ""] || {}).psnr;
-    return `<tr class="job-row" data-job="${j.id}" onclick="location.hash='#/jobs/${j.id}'">
+    return `<tr class="job-row" data-job="${j.id}">
       <td>${j.id}</td><td>${stateBadge(j.state)}</td><td>${esc(j.method)}</td><td>${esc(sceneName[j.scene_id] || j.scene_id)}</td>
       <td>${esc(j.phase || "–")}</td><td>${progressBar(j.percent)} <span class="muted">${eta(j.eta_s)}</span></td>
       <td class="psnr">${fmt(psnr)}</td></tr>`;
@@ -71,6 +71,11 @@ async function showJobs() {
   view.innerHTML = `<h1>Jobs</h1><table id="jobs"><thead><tr><th>job</th><th>state</th><th>method</th><th>scene</th>
     <th>phase</th><th>progress</th><th>PSNR</th></tr></thead><tbody>${rows ||
     '<tr><td colspan="7" class="muted">No jobs yet: submit one with <code>leco submit</code>.</td></tr>'}</tbody></table>`;
+  // A listener, not an inline onclick: the Content-Security-Policy allows no inline script.
+  document.querySelector("#jobs tbody").addEventListener("click", event => {
+    const row = event.target.closest("tr.job-row");
+    if (row) location.hash = `#/jobs/${row.dataset.job}`;
+  });
   setStatus(`${jobs.total} jobs · updated ${new Date().toLocaleTimeString()}`);
   schedule(route);
 }
@@ -259,12 +264,14 @@ async function showCompare(sceneId) {
   const fetched = [];
   for (const job of jobs.items) {
     const series = name => getJson(`/v1/jobs/${job.id}/metrics?phase=main&name=${name}&max_points=2000`).then(m => m.series[0]);
-    const [val, train] = await Promise.all([series("val_psnr"), series("psnr")]);
-    fetched.push({ job, val: val && val.points.length ? val.points : null, train: train && train.points.length ? train.points : null });
+    const [val, train, samples, speed] = await Promise.all(["val_psnr", "psnr", "samples_per_ray", "rays_per_s"].map(series));
+    const mean = s => s && s.points.length ? s.points.reduce((a, p) => a + p.value, 0) / s.points.length : NaN;
+    fetched.push({ job, val: val && val.points.length ? val.points : null, train: train && train.points.length ? train.points : null,
+                   samplesPerRay: mean(samples), raysPerS: mean(speed) });
   }
   const useVal = fetched.some(f => f.train) && fetched.every(f => f.val || !f.train);
   const runs = fetched.filter(f => useVal ? f.val : f.train)
-    .map(f => ({ job: f.job, points: useVal ? f.val : smooth(f.train) }));
+    .map(f => ({ job: f.job, points: useVal ? f.val : smooth(f.train), samplesPerRay: f.samplesPerRay, raysPerS: f.raysPerS }));
   // Equal PSNR: the best smoothed PSNR that every run reached; each run's first training time at or above it.
   const target = runs.length ? Math.min(...runs.map(r => Math.max(...r.points.map(p => p.value)))) : null;
   const reach = r => (r.points.find(p => p.value >= target) || {}).wall_time_s ?? null;
@@ -282,12 +289,25 @@ async function showCompare(sceneId) {
       : "Training-batch PSNR of the main phase (moving average of 5 points; submit with eval_every_s for validation PSNR)"}
       against training time; LeCO's time includes its occupancy phase, as in the paper's Fig. 9.</p>
     <div class="card" id="compare-chart"><h3>PSNR against training time (s)</h3></div>
+    <h2>Speed against error</h2>
+    <p class="muted">Each job's last PSNR against its mean main-network samples per ray and rays/s (log scale); jobs of
+      one method at different sampling budgets (<code>leco bench --sweep</code> settings) trace its Pareto curve.</p>
+    <div class="row"><div class="card" id="pareto-samples"><h3>PSNR against samples per ray</h3></div>
+      <div class="card" id="pareto-speed"><h3>PSNR against rays/s</h3></div></div>
     <h2>Speed-up at equal PSNR${target === null ? "" : ` (${fmt(target)} dB, the best all runs reached)`}</h2>
     <table id="compare"><thead><tr><th>job</th><th>method</th><th>state</th><th>last PSNR</th><th>time to ${fmt(target)} dB (s)</th>
       <th>LeCO's speed-up</th></tr></thead><tbody>${rows || '<tr><td colspan="6" class="muted">no jobs with main-phase metrics yet</td></tr>'}</tbody></table>`;
   const card = document.getElementById("compare-chart");
   card.appendChild(lineChart(runs.map(r => ({ label: `${r.job.method} (job ${r.job.id})`, points: r.points })), { x: "wall_time_s" }));
   card.appendChild(legend(runs.map(r => `${r.job.method} (job ${r.job.id})`)));
+  const methods = [...new Set(runs.map(r => r.job.method))];
+  for (const [id, key, xLabel] of [["pareto-samples", "samplesPerRay", "samples per ray"], ["pareto-speed", "raysPerS", "rays/s"]]) {
+    const points = runs.map(r => ({ x: r[key], y: r.points[r.points.length - 1].value, group: r.job.method,
+                                    label: `${r.job.method} (job ${r.job.id}): ${fmt(r[key], 1)} ${xLabel}, ${fmt(r.points[r.points.length - 1].value)} dB` }));
+    const box = document.getElementById(id);
+    box.appendChild(scatterChart(points, { xLabel: `${xLabel} (log)`, logX: true, groups: methods }));
+    box.appendChild(legend(methods));
+  }
   setStatus(`${runs.length} runs on ${scene.name} · updated ${new Date().toLocaleTimeString()}`);
   if (runs.some(r => !TERMINAL.includes(r.job.state))) schedule(route);
 }

@@ -43,6 +43,41 @@ function lineChart(series, options) {
   return svg;
 }
 
+// Points as markers, one colour per group: scatterChart(points [{x, y, group, label}], {xLabel, logX, groups}).
+function scatterChart(points, options) {
+  const W = 420, H = 220, L = 52, R = 10, T = 10, B = 30;
+  const shown = points.filter(p => isFinite(p.x) && isFinite(p.y) && (!options.logX || p.x > 0));
+  const svg = document.createElementNS("http://www.w3.org/2000/svg", "svg");
+  svg.setAttribute("viewBox", `0 0 ${W} ${H}`);
+  svg.setAttribute("class", "chart scatter");
+  svg.dataset.points = String(shown.length);
+  if (!shown.length) {
+    svg.innerHTML = `<text x="${W / 2}" y="${H / 2}" text-anchor="middle">no finished points yet</text>`;
+    return svg;
+  }
+  const fx = options.logX ? Math.log10 : x => x;
+  let [x0, x1] = [Math.min(...shown.map(p => fx(p.x))), Math.max(...shown.map(p => fx(p.x)))];
+  let [y0, y1] = [Math.min(...shown.map(p => p.y)), Math.max(...shown.map(p => p.y))];
+  if (x1 === x0) { x0 -= 0.5; x1 += 0.5; }
+  if (y1 === y0) { y0 -= 0.5; y1 += 0.5; }
+  const sx = x => L + (fx(x) - x0) / (x1 - x0) * (W - L - R - 20) + 10;
+  const sy = y => H - B - 8 - (y - y0) / (y1 - y0) * (H - T - B - 16);
+  let body = `<line x1="${L}" y1="${H - B}" x2="${W - R}" y2="${H - B}" stroke="#ccc"/><line x1="${L}" y1="${T}" x2="${L}" y2="${H - B}" stroke="#ccc"/>`;
+  for (const f of [0, 0.5, 1]) {
+    const yv = y0 + f * (y1 - y0), xv = x0 + f * (x1 - x0);
+    body += `<text x="${L - 4}" y="${sy(yv) + 3}" text-anchor="end">${niceNumber(yv)}</text>`;
+    body += `<text x="${L + 10 + f * (W - L - R - 20)}" y="${H - B + 14}" text-anchor="middle">${niceNumber(options.logX ? 10 ** xv : xv)}</text>`;
+  }
+  body += `<text x="${(L + W - R) / 2}" y="${H - 3}" text-anchor="middle">${options.xLabel}</text>`;
+  const groups = options.groups || [...new Set(shown.map(p => p.group))];
+  for (const p of shown) {
+    const colour = COLORS[groups.indexOf(p.group) % COLORS.length];
+    body += `<circle cx="${sx(p.x).toFixed(1)}" cy="${sy(p.y).toFixed(1)}" r="4" fill="${colour}"><title>${p.label}</title></circle>`;
+  }
+  svg.innerHTML = body;
+  return svg;
+}
+
 function legend(labels) {
   const div = document.createElement("div");
   div.className = "legend";
