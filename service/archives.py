@@ -10,6 +10,7 @@ import lzma
 import os
 import shutil
 import stat
+import struct
 import tarfile
 import zipfile
 import zlib
@@ -26,6 +27,9 @@ class ArchiveError(ValueError):
 MAX_MEMBERS = 20_000
 MAX_TOTAL_BYTES = 2 * 2**30          # uncompressed, all members together
 MAX_RATIO = 200                       # uncompressed / compressed: beyond it we call it a zip bomb
+MAX_DEPTH = 32                        # folders in a member's path
+MAX_PATH_BYTES = 1024                 # a member's whole path (PATH_MAX is 4096), and 255 per component
+MAX_ZIP_DIRECTORY_BYTES = 64 * 2**20  # the central directory zipfile parses whole when it opens a zip
 
 CHUNK = 1 << 20
 # What a broken archive raises while we read it. tarfile and zipfile wrap only part of it: gzip and lzma
@@ -72,7 +76,7 @@ def extract_archive(archive: Path, dest: Path, *, max_members: int = MAX_MEMBERS
     dest.mkdir(parents=True)  # FileExistsError before the try: never remove a folder that was not ours
     try:
         with _reading():
-            handle, entries = _open_archive(archive)
+            handle, entries = _open_archive(archive, limits)
         with handle:
             with _reading():
                 plan = _plan(entries, limits)
@@ -84,13 +88,14 @@ def extract_archive(archive: Path, dest: Path, *, max_members: int = MAX_MEMBERS
     return tops[0] if len(tops) == 1 and tops[0].is_dir() else dest
 
 
-def _open_archive(archive: Path) -> tuple[tarfile.TarFile | zipfile.ZipFile, Iterator[Entry]]:
+def _open_archive(archive: Path, limits: Limits) -> tuple[tarfile.TarFile | zipfile.ZipFile, Iterator[Entry]]:
     # Tar first: is_zipfile looks for a zip directory near the end, which a plain tar whose last member is
     # a .zip also has; a tar header's checksum cannot pass on a zip's first bytes.
     if tarfile.is_tarfile(archive):
         tar = tarfile.open(archive, "r:*")
-        return tar, _tar_entries(tar)
+        return tar, _tar_entries(tar, limits)
     if zipfile.is_zipfile(archive):
+        _check_zip_directory(archive, limits)
         zf = zipfile.ZipFile(archive)
         return zf, _zip_entries(zf)
     with archive.open("rb") as f:
@@ -100,7 +105,7 @@ def _open_archive(archive: Path) -> tuple[tarfile.TarFile | zipfile.ZipFile, Ite
     raise ArchiveError("not a tar or zip archive")
 
 
-def _tar_entries(tar: tarfile.TarFile) -> Iterator[Entry]:
+def _tar_entries(tar: tarfile.TarFile, limits: Limits) -> Iterator[Entry]:
     for info in tar:  # lazily, so a member-count bomb stops at max_members + 1
         if info.issym():
             raise _refuse(info.name, f"symbolic links are not allowed (to {info.linkname!r})")
@@ -115,9 +120,36 @@ def _tar_entries(tar: tarfile.TarFile) -> Iterator[Entry]:
         yield Entry(info.name, info.isdir(), info.size if info.isreg() else 0,
                     lambda info=info: tar.extractfile(info))
     # tarfile stops at its end marker; reading on to the end lets gzip and xz check their CRCs, so a flipped
-    # byte in the data is refused here, before anything is written.
-    while tar.fileobj.read(CHUNK):
-        pass
+    # byte in the data is refused here, before anything is written. Whatever follows the end marker is
+    # decompressed too, so every byte of the stream counts against the limits (153 bytes of bzip2 can
+    # hide 64 MiB of zeros there).
+    stream = tar.fileobj
+    while stream.read(CHUNK):
+        limits.check_total("(data after the last member)", stream.tell(), "decompresses to")
+
+
+def _check_zip_directory(archive: Path, limits: Limits) -> None:
+    """Reads the end-of-central-directory record (zip64's too) ourselves, so a directory claiming millions
+    of entries or gigabytes is refused before zipfile parses it whole into memory."""
+    with archive.open("rb") as f:
+        f.seek(0, os.SEEK_END)
+        size = f.tell()
+        f.seek(max(0, size - (22 + 65535)))
+        tail = f.read()
+        at = tail.rfind(b"PK\x05\x06")
+        if at < 0 or len(tail) - at < 22:
+            return  # zipfile will call it corrupt
+        _, _, _, _, entries, directory, _, _ = struct.unpack("<4s4H2LH", tail[at:at + 22])
+        locator = tail[at - 20:at] if at >= 20 else b""
+        if (entries == 0xFFFF or directory == 0xFFFFFFFF) and locator.startswith(b"PK\x06\x07"):
+            f.seek(struct.unpack("<4sLQL", locator)[2])
+            record = f.read(56)
+            if len(record) == 56 and record.startswith(b"PK\x06\x06"):
+                entries, directory = struct.unpack("<4sQ2H2L4Q", record)[7:9]
+    if entries > limits.members:
+        raise ArchiveError(f"zip directory lists {entries:,} members; the limit is {limits.members:,}")
+    if directory > MAX_ZIP_DIRECTORY_BYTES:
+        raise ArchiveError(f"zip directory is {directory:,} bytes; the limit is {MAX_ZIP_DIRECTORY_BYTES:,}")
 
 
 def _zip_entries(zf: zipfile.ZipFile) -> Iterator[Entry]:
@@ -159,6 +191,11 @@ def _safe_parts(name: str) -> tuple[str, ...]:
     parts = tuple(p for p in name.replace("\\", "/").split("/") if p not in ("", "."))
     if ".." in parts:
         raise _refuse(name, "path leaves the archive ('..')")
+    shown = name if len(name) <= 200 else name[:200] + "..."
+    if len(parts) > MAX_DEPTH:
+        raise _refuse(shown, f"path is {len(parts)} folders deep; the limit is {MAX_DEPTH}")
+    if len(name.encode()) > MAX_PATH_BYTES or any(len(p.encode()) > 255 for p in parts):
+        raise _refuse(shown, f"path is longer than {MAX_PATH_BYTES} bytes or has a name over 255 bytes")
     return parts
 
 

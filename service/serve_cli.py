@@ -32,12 +32,34 @@ def db_upgrade(args: argparse.Namespace) -> int:
 
 
 def prepare(settings, upgrade_embedded: bool) -> None:
-    """The embedded default migrates for the user; any other database must already be at the schema."""
+    """The embedded default migrates for the user; any other database must already be at the schema. Then
+    whatever a crash left in the artifact store goes (staged files an hour old, blobs no row references)."""
     from service.db import check_schema, upgrade
 
     if upgrade_embedded and settings.embedded and settings.database_url is None:
         upgrade(settings.db_url)
     check_schema(settings.db_url)
+    collect_orphans(settings)
+
+
+def collect_orphans(settings) -> dict:
+    from service.store import ArtifactStore
+
+    if not settings.artifacts.is_dir():
+        return {"staged": 0, "blobs": 0, "bytes": 0}
+    removed = ArtifactStore(settings.db_url, settings.artifacts).collect_orphans()
+    if removed["staged"] or removed["blobs"]:
+        logging.getLogger("leco.store").warning(
+            "removed %d staged file(s) and %d unreferenced blob(s) (%d bytes) left by a crash",
+            removed["staged"], removed["blobs"], removed["bytes"])
+    return removed
+
+
+def db_gc(args: argparse.Namespace) -> int:
+    removed = collect_orphans(settings_from(args))
+    print(f"artifact store: removed {removed['staged']} staged file(s) and {removed['blobs']} unreferenced "
+          f"blob(s), {removed['bytes']:,} bytes")
+    return 0
 
 
 def start_ray(settings) -> None:
@@ -73,16 +95,17 @@ def serve(args: argparse.Namespace) -> int:
     logging.getLogger("alembic").setLevel(logging.WARNING)
     overrides = {}
     token = None
-    if not args.no_auth and not os.environ.get("LECO_API_TOKENS"):
+    if args.no_auth and not loopback(args.host):
+        raise SystemExit(f"leco serve: --no-auth with --host {args.host} would open the API to the network; "
+                         "use it only with a loopback host (127.0.0.1, ::1, localhost)")
+    if not args.no_auth and "LECO_API_TOKENS" not in os.environ:
         token = secrets.token_urlsafe(24)
         overrides["api_tokens"] = (token,)
     settings = settings_from(args, **overrides)
     prepare(settings, upgrade_embedded=True)
     if token:
         settings.data_dir.mkdir(parents=True, exist_ok=True)
-        path = settings.data_dir / TOKEN_FILE
-        path.write_text(token)
-        path.chmod(0o600)
+        write_private(settings.data_dir / TOKEN_FILE, token)
     start_ray(settings)
     app = create_app(settings)
     resume_generation(settings)
@@ -134,10 +157,13 @@ def dispatch(args: argparse.Namespace) -> int:
 
 
 def add_commands(commands) -> None:
-    db = commands.add_parser("db", help="database schema").add_subparsers(dest="action", required=True)
+    db = commands.add_parser("db", help="database schema and artifact store upkeep").add_subparsers(dest="action", required=True)
     up = db.add_parser("upgrade", help="apply the Alembic migrations (DATABASE_URL, or the embedded SQLite)")
     up.add_argument("--data-dir", help="embedded data folder (default: $LECO_DATA_DIR or ./leco-data)")
     up.set_defaults(func=db_upgrade)
+    gc = db.add_parser("gc", help="remove what a crash left in the artifact store (staged files, unreferenced blobs)")
+    gc.add_argument("--data-dir", help="embedded data folder (default: $LECO_DATA_DIR or ./leco-data)")
+    gc.set_defaults(func=db_gc)
 
     srv = commands.add_parser("serve", help="run the API, a dispatcher and a local Ray (SQLite by default)")
     srv.add_argument("--host", default="127.0.0.1")
@@ -156,3 +182,27 @@ def add_commands(commands) -> None:
     from service.client import add_submit
 
     add_submit(commands)
+
+
+def loopback(host: str) -> bool:
+    import ipaddress
+
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def write_private(path, text: str) -> None:
+    """Created 0600 from the first byte (never readable by others, not even briefly) and swapped in atomically."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    try:
+        with os.fdopen(fd, "w") as out:
+            out.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise

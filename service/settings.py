@@ -25,6 +25,12 @@ class Settings(BaseModel):
     keep_checkpoints: int = Field(2, ge=1)  # checkpoint artifacts kept per job (older ones are deleted)
     poll_cache_s: float = Field(0.5, ge=0)  # how old a polled job view or metrics answer may be (0: no cache)
     backend: Literal["ray", "local"] = "ray"  # local: one in-process worker without Ray (debugging, quick tests)
+    # Where a job runs, for the API's memory check (issue 17): the RAM one job may use (local: all its ranks
+    # together; cluster: one rank's worker), default this machine's RAM; in cluster mode the most workers and
+    # GPUs a job may ask for (unset GPUs: not checked).
+    slot_memory_mb: int = Field(default_factory=lambda: machine_memory_mb(), ge=1)
+    cluster_max_workers: int = Field(8, ge=1)
+    cluster_gpus: int | None = Field(None, ge=0)
 
     @property
     def db_url(self) -> str:
@@ -58,11 +64,23 @@ class Settings(BaseModel):
             values["artifact_root"] = Path(env["LECO_ARTIFACT_ROOT"])
         if env.get("LECO_RAY_JOBS_ADDRESS"):
             values["ray_address"] = env["LECO_RAY_JOBS_ADDRESS"]
-        if env.get("LECO_API_TOKENS"):
+        if "LECO_API_TOKENS" in env:
             values["api_tokens"] = tuple(t.strip() for t in env["LECO_API_TOKENS"].split(",") if t.strip())
+            if not values["api_tokens"]:  # set but blank must not mean "no auth"
+                raise ValueError("LECO_API_TOKENS is set but holds no token (only spaces or commas): set tokens, "
+                                 "or unset it and let `leco serve` make one")
         for key, name in (("max_upload_bytes", "LECO_MAX_UPLOAD_BYTES"), ("lease_s", "LECO_LEASE_S"),
                           ("max_attempts", "LECO_MAX_ATTEMPTS"), ("local_cpus", "LECO_LOCAL_CPUS"),
-                          ("backend", "LECO_BACKEND"), ("poll_cache_s", "LECO_POLL_CACHE_S")):
+                          ("backend", "LECO_BACKEND"), ("poll_cache_s", "LECO_POLL_CACHE_S"),
+                          ("slot_memory_mb", "LECO_SLOT_MEMORY_MB"), ("cluster_max_workers", "LECO_CLUSTER_MAX_WORKERS"),
+                          ("cluster_gpus", "LECO_CLUSTER_GPUS")):
             if env.get(name):
                 values[key] = env[name]
         return cls(**{**values, **overrides})
+
+
+def machine_memory_mb() -> int:
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2**20
+    except (ValueError, OSError, AttributeError):  # not POSIX: no check beyond the schema's bounds
+        return 2**31 - 1

@@ -19,7 +19,7 @@ from pathlib import Path
 from sqlalchemy import delete, func, select, text
 from sqlalchemy.orm import Session
 
-from service.db import transaction
+from service.db import reading, transaction
 from service.tables import ARTIFACT_KINDS, Artifact, utcnow
 from workers.store import StoreWriteError
 
@@ -109,7 +109,7 @@ class ArtifactStore:
     def _place(self, staged: Path, sha: str) -> None:
         target = self.blob_path(sha)
         try:
-            target.parent.mkdir(parents=True, exist_ok=True)
+            _make_dirs_durably(target.parent, Path(self.root))
             os.replace(staged, target)  # same bytes if it already existed: the rename is harmless
             _fsync_dir(target.parent)
         except OSError as error:
@@ -129,6 +129,30 @@ class ArtifactStore:
                     self.blob_path(sha).unlink(missing_ok=True)
         except OSError:
             pass  # best effort: an unreadable root fails the write itself, loudly, elsewhere
+
+    def collect_orphans(self, min_age_s: float = 3600.0) -> dict:
+        """Removes what a crash can leave behind: staged files older than `min_age_s` (a live write stages for
+        seconds) and blobs no row references (checked under the blob's lock, as `put` places and commits
+        under it, so a write in flight is never collected). Returns what it removed."""
+        import time
+
+        removed = {"staged": 0, "blobs": 0, "bytes": 0}
+        root, cutoff = Path(self.root), time.time() - min_age_s
+        for staged in (root / "tmp").glob("incoming-*") if (root / "tmp").is_dir() else []:
+            _unlink_counted(staged, removed, "staged", older_than=cutoff)
+        with reading(self.db_url) as session:  # one read for all; only unreferenced ones are re-checked
+            referenced = set(session.scalars(select(Artifact.sha256).distinct()))
+        for blob in root.glob("[0-9a-f][0-9a-f]/[0-9a-f][0-9a-f]/*"):
+            sha = blob.name
+            if len(sha) != 64 or blob.parent.parent.name != sha[:2] or blob.parent.name != sha[2:4]:
+                continue
+            if sha in referenced:
+                continue
+            with transaction(self.db_url) as session:
+                self._lock(session, sha)
+                if not session.scalar(select(func.count()).select_from(Artifact).where(Artifact.sha256 == sha)):
+                    _unlink_counted(blob, removed, "blobs")
+        return removed
 
     # ----- reading and deleting ----------------------------------------------------------------------
     def verified_path(self, meta: dict) -> Path:
@@ -171,6 +195,28 @@ def describe(row: Artifact) -> dict:
     return {"id": row.id, "job_id": row.job_id, "phase": row.phase, "kind": row.kind, "step": row.step,
             "name": row.name, "size": row.size, "sha256": row.sha256, "content_type": row.content_type,
             "created_at": row.created_at}
+
+
+def _unlink_counted(path: Path, removed: dict, kind: str, older_than: float | None = None) -> None:
+    try:
+        stat = path.stat()
+        if older_than is None or stat.st_mtime < older_than:
+            path.unlink()
+            removed[kind] += 1
+            removed["bytes"] += stat.st_size
+    except FileNotFoundError:  # another collector got there first
+        pass
+
+
+def _make_dirs_durably(folder: Path, root: Path) -> None:
+    """mkdir -p, then fsync the parent of every folder it created, so a crash cannot lose a blob's folder."""
+    missing = []
+    while not folder.exists() and folder != root and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
+    for created in reversed(missing):
+        created.mkdir(exist_ok=True)
+        _fsync_dir(created.parent)
 
 
 def _fsync_dir(path: Path) -> None:

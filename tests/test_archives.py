@@ -175,7 +175,9 @@ def test_too_many_members_are_refused(tmp_path, kind):
     members = [(f"scene/f{i}.txt", b"x") for i in range(5)]
     archive = (make_tar(tmp_path / "many", [file_info(n, d) for n, d in members]) if kind == "tar"
                else make_zip(tmp_path / "many", members))
-    assert refused(archive, tmp_path, max_members=3) == "member 'scene/f3.txt': archive holds more than 3 members"
+    expected = ("member 'scene/f3.txt': archive holds more than 3 members" if kind == "tar"
+                else "zip directory lists 5 members; the limit is 3")  # zip: from its end record, before parsing
+    assert refused(archive, tmp_path, max_members=3) == expected
     assert extract_archive(archive, tmp_path / "ok", max_members=5).name == "scene"
 
 
@@ -241,3 +243,45 @@ def test_an_archive_without_files_is_refused(tmp_path, kind):
     else:
         archive = make_zip(tmp_path / "empty.zip", [("scene/", b""), ("scene/.DS_Store", b"junk")])
     assert refused(archive, tmp_path) == "archive holds no files"
+
+
+# --- issue 17: bombs behind the end marker, huge zip directories, deep paths ---------------------------------
+
+@pytest.mark.parametrize("mode", ["w:bz2", "w:gz", "w:xz"])
+def test_data_after_the_tar_end_marker_counts_against_the_limits(tmp_path, mode):
+    import bz2
+    import gzip
+    import lzma
+
+    plain = io.BytesIO()
+    with tarfile.open(fileobj=plain, mode="w") as tf:
+        info, data = file_info("scene/a.txt", b"hello")
+        tf.addfile(info, io.BytesIO(data))
+    stream = plain.getvalue() + bytes(64 * 2**20)  # 64 MiB of zeros after the end marker
+    compress = {"w:bz2": bz2.compress, "w:gz": gzip.compress, "w:xz": lzma.compress}[mode]
+    (tmp_path / "bomb").write_bytes(compress(stream))
+    assert (tmp_path / "bomb").stat().st_size < 70_000
+    message = refused(tmp_path / "bomb", tmp_path)
+    assert message.startswith("member '(data after the last member)': archive decompresses to")
+    assert message.endswith("looks like a zip bomb")
+
+
+def test_a_zip_directory_listing_too_many_members_is_refused_before_it_is_parsed(tmp_path):
+    archive = make_zip(tmp_path / "many.zip", [(f"scene/f{i}.txt", b"x") for i in range(5)])
+    # A directory that claims 2**32 - 2 bytes: the end record is read, not the directory.
+    data = bytearray(archive.read_bytes())
+    end = data.rfind(b"PK\x05\x06")
+    data[end + 12:end + 16] = struct.pack("<L", 0xFFFFFFFE)
+    (tmp_path / "huge.zip").write_bytes(bytes(data))
+    assert refused(tmp_path / "huge.zip", tmp_path).startswith("zip directory is 4,294,967,294 bytes; the limit is")
+
+
+@pytest.mark.parametrize("kind", ["tar", "zip"])
+def test_deep_and_long_member_paths_are_refused_with_a_message_not_a_crash(tmp_path, kind):
+    deep = "scene/" + "d/" * 1300 + "f.txt"
+    long = "scene/" + "n" * 300 + ".txt"
+    for name, reason in ((deep, "folders deep; the limit is 32"), (long, "has a name over 255 bytes")):
+        archive = (make_tar(tmp_path / f"a-{len(name)}", [file_info(name)], "w") if kind == "tar"
+                   else make_zip(tmp_path / f"a-{len(name)}", [(name, b"x")]))
+        message = refused(archive, tmp_path)
+        assert reason in message and len(message) < 400

@@ -270,3 +270,27 @@ def test_unknown_format_and_missing_path(tmp_path):
         load_scene(tmp_path / "photo.jpg")
     with pytest.raises(SceneError, match="downscale must be a positive integer"):
         load_scene(tmp_path, downscale=0)
+
+
+# --- Paths that lead out of the scene folder (issue 17) -------------------------------------------------------
+
+def test_blender_file_path_outside_the_scene(blender, tmp_path):
+    shutil.copy(blender / "train" / "r_0.png", tmp_path / "elsewhere.png")
+    for target in ("../elsewhere", str(tmp_path / "elsewhere"), "../nothing-here"):
+        edit_json(blender / "transforms_train.json", lambda d: d["frames"][1].update(file_path=target))
+        error = expect(blender, "points outside the scene folder", "transforms_train.json")
+        assert error.problem == f"file_path (frame 1) {target!r} points outside the scene folder"
+
+
+def test_symlinks_out_of_the_scene_are_refused_in_every_format(blender, meganerf, llff, tmp_path):
+    cases = [(blender, blender / "train" / "r_2.png"), (meganerf, meganerf / "train" / "rgbs" / "000001.png"),
+             (meganerf, meganerf / "coordinates.pt"), (llff, llff / "images_8" / "image003.png"),
+             (llff, llff / "poses_bounds.npy")]
+    for i, (root, path) in enumerate(cases):
+        outside = tmp_path / f"outside-{i}{path.suffix}"
+        shutil.move(path, outside)
+        path.symlink_to(outside)
+        expect(root, "this file points outside the scene folder", path.name)
+        path.unlink()
+        shutil.move(outside, path)
+        load_scene(root)  # and back inside, it loads

@@ -154,9 +154,10 @@ def test_a_failing_artifact_root_fails_the_job_with_that_reason(fault, service_s
 def test_repeated_non_finite_losses_fail_the_job_and_keep_its_last_good_checkpoint(service_settings):
     api, dispatcher, thread = run_service(service_settings)
     try:
-        # A learning rate of 1e20 blows the weights up after the first step: every later loss is non-finite.
+        # A learning rate of 1e6 (the schema's largest) blows the weights up in a step or two: every later
+        # loss is non-finite.
         job_id = submit_switch(api, metrics_every=1, checkpoint_every=1, max_nonfinite_steps=5,
-                               overrides={"main_steps": 200, "lr": 1e20, "lr_final": 1e20})
+                               overrides={"main_steps": 200, "lr": 1e6, "lr_final": 1e6})
         job = wait_for(api, job_id, lambda j: j["state"] in ("succeeded", "failed"), timeout=300)
         assert job["state"] == "failed" and job["attempts"] == 1  # not retried: a retry would only repeat it
         assert "5 consecutive steps had a non-finite loss or gradient" in job["error"]

@@ -124,3 +124,36 @@ def test_sparse_points_from_ply(nerfstudio, binary):
     rewrite(nerfstudio, lambda d: d.update(ply_file_path="sparse_pc.ply"))
     scene = load_scene(nerfstudio)
     assert scene.bounds.source == "sparse_points" and len(scene.points) == 500
+
+
+@pytest.mark.parametrize("field", ["file_path", "ply_file_path"])
+def test_paths_outside_the_scene_are_refused_alike_whether_they_exist(nerfstudio, tmp_path, field):
+    """Issue 17: a named path that is absolute or climbs out is refused before it is opened, and the answer
+    does not tell whether the target exists."""
+    (tmp_path / "other").mkdir()
+    shutil.copy(nerfstudio / "images" / "r_0.png", tmp_path / "other" / "stolen.png")
+    messages = []
+    for target in ("/proc/self/environ", "../other/stolen.png", "../other/absent.png", "images/../../ns/../x"):
+        if field == "file_path":
+            rewrite(nerfstudio, lambda d: d["frames"][0].update(file_path=target))
+        else:
+            rewrite(nerfstudio, lambda d: d.update(ply_file_path=target))
+        with pytest.raises(SceneError) as info:
+            load_scene(nerfstudio)
+        assert info.value.path.name == "transforms.json"
+        where = " (frame 0)" if field == "file_path" else ""
+        assert info.value.problem == f"{field}{where} {target!r} points outside the scene folder"
+        messages.append(info.value.problem.replace(repr(target), "X"))
+    assert len(set(messages)) == 1  # existing, missing and unreadable targets answer the same
+
+
+def test_a_symlink_out_of_the_scene_is_refused_and_one_inside_is_followed(nerfstudio, tmp_path):
+    outside = tmp_path / "secret.png"
+    shutil.copy(nerfstudio / "images" / "r_1.png", outside)
+    (nerfstudio / "images" / "r_1.png").unlink()
+    (nerfstudio / "images" / "r_1.png").symlink_to(outside)
+    with pytest.raises(SceneError, match=r"file_path \(frame 1\) 'images/r_1.png' points outside the scene folder"):
+        load_scene(nerfstudio)
+    (nerfstudio / "images" / "r_1.png").unlink()
+    (nerfstudio / "images" / "r_1.png").symlink_to(nerfstudio / "images" / "r_2.png")  # inside: fine
+    assert len(load_scene(nerfstudio).train) > 0

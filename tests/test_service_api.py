@@ -71,6 +71,8 @@ def test_scenes_register_upload_list_show_delete(api, tiny_scene, tmp_path):
     ("broken-scene", 422, "unknown scene format"),
     ("empty", 422, "empty upload"),
     ("huge", 413, "limit"),
+    ("deep", 422, "folders deep; the limit is 32"),
+    ("trailing-bomb", 422, "looks like a zip bomb"),
 ])
 def test_bad_uploads_are_refused_and_nothing_is_stored(api, archive, status, message, tmp_path):
     buffer = io.BytesIO()
@@ -85,6 +87,20 @@ def test_bad_uploads_are_refused_and_nothing_is_stored(api, archive, status, mes
                 info.size = 4
                 tf.addfile(info, io.BytesIO(b"evil"))
         body = buffer.getvalue()
+    elif archive == "deep":
+        with tarfile.open(fileobj=buffer, mode="w") as tf:
+            info = tarfile.TarInfo("scene/" + "d/" * 1300 + "f.txt")
+            info.size = 1
+            tf.addfile(info, io.BytesIO(b"x"))
+        body = buffer.getvalue()
+    elif archive == "trailing-bomb":
+        import bz2
+
+        with tarfile.open(fileobj=buffer, mode="w") as tf:
+            info = tarfile.TarInfo("scene/a.txt")
+            info.size = 1
+            tf.addfile(info, io.BytesIO(b"x"))
+        body = bz2.compress(buffer.getvalue() + bytes(64 * 2**20))  # 64 MiB of zeros after the end marker
     elif archive == "noise":
         body = bytes(range(256)) * 10
     elif archive == "empty":
@@ -129,13 +145,26 @@ def spoil_pose(root):
     path.write_text(json.dumps(data))
 
 
+def spoil_file_path(root, target):
+    import json
+
+    path = root / "transforms_train.json"
+    data = json.loads(path.read_text())
+    data["frames"][1]["file_path"] = target
+    path.write_text(json.dumps(data))
+
+
 @pytest.mark.parametrize("spoil, message", [
     (spoil_pose, "camera pose (frame 1) has non-finite values"),
     (lambda root: (root / "train" / "r_1.png").write_bytes(png_claiming(60_000, 60_000)),
      "image claims more pixels than the 100 megapixel limit"),
     (lambda root: (root / "train" / "r_1.png").write_bytes((root / "train" / "r_1.png").read_bytes()[:300]),
      "image is unreadable"),
-], ids=["nan-pose", "huge-image-header", "truncated-image"])
+    (lambda root: spoil_file_path(root, "/proc/self/environ"),
+     "file_path (frame 1) '/proc/self/environ' points outside the scene folder"),
+    (lambda root: spoil_file_path(root, "../../../../../../etc/hostname"),
+     "file_path (frame 1) '../../../../../../etc/hostname' points outside the scene folder"),
+], ids=["nan-pose", "huge-image-header", "truncated-image", "absolute-file-path", "climbing-file-path"])
 def test_hostile_scene_contents_are_refused_with_the_file_named(api, lego_dir, spoil, message):
     answer = api.post("/v1/scenes/upload", params={"name": "hostile"}, content=lego_upload(lego_dir, spoil))
     assert answer.status_code == 422 and message in answer.json()["detail"], answer.text
@@ -289,9 +318,173 @@ def test_every_v1_route_needs_the_token_and_health_does_not(api):
             assert answer.status_code == 401, (method, path, headers)
         assert TOKEN not in answer.text
     assert anonymous.get("/healthz").json() == {"status": "ok"}
-    ready = anonymous.get("/readyz")
-    assert ready.json()["checks"]["database"].startswith("ok")
+    ready = anonymous.get("/readyz").json()["checks"]
+    assert ready["database"] == "up" and api.settings.db_url.split("://")[-1] not in str(ready)  # no URL, no path
     metrics = anonymous.get("/metrics").text
     assert 'leco_jobs{state="queued"} 0' in metrics and "leco_http_requests_total" in metrics
     openapi = anonymous.get("/openapi.json").json()
     assert "/v1/jobs/{job_id}/metrics" in openapi["paths"]
+
+
+def test_the_token_is_checked_and_the_body_capped_before_the_body_is_read(api):
+    """Issue 17: no token -> 401 whatever the body (malformed, huge); a token and a huge JSON body -> 413."""
+    from fastapi.testclient import TestClient
+
+    from service.api.gate import MAX_JSON_BODY
+
+    bare = TestClient(api.app)  # no Authorization header
+    for body in (b"{not json", b"x" * (8 * 2**20)):
+        answer = bare.post("/v1/jobs", content=body, headers={"content-type": "application/json"})
+        assert answer.status_code == 401 and answer.headers["www-authenticate"] == "Bearer", answer.text
+    answer = bare.post("/v1/scenes/upload", params={"name": "x"}, content=b"x" * 1000)
+    assert answer.status_code == 401
+    huge = api.post("/v1/jobs", content=b"{" + b" " * MAX_JSON_BODY + b"}", headers={"content-type": "application/json"})
+    assert huge.status_code == 413 and "limit" in huge.json()["detail"]
+
+    def chunks():  # no Content-Length: the size is counted as it arrives
+        for _ in range(MAX_JSON_BODY // 1024 + 2):
+            yield b" " * 1024
+
+    streamed = api.post("/v1/jobs", content=chunks(), headers={"content-type": "application/json"})
+    assert streamed.status_code == 413
+    assert api.post("/v1/jobs", content=b"{not json", headers={"content-type": "application/json"}).status_code == 422
+    assert api.get("/v1/jobs").status_code == 200  # and a proper request still goes through
+
+
+@pytest.mark.parametrize("field, value, named", [
+    ("overrides", {"network.width": 100000}, "network.width"),
+    ("overrides", {"occupancy.samples_per_ray": 1e6}, "occupancy.samples_per_ray"),
+    ("overrides", {"rays_per_device": 1e9}, "rays_per_device"),
+    ("overrides", {"grid.resolution": 1e5}, "grid.resolution"),
+    ("overrides", {"main_steps": 1e20}, "main_steps"),
+    ("overrides", {"lr": float("inf")}, "lr"),
+    ("overrides", {"occupancy.w_g": float("nan")}, "occupancy.w_g"),
+    ("seed", 10**23, "seed"),
+    ("val_every", 1, "val_every"),
+    ("max_failures", 10**9, "max_failures"),
+    ("budget_min", float("inf"), "budget_min"),
+    ("scene", "DIGITS", ""),  # 5,000 digits, more than Python parses into an int by default
+])
+def test_job_configs_are_bounded_on_both_sides_and_finite(api, field, value, named):
+    """Issue 17: every number has an upper bound and must be finite; 422 names the field, nothing is stored."""
+    import json
+
+    body = json.dumps({"scene": 1, "method": "leco", "profile": "smoke", field: value}).replace('"DIGITS"', "9" * 5000)
+    answer = api.post("/v1/jobs", content=body, headers={"content-type": "application/json"})
+    # The 5,000-digit id is not even JSON Python will parse: 400, "error parsing the body"; the rest 422.
+    assert answer.status_code == (400 if value == "DIGITS" else 422), answer.text
+    assert named in answer.text and "Traceback" not in answer.text
+    assert api.get("/v1/jobs").json()["items"] == []
+
+
+def test_a_job_that_cannot_fit_its_slot_is_refused_with_the_estimate(api):
+    """Issue 17: the API estimates a job's peak memory (model/memory_estimate.py) and refuses what cannot fit."""
+    scene = ready_scene(api)
+
+    def submit(**body):
+        return api.post("/v1/jobs", json={"scene": scene["id"], "method": "leco", "profile": "cpu", **body})
+
+    huge = submit(overrides={"network.width": 2048, "network.num_experts": 64, "network.expert_layers": 16})
+    assert huge.status_code == 422, huge.text
+    [problem] = huge.json()["detail"]
+    assert problem["loc"] == ["body", "overrides"] and "network.width" in problem["msg"] and "MiB" in problem["msg"]
+    api.app.state.settings = Settings(**{**api.settings.model_dump(), "slot_memory_mb": 1500})
+    assert submit().status_code == 201  # one cpu-profile rank: about 1.1 GiB
+    two = submit(workers=2)
+    assert two.status_code == 422 and "2 rank(s)" in two.json()["detail"][0]["msg"]
+    api.app.state.settings = Settings(**{**api.settings.model_dump(), "ray_address": "http://127.0.0.1:9",
+                                         "cluster_max_workers": 4, "cluster_gpus": 2})
+    many = submit(workers=6)
+    assert many.status_code == 422 and "at most 4" in many.json()["detail"][0]["msg"]
+    gpus = submit(workers=3, use_gpu=True)
+    assert gpus.status_code == 422 and "this cluster has 2 GPUs" in gpus.text
+    assert len(api.get("/v1/jobs").json()["items"]) == 1  # only the job that fits was stored
+
+
+@pytest.mark.parametrize("path", [
+    "/v1/jobs?scene=a%00b", "/v1/scenes/a%00b", "/v1/jobs/1/metrics?phase=m%00", "/v1/jobs/1/artifacts/a%00b",
+    "/v1/scenes/" + "9" * 5000, "/v1/jobs?scene=" + "9" * 5000, "/v1/jobs?limit=99999999999",
+    "/v1/jobs/1/metrics?after_step=99999999999", "/v1/jobs/99999999999", "/healthz?x=%00",
+])
+def test_nul_bytes_and_huge_numbers_in_paths_and_queries_are_4xx(api, path):
+    """Issue 17: these gave 500 on PostgreSQL (NUL in a string literal) or in int() (5,000 digits)."""
+    answer = api.get(path)
+    assert answer.status_code < 500, (path, answer.status_code, answer.text[:200])
+    if "%00" in path:
+        assert answer.status_code == 422 and "NUL byte" in answer.json()["detail"]
+    elif "scene=" in path:
+        assert answer.json()["items"] == []  # a filter that matches nothing
+    else:
+        assert answer.status_code in (404, 422)
+
+
+def test_readyz_says_up_or_down_only_and_a_local_backend_needs_no_ray(service_settings):
+    from fastapi.testclient import TestClient
+
+    local = Settings(**{**service_settings.model_dump(), "backend": "local"})
+    with TestClient(create_app(local)) as client:
+        answer = client.get("/readyz")
+        assert answer.status_code == 200
+        assert answer.json() == {"ready": True, "checks": {"database": "up", "ray": "not used (LECO_BACKEND=local)"}}
+    down = Settings(**{**service_settings.model_dump(), "ray_address": "http://127.0.0.1:9"})
+    with TestClient(create_app(down)) as client:
+        answer = client.get("/readyz")
+        assert answer.status_code == 503 and answer.json()["checks"] == {"database": "up", "ray": "down"}
+        assert "127.0.0.1:9" not in answer.text
+
+
+def test_no_auth_only_on_loopback_blank_tokens_refused_and_the_token_file_private(tmp_path, monkeypatch):
+    import argparse
+    import stat
+
+    from service.serve_cli import loopback, serve, write_private
+
+    assert loopback("127.0.0.1") and loopback("::1") and loopback("localhost")
+    assert not loopback("0.0.0.0") and not loopback("10.0.0.5") and not loopback("example.org")
+    with pytest.raises(SystemExit, match="--no-auth with --host 0.0.0.0 would open the API"):
+        serve(argparse.Namespace(no_auth=True, host="0.0.0.0"))
+    monkeypatch.setenv("LECO_API_TOKENS", " , ")
+    with pytest.raises(ValueError, match="LECO_API_TOKENS is set but holds no token"):
+        Settings.from_env()
+    monkeypatch.setenv("LECO_API_TOKENS", "a, b")
+    assert Settings.from_env().api_tokens == ("a", "b")
+    path = tmp_path / "api-token"
+    path.write_text("old")
+    path.chmod(0o644)  # a file left readable by an earlier version is replaced, not reused
+    write_private(path, "secret")
+    assert path.read_text() == "secret" and stat.S_IMODE(path.stat().st_mode) == 0o600
+    assert [p.name for p in tmp_path.iterdir()] == ["api-token"]
+
+
+def test_security_headers_and_the_dashboards_content_security_policy(api):
+    for path in ("/dashboard/", "/dashboard/static/app.js", "/v1/jobs", "/healthz", "/v1/jobs?x=%00"):
+        headers = api.get(path).headers
+        assert headers["x-content-type-options"] == "nosniff" and headers["x-frame-options"] == "DENY", path
+    csp = api.get("/dashboard/").headers["content-security-policy"]
+    assert "script-src 'self';" in csp and "frame-ancestors 'none'" in csp and "unsafe-eval" not in csp
+    assert "script-src 'self' 'unsafe-inline'" not in csp
+    assert "<script>" not in api.get("/dashboard/").text  # every script is a file the policy allows
+
+
+def test_an_idempotent_job_and_its_recorded_answer_commit_together(api, monkeypatch):
+    """Issue 17: a failure between writing the job and recording the key's answer used to leave a job whose
+    key a retry would not find, so the retry made a second job. Now both roll back and the retry makes one."""
+    from fastapi.testclient import TestClient
+
+    from service.api import jobs
+
+    scene = ready_scene(api)
+    body = {"scene": scene["id"], "method": "grid", "profile": "smoke"}
+
+    def broken(session, key, status, payload):
+        raise RuntimeError("the database went away mid-commit")
+
+    monkeypatch.setattr(jobs, "record_answer", broken)
+    client = TestClient(api.app, raise_server_exceptions=False, headers={"Authorization": f"Bearer {TOKEN}"})
+    assert client.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k1"}).status_code == 500
+    assert api.get("/v1/jobs").json()["items"] == []  # the job rolled back with the answer
+    monkeypatch.undo()
+    first = api.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k1"})
+    again = api.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k1"})
+    assert first.status_code == 201 and again.json()["id"] == first.json()["id"]
+    assert again.headers["Idempotent-Replayed"] == "true" and api.get("/v1/jobs").json()["total"] == 1

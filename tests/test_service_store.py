@@ -86,3 +86,29 @@ def test_prune_keeps_the_newest_checkpoints(store_and_job):
     with reading(store.db_url) as session:
         assert sorted(session.scalars(select(Artifact.step))) == [30, 40]
     assert len(blobs(store.root)) == 2
+
+
+def test_what_a_crash_leaves_behind_is_collected_and_nothing_else(store_and_job):
+    """Issue 17: a staged file or a placed blob whose row never committed (a crash between the steps) is
+    removed by `collect_orphans` (`leco db gc`, and at start-up); stored artifacts and fresh staging stay."""
+    import os
+    import time
+
+    store, job = store_and_job
+    kept = store.put(job, "render", "a.png", b"kept bytes")
+    root = store.root
+    orphan_sha = "ab" * 32
+    orphan = store.blob_path(orphan_sha)
+    orphan.parent.mkdir(parents=True, exist_ok=True)
+    orphan.write_bytes(b"placed, never committed")
+    (root / "tmp").mkdir(exist_ok=True)
+    old, fresh = root / "tmp" / "incoming-old", root / "tmp" / "incoming-fresh"
+    old.write_bytes(b"x" * 10)
+    fresh.write_bytes(b"y")
+    hour_ago = time.time() - 7200
+    os.utime(old, (hour_ago, hour_ago))
+    removed = store.collect_orphans(min_age_s=3600)
+    assert removed == {"staged": 1, "blobs": 1, "bytes": 10 + len(b"placed, never committed")}
+    assert not orphan.exists() and not old.exists() and fresh.exists()
+    assert store.verified_path(kept).read_bytes() == b"kept bytes"
+    assert store.collect_orphans(min_age_s=3600) == {"staged": 0, "blobs": 0, "bytes": 0}

@@ -6,13 +6,14 @@ import logging
 import time
 from collections import Counter
 
-from fastapi import APIRouter, Depends, FastAPI, Request
+from fastapi import APIRouter, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from sqlalchemy.exc import InterfaceError, OperationalError
 
 from service.api import artifacts, dashboard, health, jobs, scenes
-from service.api.deps import require_token
+from service.api.gate import Gatekeeper
+from service.api.headers import SecurityHeaders
 from service.api.poll_cache import PollCache
 from service.db import check_schema, first_line
 from service.settings import Settings
@@ -58,13 +59,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.http_stats = {"count": Counter(), "seconds": 0.0, "started": time.monotonic()}
     app.state.poll_cache = PollCache(settings.poll_cache_s)
 
-    v1 = APIRouter(prefix="/v1", dependencies=[Depends(require_token)])
+    v1 = APIRouter(prefix="/v1")  # the token is checked by Gatekeeper, before the body is read
     for module in (scenes, jobs, artifacts):
         v1.include_router(module.router)
     app.include_router(v1)
     app.include_router(health.router)
     app.include_router(dashboard.router)
 
+    app.add_middleware(Gatekeeper)  # token, then body size, before any route reads the body
+    app.add_middleware(SecurityHeaders)
     app.add_middleware(RequestStats, stats=app.state.http_stats)
 
     @app.exception_handler(OperationalError)

@@ -1,8 +1,6 @@
-"""What every route needs: the settings, and bearer-token auth on /v1 when tokens are configured."""
+"""What every route needs: the settings and the poll cache (bearer-token auth is service/api/gate.py)."""
 
 from __future__ import annotations
-
-import hmac
 
 from typing import Annotated
 
@@ -20,20 +18,6 @@ async def settings_of(request: Request) -> Settings:
 
 def poll_cache_of(request: Request) -> PollCache:
     return request.app.state.poll_cache
-
-
-async def require_token(request: Request) -> None:
-    tokens = request.app.state.settings.api_tokens
-    if not tokens:
-        return
-    scheme, _, given = request.headers.get("authorization", "").partition(" ")
-    # Constant time, and every configured token is compared, so timing says nothing about which one nearly matched.
-    matched = False
-    for token in tokens:
-        matched |= hmac.compare_digest(given.strip().encode(), token.encode())
-    if scheme.lower() != "bearer" or not matched:
-        raise HTTPException(401, "missing or invalid bearer token (send 'Authorization: Bearer <token>')",
-                            headers={"WWW-Authenticate": "Bearer"})
 
 
 def not_found(what: str, ident) -> HTTPException:

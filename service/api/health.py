@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 
 from fastapi import APIRouter, Depends, Request
@@ -9,11 +10,12 @@ from fastapi.responses import JSONResponse, PlainTextResponse
 from sqlalchemy import func, select, text
 
 from service.api.deps import settings_of
-from service.db import check_schema, reading, redact
+from service.db import check_schema, first_line, reading
 from service.settings import Settings
 from service.tables import JOB_STATES, Artifact, Job
 
 router = APIRouter(tags=["health"])
+log = logging.getLogger("leco.api")
 
 
 @router.get("/healthz")
@@ -22,6 +24,7 @@ def healthz() -> dict:
 
 
 def ray_status(settings: Settings) -> tuple[bool, str]:
+    """(up, what to log): the cluster's Ray Jobs API, or the local Ray this process started."""
     if settings.ray_address:
         import os
         import urllib.request
@@ -31,27 +34,35 @@ def ray_status(settings: Settings) -> tuple[bool, str]:
             request.add_header("Authorization", f"Bearer {os.environ['RAY_AUTH_TOKEN']}")
         try:
             with urllib.request.urlopen(request, timeout=2) as answer:
-                return answer.status == 200, f"Ray Jobs API at {settings.ray_address}"
+                return answer.status == 200, f"Ray Jobs API answered {answer.status}"
         except OSError as error:
-            return False, f"Ray Jobs API at {settings.ray_address} unreachable: {error}"
+            return False, f"Ray Jobs API unreachable: {error}"
     import ray
 
-    return (ray.is_initialized(), "local Ray running" if ray.is_initialized() else "local Ray not started")
+    return ray.is_initialized(), "local Ray not started"
 
 
 @router.get("/readyz")
 def readyz(settings: Settings = Depends(settings_of)):
+    """Up or down per dependency and nothing more (issue 17: it used to show the database URL or path);
+    why a dependency is down goes to the log. With LECO_BACKEND=local no Ray is needed."""
     checks, ready = {}, True
     try:
         with reading(settings.db_url) as session:
             session.execute(text("SELECT 1"))
         check_schema(settings.db_url)
-        checks["database"] = f"ok ({redact(settings.db_url)})"
+        checks["database"] = "up"
     except Exception as error:
-        ready, checks["database"] = False, f"{type(error).__name__}: {error}".splitlines()[0]
-    ok, message = ray_status(settings)
-    ready &= ok
-    checks["ray"] = message
+        ready, checks["database"] = False, "down"
+        log.warning("readyz: database down: %s", first_line(error))
+    if settings.backend == "local" and not settings.ray_address:
+        checks["ray"] = "not used (LECO_BACKEND=local)"
+    else:
+        up, why = ray_status(settings)
+        ready &= up
+        checks["ray"] = "up" if up else "down"
+        if not up:
+            log.warning("readyz: ray down: %s", why)
     return JSONResponse({"ready": ready, "checks": checks}, 200 if ready else 503)
 
 

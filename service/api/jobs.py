@@ -14,6 +14,7 @@ from fastapi.responses import JSONResponse, Response
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 
+from model.memory_estimate import RUNTIME_BYTES, describe, estimate_peak_bytes
 from service import queue
 from service.api.deps import MAX_INT, RowId, not_found, poll_cache_of
 from service.api.scenes import find_scene
@@ -52,26 +53,50 @@ def job_out(session, job: Job) -> JobOut:
                   phases=[PhaseOut.model_validate(p, from_attributes=True) for p in phases])
 
 
-def check_resources(cfg: TrainConfig, settings: Settings) -> None:
-    if settings.ray_address:
-        return  # the cluster decides; a job that does not fit waits in Ray's queue
+def check_resources(cfg: TrainConfig, settings: Settings, num_images: int) -> None:
+    """Refuse, with 422 naming the fields, a job that cannot run where it would: more workers or GPUs than
+    there are, or a peak memory (model/memory_estimate.py) over the slot's RAM or a GPU's memory."""
     problems = []
-    if cfg.workers > settings.local_cpus:
-        problems.append({"loc": ["body", "workers"], "type": "value_error",
-                         "msg": f"{cfg.workers} workers asked for; this service's local Ray has {settings.local_cpus} CPUs"})
-    if cfg.use_gpu:
+
+    def problem(field: str, msg: str) -> None:
+        problems.append({"loc": ["body", field], "type": "value_error", "msg": msg})
+
+    cluster = settings.ray_address is not None
+    if cluster and cfg.workers > settings.cluster_max_workers:
+        problem("workers", f"{cfg.workers} workers asked for; this cluster gives a job at most {settings.cluster_max_workers}")
+    if not cluster and cfg.workers > settings.local_cpus:
+        problem("workers", f"{cfg.workers} workers asked for; this service's local Ray has {settings.local_cpus} CPUs")
+    gpu_memory = None
+    if cfg.use_gpu and cluster and settings.cluster_gpus is not None and cfg.workers > settings.cluster_gpus:
+        problem("use_gpu", f"{cfg.workers} GPU workers asked for; this cluster has {settings.cluster_gpus} GPUs")
+    if cfg.use_gpu and not cluster:
         import torch
 
         if not torch.cuda.is_available():
-            problems.append({"loc": ["body", "use_gpu"], "type": "value_error",
-                             "msg": "use_gpu asked for, but this service's local Ray has no GPU"})
+            problem("use_gpu", "use_gpu asked for, but this service's local Ray has no GPU")
+        else:
+            gpu_memory = torch.cuda.get_device_properties(0).total_memory
+    estimate = estimate_peak_bytes(cfg.method, cfg.resolved_profile(), num_images)
+    per_rank, mib = estimate["total"], lambda b: f"{b / 2**20:,.0f} MiB"
+    if gpu_memory is not None and per_rank - RUNTIME_BYTES > gpu_memory:
+        problem("overrides", f"the job needs about {mib(per_rank - RUNTIME_BYTES)} per GPU and a GPU here has "
+                             f"{mib(gpu_memory)}: {describe(estimate)}")
+    if not cfg.use_gpu:
+        ranks = 1 if cluster else cfg.workers  # a cluster worker is one rank; locally every rank is here
+        need, slot = ranks * per_rank, settings.slot_memory_mb * 2**20
+        if need > slot:
+            problem("overrides", f"the job needs about {mib(need)} ({ranks} rank(s) x {mib(per_rank)}) and a job "
+                                 f"here gets {mib(slot)}: {describe(estimate)}")
     if problems:
         raise HTTPException(422, problems)
 
 
-def create_job(body: JobRequest, settings: Settings) -> tuple[int, dict]:
+def create_job(body: JobRequest, settings: Settings, idempotency_key: str | None = None) -> tuple[int, dict]:
     cfg = body.train_config()
-    check_resources(cfg, settings)
+    with reading(settings.db_url) as session:  # the estimate runs outside the write transaction
+        scene = find_scene(session, body.scene)
+        cameras = None if scene is None else (scene.info or {}).get("cameras")
+    check_resources(cfg, settings, cameras or 1000)
     with transaction(settings.db_url) as session:
         scene = find_scene(session, body.scene)
         if scene is None:
@@ -80,7 +105,15 @@ def create_job(body: JobRequest, settings: Settings) -> tuple[int, dict]:
             raise HTTPException(409, f"scene {scene.name!r} failed to generate ({scene.error}); it cannot be trained")
         job = queue.submit(session, scene.id, cfg)
         session.flush()
-        return 201, jsonable_encoder(job_out(session, job))
+        payload = jsonable_encoder(job_out(session, job))
+        if idempotency_key is not None:  # the job and the key's answer commit together, or neither does
+            record_answer(session, idempotency_key, 201, payload)
+        return 201, payload
+
+
+def record_answer(session, key: str, status: int, payload: dict) -> None:
+    row = session.get(IdempotencyKey, key)
+    row.state, row.status_code, row.response = "done", status, payload
 
 
 @router.post("", status_code=201, response_model=JobOut, responses={
@@ -96,14 +129,14 @@ def submit(body: JobRequest, request: Request, idempotency_key: str | None = Hea
     if replay is not None:
         return replay
     try:
-        status, payload = create_job_or_error(body, settings)
+        status, payload = create_job_or_error(body, settings, idempotency_key)
     except BaseException:
         with transaction(settings.db_url) as session:  # an unexpected failure: let the client retry with this key
             session.execute(IdempotencyKey.__table__.delete().where(IdempotencyKey.key == idempotency_key))
         raise
-    with transaction(settings.db_url) as session:
-        row = session.get(IdempotencyKey, idempotency_key)
-        row.state, row.status_code, row.response = "done", status, payload
+    if status != 201:  # refused: no job was written, so the answer is recorded on its own
+        with transaction(settings.db_url) as session:
+            record_answer(session, idempotency_key, status, payload)
     return submitted(request, status, payload)
 
 
@@ -113,9 +146,9 @@ def submitted(request: Request, status: int, payload: dict) -> JSONResponse:
     return JSONResponse(payload, status)
 
 
-def create_job_or_error(body: JobRequest, settings: Settings) -> tuple[int, dict]:
+def create_job_or_error(body: JobRequest, settings: Settings, idempotency_key: str | None = None) -> tuple[int, dict]:
     try:
-        return create_job(body, settings)
+        return create_job(body, settings, idempotency_key)
     except HTTPException as error:
         return error.status_code, {"detail": error.detail}
 

@@ -28,6 +28,8 @@ def scene_out(row: Scene) -> SceneOut:
 
 def find_scene(session, ident: int | str) -> Scene | None:
     if isinstance(ident, int) or (str(ident).isascii() and str(ident).isdigit()):
+        if len(str(ident)) > 10:  # more digits than a 32-bit id has (and past what int() parses at 4,300)
+            return None
         number = int(ident)
         return session.get(Scene, number) if 0 < number <= MAX_INT else None
     return session.scalars(select(Scene).where(Scene.name == str(ident))).first()

@@ -4,7 +4,7 @@ the scene it trains: one schema from the API down to the loop."""
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -37,7 +37,8 @@ class SceneOut(BaseModel):
 class JobRequest(TrainConfig):
     """A job: the scene (id or name) and the training config. Unknown fields are refused."""
 
-    scene: int | str = Field(description="scene id or name")
+    scene: Annotated[int, Field(ge=1, le=2**31 - 1)] | Annotated[str, Field(pattern=NAME)] = Field(
+        description="scene id or name")
 
     def train_config(self) -> TrainConfig:
         return TrainConfig.model_validate(self.model_dump(exclude={"scene"}))

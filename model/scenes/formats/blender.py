@@ -10,6 +10,7 @@ import torch
 from model.scenes.errors import SceneError
 from model.scenes.formats.jsonfile import field, frames, number, opengl_pose, read_json
 from model.scenes.images import check_image_size, downscale_image, find_image, read_image
+from model.scenes.paths import named_file, scene_file
 from model.scenes.source import SourceScene, SplitBuilder, scale_intrinsics
 
 
@@ -20,6 +21,7 @@ def load_blender(root: Path, downscale: int, background: tuple[float, float, flo
         path = root / f"transforms_{split}.json"
         if not path.is_file():
             continue
+        scene_file(root, path)
         data = read_json(path)
         angle = number(path, data, "camera_angle_x")
         if not 0 < angle < math.pi:
@@ -27,7 +29,8 @@ def load_blender(root: Path, downscale: int, background: tuple[float, float, flo
         builder = SplitBuilder()
         for i, frame in enumerate(frames(path, data)):
             where = f" (frame {i})"
-            image_path = find_image(root / str(field(path, frame, "file_path", where)))
+            image_path = scene_file(root, find_image(named_file(root, field(path, frame, "file_path", where), path,
+                                                                f"file_path{where}")))
             image = read_image(image_path, background=background)
             h, w = image.shape[:2]
             size = size or (w, h)

@@ -12,6 +12,7 @@ from model.scenes.cameras import pixel_rays
 from model.scenes.errors import SceneError
 from model.scenes.formats.points import read_colmap_points
 from model.scenes.images import IMAGE_SUFFIXES, downscale_image, read_image
+from model.scenes.paths import scene_file
 from model.scenes.source import SourceScene, SplitBuilder, check_pose, rotate_source, up_alignment
 
 VAL_EVERY = 8  # LLFF's usual hold-out: every 8th image
@@ -44,7 +45,7 @@ def pick_folder(root: Path, downscale: int | None) -> tuple[Path, int, int]:
 
 
 def load_llff(root: Path, downscale: int | None) -> SourceScene:
-    path = root / "poses_bounds.npy"
+    path = scene_file(root, root / "poses_bounds.npy")
     try:
         array = np.load(path, allow_pickle=False)
     except Exception as exc:
@@ -54,7 +55,7 @@ def load_llff(root: Path, downscale: int | None) -> SourceScene:
     if not np.isfinite(array).all():
         raise SceneError(path, f"has non-finite values in row(s) {sorted(set(np.nonzero(~np.isfinite(array))[0].tolist()))}")
     folder, factor, extra = pick_folder(root, downscale)
-    files = sorted(p for p in folder.iterdir() if p.suffix in IMAGE_SUFFIXES)
+    files = sorted(scene_file(root, p) for p in folder.iterdir() if p.suffix in IMAGE_SUFFIXES)
     if len(files) != len(array):
         raise SceneError(folder, f"has {len(files)} images but poses_bounds.npy has {len(array)} poses")
 
@@ -81,7 +82,7 @@ def load_llff(root: Path, downscale: int | None) -> SourceScene:
 
     sparse = root / "sparse" / "0" / "points3D.bin"
     if sparse.is_file():
-        points, kind = read_colmap_points(sparse), "sparse_points"
+        points, kind = read_colmap_points(scene_file(root, sparse)), "sparse_points"
     else:
         points, kind = bound_points(splits, depth_bounds, files), "llff_bounds"
     source = SourceScene(

@@ -14,6 +14,7 @@ from torch import Tensor
 
 from model.scenes.errors import SceneError
 from model.scenes.images import check_image_size, downscale_depth, downscale_image, find_image, read_image
+from model.scenes.paths import scene_file
 from model.scenes.source import SourceScene, SourceSplit, SplitBuilder, check_intrinsics, check_pose, scale_intrinsics
 
 # Mega-NeRF's world is down-right-back (x down). DRB -> (east-like right, forward, up): a proper rotation.
@@ -28,7 +29,7 @@ def load_pt(path: Path) -> object:
 
 
 def read_coordinates(root: Path) -> tuple[Tensor, float]:
-    path = root / "coordinates.pt"
+    path = scene_file(root, root / "coordinates.pt")
     data = load_pt(path)
     if not isinstance(data, dict) or "origin_drb" not in data or "pose_scale_factor" not in data:
         raise SceneError(path, "must be a dict with 'origin_drb' and 'pose_scale_factor'")
@@ -78,8 +79,8 @@ def read_split(root: Path, split: str, origin: Tensor, scale: float, downscale: 
     meta_dir, rgb_dir = root / split / "metadata", root / split / "rgbs"
     builder = SplitBuilder()
     for meta_path in sorted(meta_dir.glob("*.pt")) if meta_dir.is_dir() else []:
-        meta = read_metadata(meta_path)
-        image_path = find_image(rgb_dir / meta_path.stem)
+        meta = read_metadata(scene_file(root, meta_path))
+        image_path = scene_file(root, find_image(rgb_dir / meta_path.stem))
         image = read_image(image_path)
         check_image_size(image_path, image, meta["W"], meta["H"])
         image = downscale_image(image, downscale)
@@ -88,7 +89,8 @@ def read_split(root: Path, split: str, origin: Tensor, scale: float, downscale: 
         c2w[:, 3] = origin + scale * c2w[:, 3]
         depth = None
         if with_depth:
-            depth = read_depth(root / "gt" / "depth" / split / f"{meta_path.stem}.npy", meta["H"], meta["W"])
+            depth = read_depth(scene_file(root, root / "gt" / "depth" / split / f"{meta_path.stem}.npy"), meta["H"],
+                               meta["W"])
             depth = downscale_depth(depth, downscale)
         intrinsics = scale_intrinsics(meta["intrinsics"], image, meta["W"], meta["H"])
         builder.add(meta_path.stem, image, intrinsics, DRB_TO_ZUP @ c2w, meta["distortion"], depth)
@@ -132,10 +134,10 @@ def load_meganerf(root: Path, downscale: int) -> SourceScene:
     extras = {"origin_drb": origin.tolist(), "pose_scale_factor": scale}
     occupied = aabb = None
     if (gt / "occupancy.npz").is_file():
-        occupied, aabb = read_occupancy(gt / "occupancy.npz")
+        occupied, aabb = read_occupancy(scene_file(root, gt / "occupancy.npz"))
     if (gt / "scene.json").is_file():
         try:
-            info = json.loads((gt / "scene.json").read_text())
+            info = json.loads(scene_file(root, gt / "scene.json").read_text())
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise SceneError(gt / "scene.json", f"malformed JSON ({exc})") from None
         extras["generator"] = {k: info[k] for k in ("generator", "preset", "seed") if k in info}

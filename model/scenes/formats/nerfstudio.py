@@ -10,6 +10,7 @@ from model.scenes.errors import SceneError
 from model.scenes.formats.jsonfile import field, frames, number, opengl_pose, read_json
 from model.scenes.formats.points import read_ply_points
 from model.scenes.images import check_image_size, downscale_image, read_image
+from model.scenes.paths import named_file, scene_file
 from model.scenes.source import SourceScene, SplitBuilder, check_intrinsics, rotate_source, scale_intrinsics, up_alignment
 
 SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
@@ -51,7 +52,7 @@ def split_of(data: dict, file_path: str, index: int) -> str:
 
 
 def load_nerfstudio(root: Path, downscale: int) -> SourceScene:
-    path = root / "transforms.json"
+    path = scene_file(root, root / "transforms.json")
     data = read_json(path)
     builders: dict[str, SplitBuilder] = {}
     for i, frame in enumerate(frames(path, data)):
@@ -59,7 +60,7 @@ def load_nerfstudio(root: Path, downscale: int) -> SourceScene:
         file_path = str(field(path, frame, "file_path", where))
         intrinsics, w, h, distortion = frame_camera(path, data, frame, where)
         c2w = opengl_pose(path, frame, where)
-        image_path = root / file_path
+        image_path = named_file(root, file_path, path, f"file_path{where}")
         if not image_path.is_file():
             raise SceneError(image_path, f"image is missing (listed in {path.name}{where})")
         image = read_image(image_path)
@@ -74,7 +75,7 @@ def load_nerfstudio(root: Path, downscale: int) -> SourceScene:
         raise SceneError(path, "no training frames: 'frames' is empty or no frame is in the train split")
     points = None
     if "ply_file_path" in data:
-        ply = root / str(data["ply_file_path"])
+        ply = named_file(root, data["ply_file_path"], path, "ply_file_path")
         if not ply.is_file():
             raise SceneError(ply, "sparse point file named by 'ply_file_path' is missing")
         points = read_ply_points(ply)

@@ -1,0 +1,32 @@
+"""Every file a scene is read from must lie inside the scene's folder once symlinks are followed: a
+transforms.json naming `/proc/self/environ` or `../other-scene/x.png`, or a symlink out of the folder, is
+refused before anything is opened, with the same message whether the target exists (so a dataset cannot probe
+which files the server has)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from model.scenes.errors import SceneError
+
+
+def inside(root: Path, path: Path, source: Path, what: str) -> Path:
+    """`path` itself when it resolves inside `root`; else a SceneError on `source` naming `what`."""
+    try:
+        contained = path.resolve().is_relative_to(root.resolve())
+    except (OSError, RuntimeError, ValueError):  # symlink loops, NUL bytes: not a file inside the scene either
+        contained = False
+    if not contained:
+        raise SceneError(source, f"{what} points outside the scene folder")
+    return path
+
+
+def named_file(root: Path, named: object, source: Path, what: str) -> Path:
+    """root / named for a path the dataset file `source` names in field `what` (relative to root)."""
+    text = str(named)
+    return inside(root, root / text, source, f"{what} {text[:200]!r}")
+
+
+def scene_file(root: Path, path: Path) -> Path:
+    """A file found by its place in the layout (a glob, a fixed name): refused if a symlink leads out."""
+    return inside(root, path, path, "this file")

@@ -1,0 +1,78 @@
+"""The door of /v1, before any route reads a byte of the body: the bearer token first (401), then the body's
+size (413); and for every route, no NUL byte in the path or query string (422). FastAPI parses a JSON body
+before it runs a route's dependencies, so a token check there let a request with no token and a malformed or
+huge body get 422, buffered and parsed whole. This is the only token check. A plain ASGI middleware, like
+RequestStats, so polling pays nothing for it."""
+
+from __future__ import annotations
+
+import hmac
+import json
+
+MAX_JSON_BODY = 64 * 1024  # a job request with every override is a few KiB
+STREAMED = {("POST", "/v1/scenes/upload")}  # the route streams its body and caps it at LECO_MAX_UPLOAD_BYTES
+
+
+def token_ok(tokens: tuple[str, ...], authorization: str) -> bool:
+    if not tokens:
+        return True
+    scheme, _, given = authorization.partition(" ")
+    # Constant time, and every configured token is compared, so timing says nothing about which one nearly matched.
+    matched = False
+    for token in tokens:
+        matched |= hmac.compare_digest(given.strip().encode(), token.encode())
+    return scheme.lower() == "bearer" and matched
+
+
+class Gatekeeper:
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        query = scope.get("query_string", b"").lower()
+        if "\0" in scope["path"] or b"%00" in query or b"\0" in query:
+            # No name, id or filter of ours holds a NUL, and PostgreSQL refuses one in any string (a 500).
+            return await answer(send, 422, "the request's path or query string holds a NUL byte")
+        if not scope["path"].startswith("/v1/"):
+            return await self.app(scope, receive, send)
+        settings = scope["app"].state.settings
+        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
+        if not token_ok(settings.api_tokens, headers.get("authorization", "")):
+            return await answer(send, 401, "missing or invalid bearer token (send 'Authorization: Bearer <token>')",
+                                {"www-authenticate": "Bearer"})
+        streamed = (scope["method"], scope["path"]) in STREAMED
+        limit = settings.max_upload_bytes if streamed else MAX_JSON_BODY
+        declared = headers.get("content-length", "")
+        if declared and (not declared.isdigit() or int(declared) > limit):
+            return await answer(send, 413, f"request body is {declared} bytes; the limit here is {limit}")
+        if streamed:
+            return await self.app(scope, receive, send)
+        body, more = b"", True
+        while more:  # small bodies only: read to the end (or past the limit) before the route sees any of it
+            message = await receive()
+            if message["type"] == "http.disconnect":
+                return
+            body += message.get("body", b"")
+            more = message.get("more_body", False)
+            if len(body) > limit:
+                return await answer(send, 413, f"request body exceeds the limit of {limit} bytes here")
+        replayed = False
+
+        async def replay():
+            nonlocal replayed
+            if not replayed:
+                replayed = True
+                return {"type": "http.request", "body": body, "more_body": False}
+            return await receive()
+
+        return await self.app(scope, replay, send)
+
+
+async def answer(send, status: int, detail: str, headers: dict | None = None) -> None:
+    payload = json.dumps({"detail": detail}).encode()
+    raw = [(b"content-type", b"application/json"), (b"content-length", str(len(payload)).encode())]
+    raw += [(k.encode(), v.encode()) for k, v in (headers or {}).items()]
+    await send({"type": "http.response.start", "status": status, "headers": raw})
+    await send({"type": "http.response.body", "body": payload})
