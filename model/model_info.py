@@ -27,7 +27,8 @@ def hmoe(profile: Profile, num_images: int) -> HMoE:
     n = profile.network
     return HMoE(num_images, n.width, n.num_experts, n.expert_layers, n.xyz_frequencies, n.dir_frequencies,
                 n.appearance_dim, profile.occupancy.homogeneous, n.density_noise,
-                profile.occupancy.empty_gate_grad, profile.occupancy.gate_width)
+                profile.occupancy.empty_gate_grad, profile.occupancy.gate_width,
+                profile.occupancy.gate_relu_every_layer)
 
 
 def background(profile: Profile, num_images: int) -> BackgroundField:

@@ -51,6 +51,7 @@ class OccupancyPhaseConfig(Frozen):
     w_v: float = Field(0.0, ge=0, le=1e4)  # visibility loss: visible samples (detached render weights) away from E_e
     empty_gate_grad: bool = True  # False: the rendering loss cannot raise E_e's gate (its value is detached)
     gate_width: int | None = Field(None, ge=8, le=2048)  # O's layers after the shared input layer; None: network.width
+    gate_relu_every_layer: bool = False  # O's path: a ReLU after every hidden layer, not only between its inner two
 
 
 class GuidedConfig(Frozen):

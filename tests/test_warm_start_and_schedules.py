@@ -93,3 +93,23 @@ def test_warm_started_leco_run_starts_its_main_phase_where_phase_one_ended(tiny_
         rows = read_metrics(tmp_path / f"run-{warm}" / "metrics.jsonl")
         first_main_loss[warm] = [r for r in rows if r["phase"] == "main"][0]["rendering_loss"]
     assert first_main_loss[True] < 0.7 * first_main_loss[False]
+
+
+def test_relu_on_every_layer_of_o_is_a_different_function_that_saves_and_loads(tiny_scene, tmp_path):
+    from model.occupancy import OccupancyPredictor
+
+    overrides = {"occupancy.gate_relu_every_layer": True}
+    profile = TrainConfig(method="leco", profile="smoke", overrides=overrides).resolved_profile()
+    hmoe = RunModels("leco", profile, tiny_scene.num_images, tiny_scene.bounds.aabb, 0).hmoe
+    plain = RunModels("leco", TrainConfig(method="leco", profile="smoke").resolved_profile(), tiny_scene.num_images,
+                      tiny_scene.bounds.aabb, 0).hmoe
+    plain.gate.load_state_dict(hmoe.gate.state_dict())  # same keys and weights: only the activations differ
+    xyz = torch.rand(500, 3) * 2 - 1
+    with torch.no_grad():
+        assert (hmoe.gate(xyz) - plain.gate(xyz)).abs().max() > 1e-3
+    predictor = OccupancyPredictor.from_hmoe(hmoe, empty_threshold=0.9)
+    predictor.save(tmp_path / "o.pt")
+    loaded = OccupancyPredictor.load(tmp_path / "o.pt", empty_threshold=0.9)
+    assert loaded.network.relu_every_layer
+    with torch.no_grad():
+        assert torch.equal(loaded.network(xyz), hmoe.gate(xyz))

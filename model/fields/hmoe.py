@@ -17,10 +17,14 @@ class OccupancyNetwork(nn.Module):
     Its input layer's output also feeds the experts, as Switch-NeRF's shared input layer does."""
 
     def __init__(self, num_scene_experts: int = 8, width: int = 256, xyz_frequencies: int = 12,
-                 inner_width: int | None = None):
-        """inner_width: O's own layers after the shared input layer (None: `width`, the paper's)."""
+                 inner_width: int | None = None, relu_every_layer: bool = False):
+        """inner_width: O's own layers after the shared input layer (None: `width`, the paper's).
+        relu_every_layer: O's path also applies a ReLU after the shared input layer and after its second inner
+        layer; without it (the paper's layer list as we read it) the input layer and the first inner layer
+        compose to one linear map, so O has a single hidden nonlinearity. The experts' input is unchanged."""
         super().__init__()
         inner = inner_width or width
+        self.relu_every_layer = relu_every_layer
         self.xyz_encoding = FrequencyEncoding(xyz_frequencies)
         self.input_layer = nn.Linear(self.xyz_encoding.out_dim, width)
         self.inner = nn.Sequential(nn.Linear(width, inner), nn.ReLU(), nn.Linear(inner, inner))
@@ -32,7 +36,8 @@ class OccupancyNetwork(nn.Module):
     def config(self) -> dict:
         """The constructor's arguments, to rebuild O alone (model/occupancy.py)."""
         return {"num_scene_experts": self.num_scene_experts, "width": self.input_layer.out_features,
-                "xyz_frequencies": len(self.xyz_encoding.freqs), "inner_width": self.norm.normalized_shape[0]}
+                "xyz_frequencies": len(self.xyz_encoding.freqs), "inner_width": self.norm.normalized_shape[0],
+                "relu_every_layer": self.relu_every_layer}
 
     @property
     def empty_index(self) -> int:
@@ -40,7 +45,10 @@ class OccupancyNetwork(nn.Module):
 
     def features_and_logits(self, xyz: Tensor) -> tuple[Tensor, Tensor]:
         h = self.input_layer(self.xyz_encoding(xyz))
-        z = self.norm(self.inner(h))
+        if self.relu_every_layer:  # functional, so the state dict's keys do not depend on the setting
+            z = self.norm(torch.relu(self.inner(torch.relu(h))))
+        else:
+            z = self.norm(self.inner(h))
         with torch.autocast(device_type=z.device.type, enabled=False):
             return h, self.output(z.float())
 
@@ -71,13 +79,14 @@ class HMoE(nn.Module):
         density_noise: float = 1.0,
         empty_gate_grad: bool = True,
         gate_width: int | None = None,
+        gate_relu_every_layer: bool = False,
     ):
         """homogeneous=True makes E_e a full expert (the paper's ablation) instead of an identity layer.
         empty_gate_grad=False detaches E_e's gate value where it scales E_e's output, so the rendering loss
         cannot lock a visible surface into E_e by raising that gate; L_g and L_d still train it."""
         super().__init__()
         self.empty_gate_grad = empty_gate_grad
-        self.gate = OccupancyNetwork(num_scene_experts, width, xyz_frequencies, gate_width)
+        self.gate = OccupancyNetwork(num_scene_experts, width, xyz_frequencies, gate_width, gate_relu_every_layer)
         self.dir_encoding = FrequencyEncoding(dir_frequencies)
         self.appearance = nn.Embedding(num_images, appearance_dim)
         self.scene_experts = nn.ModuleList(Expert(width, expert_layers) for _ in range(num_scene_experts))
