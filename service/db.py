@@ -6,7 +6,6 @@ PostgreSQL is selected by DATABASE_URL. Migrations are applied only by `leco db 
 from __future__ import annotations
 
 import logging
-import os
 import time
 from contextlib import contextmanager
 from functools import lru_cache
@@ -91,16 +90,13 @@ def reading(url: str) -> Iterator[Session]:
 class DatabaseUnavailable(StoreWriteError):
     """The database did not answer within the retry budget."""
 
-
-def retry_budget_s() -> float:
-    return float(os.environ.get("LECO_DB_RETRY_S", "120"))
+    retryable = True
 
 
-def retrying(what: str, call: Callable[[], T], budget_s: float | None = None) -> T:
+def retrying(what: str, call: Callable[[], T], budget_s: float) -> T:
     """Runs `call` (one whole transaction), again after a pause while the database is unavailable, for up to
-    `budget_s` seconds (LECO_DB_RETRY_S, default 120). The dispatcher and training use it so that a database
+    `budget_s` seconds (Settings.retry_s: LECO_DB_RETRY_S). The dispatcher and training use it so that a database
     restart pauses them instead of failing jobs; the API does not (it answers 503 at once)."""
-    budget_s = retry_budget_s() if budget_s is None else budget_s
     deadline, pause = time.monotonic() + budget_s, 0.2
     while True:
         try:

@@ -16,6 +16,26 @@ from sqlalchemy.orm import Session
 from service.db import transaction
 from service.tables import TERMINAL, Job, JobPhase, Scene, utcnow
 from workers.config import TrainConfig
+from workers.store import StoreWriteError
+
+
+class StaleAttempt(StoreWriteError):
+    """A write from an attempt that no longer holds its job (a later attempt claimed it, or it was deleted):
+    refused, nothing of it stored. The run stops; the attempt that holds the job goes on."""
+
+    retryable = True
+
+
+def hold(session: Session, job_id: int, attempt: int) -> None:
+    """The fence every write of a run passes inside its own transaction: the job's row is locked (FOR UPDATE on
+    PostgreSQL; SQLite's BEGIN IMMEDIATE already serialises writers) and must still be at `attempt`, so a claim
+    cannot slip in between this check and the write's commit. Raises StaleAttempt otherwise."""
+    attempts = session.scalar(select(Job.attempts).where(Job.id == job_id).with_for_update())
+    if attempts is None:
+        raise StaleAttempt(f"job {job_id} was deleted: attempt {attempt}'s write was refused")
+    if attempts != attempt:
+        raise StaleAttempt(f"attempt {attempt} no longer holds job {job_id} (attempt {attempts} does): "
+                           "its write was refused")
 
 
 def submit(session: Session, scene_id: int, cfg: TrainConfig) -> Job:
@@ -156,7 +176,8 @@ def phase_started(db_url: str, job_id: int, attempt: int, phase: str) -> None:
     """Marks `phase` running and every phase before it succeeded (for the attempt that holds the job)."""
     now = utcnow()
     with transaction(db_url) as session:
-        if session.scalar(select(Job.attempts).where(Job.id == job_id, Job.state == "running")) != attempt:
+        hold(session, job_id, attempt)
+        if session.scalar(select(Job.state).where(Job.id == job_id)) != "running":
             return
         phases = session.scalars(select(JobPhase).where(JobPhase.job_id == job_id).order_by(JobPhase.position)).all()
         current = next((p.position for p in phases if p.name == phase), None)

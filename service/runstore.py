@@ -1,8 +1,13 @@
 """The service's side of workers.store.RunStore: a run's metrics go to the database (one row per
 (job, phase, metric, step), upserted), its files to the artifact store, and every step boundary asks the
-database whether the job was cancelled or its lease passed to another attempt (fencing by attempt number).
-While the database is unavailable, writes wait and retry (service.db.retrying) and the stop check lets the
-run go on; past the retry budget a write raises DatabaseUnavailable, a StoreWriteError that ends the run.
+database whether the job was cancelled or its lease passed to another attempt.
+
+Fencing (issue 17): every write carries the run's attempt and passes queue.hold inside its own transaction,
+so a write from an attempt that lost the job is refused (StaleAttempt) and stores nothing, and each row
+records the attempt that wrote it. While the database is unavailable, writes wait and retry
+(service.db.retrying, for Settings.retry_s) and the stop check lets the run go on; past that budget a write
+raises DatabaseUnavailable, and a run that has not reached the database for as long stops on its own: both
+happen before the lease can lapse (Settings.check_lease_and_retry), so no second attempt trains beside it.
 
 It holds only strings and numbers, so Ray pickles it to the workers; each process opens its own engine."""
 
@@ -30,8 +35,10 @@ class DatabaseRunStore:
     artifact_root: str
     job_id: int
     attempt: int
+    retry_s: float
     keep_checkpoints: int = 2
     _checked_at: float = field(default=0.0, repr=False)
+    _reached_at: float | None = field(default=None, repr=False)  # the last time the stop check got an answer
     _reason: str | None = field(default=None, repr=False)
 
     @property
@@ -41,28 +48,32 @@ class DatabaseRunStore:
     def resume(self, step: int) -> None:
         def forget() -> None:
             with transaction(self.db_url) as session:
+                queue.hold(session, self.job_id, self.attempt)
                 session.execute(delete(Metric).where(Metric.job_id == self.job_id, Metric.step > step))
 
-        retrying(f"forgetting job {self.job_id}'s metrics after step {step}", forget)
+        retrying(f"forgetting job {self.job_id}'s metrics after step {step}", forget, self.retry_s)
 
     def write(self, step: int, metrics: dict) -> None:
-        retrying(f"writing job {self.job_id}'s metrics of step {step}", lambda: self._write(step, metrics))
+        retrying(f"writing job {self.job_id}'s metrics of step {step}", lambda: self._write(step, metrics),
+                 self.retry_s)
 
     def _write(self, step: int, metrics: dict) -> None:
         phase = str(metrics.get("phase", "main"))
         wall = metrics.get("wall_time_s")
         rows = [{"job_id": self.job_id, "phase": phase, "name": name, "step": step, "value": float(value),
-                 "wall_time_s": wall}
+                 "wall_time_s": wall, "attempt": self.attempt}
                 for name, value in metrics.items()
                 if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)]
         with transaction(self.db_url) as session:
+            queue.hold(session, self.job_id, self.attempt)
             if rows:
                 dialect = postgresql if session.get_bind().dialect.name == "postgresql" else sqlite
                 insert = dialect.insert(Metric).values(rows)
                 session.execute(insert.on_conflict_do_update(
                     index_elements=["job_id", "phase", "name", "step"],
-                    set_={"value": insert.excluded.value, "wall_time_s": insert.excluded.wall_time_s}))
-            # Progress for `GET /v1/jobs/{id}`, only while this attempt holds the job.
+                    set_={"value": insert.excluded.value, "wall_time_s": insert.excluded.wall_time_s,
+                          "attempt": insert.excluded.attempt}))
+            # Progress for `GET /v1/jobs/{id}`, only while the job runs (not once it was handed back).
             progress = {"phase": phase, "step": step}
             if metrics.get("rays_per_s") is not None:
                 progress["rays_per_s"] = metrics["rays_per_s"]
@@ -77,25 +88,33 @@ class DatabaseRunStore:
     def artifact(self, kind: str, path: Path, *, name: str, phase: str | None, step: int | None) -> None:
         store = self.artifacts
         retrying(f"storing job {self.job_id}'s {name}",
-                 lambda: store.put(self.job_id, kind, name, Path(path), phase=phase, step=step))
+                 lambda: store.put(self.job_id, kind, name, Path(path), phase=phase, step=step, attempt=self.attempt),
+                 self.retry_s)
         if kind == "checkpoint":
             retrying(f"pruning job {self.job_id}'s checkpoints",
-                     lambda: store.prune(self.job_id, "checkpoint", self.keep_checkpoints))
+                     lambda: store.prune(self.job_id, "checkpoint", self.keep_checkpoints, self.attempt), self.retry_s)
 
     def phase_started(self, phase: str) -> None:
         retrying(f"starting job {self.job_id}'s {phase} phase",
-                 lambda: queue.phase_started(self.db_url, self.job_id, self.attempt, phase))
+                 lambda: queue.phase_started(self.db_url, self.job_id, self.attempt, phase), self.retry_s)
 
     def stop_reason(self) -> str | None:
         now = time.monotonic()
         if self._reason is None and now - self._checked_at >= STOP_CHECK_S:
             self._checked_at = now
+            self._reached_at = self._reached_at or now
             try:
                 with reading(self.db_url) as session:
                     row = session.execute(select(Job.state, Job.attempts, Job.cancel_requested)
                                           .where(Job.id == self.job_id)).first()
             except UNAVAILABLE:
-                return None  # the database is away: train on; the next write waits for it (retrying)
+                if now - self._reached_at < self.retry_s:
+                    return None  # the database is away: train on; the next write waits for it (retrying)
+                self._reason = (f"the database has not answered for {now - self._reached_at:.0f} s (LECO_DB_RETRY_S "
+                                f"is {self.retry_s:g} s): attempt {self.attempt} stops before its lease can pass "
+                                "to another attempt; the job resumes from its last stored checkpoint")
+                return self._reason
+            self._reached_at = now
             if row is None:
                 self._reason = f"job {self.job_id} was deleted"
             elif row.cancel_requested:

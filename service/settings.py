@@ -7,7 +7,7 @@ import os
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 
 class Settings(BaseModel):
@@ -19,7 +19,10 @@ class Settings(BaseModel):
     ray_address: str | None = None  # a Ray Jobs API address (http://head:8265) submits jobs to a cluster
     api_tokens: tuple[str, ...] = ()  # bearer tokens; none configured: /v1 is open (embedded default only)
     max_upload_bytes: int = Field(2 * 2**30, gt=0)
-    lease_s: float = Field(60.0, gt=0)  # a running job's lease; the dispatcher renews it every lease_s / 4
+    lease_s: float = Field(180.0, gt=0)  # a running job's lease; the dispatcher renews it every lease_s / 4
+    # How long training and the dispatcher wait out a database outage before giving up (None: two thirds of the
+    # lease). Must end before the lease can lapse (see `check_lease_and_retry`).
+    db_retry_s: float | None = Field(None, gt=0)
     max_attempts: int = Field(3, ge=1)  # claims of one job before an expired lease fails it
     local_cpus: int = Field(max(2, os.cpu_count() or 2), ge=1)  # the embedded Ray's CPUs: the most workers a job gets
     keep_checkpoints: int = Field(2, ge=1)  # checkpoint artifacts kept per job (older ones are deleted)
@@ -31,6 +34,23 @@ class Settings(BaseModel):
     slot_memory_mb: int = Field(default_factory=lambda: machine_memory_mb(), ge=1)
     cluster_max_workers: int = Field(8, ge=1)
     cluster_gpus: int | None = Field(None, ge=0)
+
+    @model_validator(mode="after")
+    def check_lease_and_retry(self) -> "Settings":
+        """A run whose writes wait out an outage longer than its lease could outlive it: another attempt claims
+        the job while the first still trains (issue 17, fencing). The last renewal may be a heartbeat period
+        (lease / 4) before the outage begins, so the wait must end within the other three quarters."""
+        if self.retry_s >= 0.75 * self.lease_s:
+            raise ValueError(
+                f"LECO_DB_RETRY_S ({self.retry_s:g} s) must be shorter than three quarters of LECO_LEASE_S "
+                f"({self.lease_s:g} s, renewed every {self.lease_s / 4:g} s): a run waiting out a database outage "
+                "could outlive its lease while a second attempt trains the same job. Lower LECO_DB_RETRY_S or "
+                "raise LECO_LEASE_S.")
+        return self
+
+    @property
+    def retry_s(self) -> float:
+        return self.db_retry_s if self.db_retry_s is not None else self.lease_s * 2 / 3
 
     @property
     def db_url(self) -> str:
@@ -69,14 +89,18 @@ class Settings(BaseModel):
             if not values["api_tokens"]:  # set but blank must not mean "no auth"
                 raise ValueError("LECO_API_TOKENS is set but holds no token (only spaces or commas): set tokens, "
                                  "or unset it and let `leco serve` make one")
-        for key, name in (("max_upload_bytes", "LECO_MAX_UPLOAD_BYTES"), ("lease_s", "LECO_LEASE_S"),
+        for key, name in (("max_upload_bytes", "LECO_MAX_UPLOAD_BYTES"), ("lease_s", "LECO_LEASE_S"), ("db_retry_s", "LECO_DB_RETRY_S"),
                           ("max_attempts", "LECO_MAX_ATTEMPTS"), ("local_cpus", "LECO_LOCAL_CPUS"),
                           ("backend", "LECO_BACKEND"), ("poll_cache_s", "LECO_POLL_CACHE_S"),
                           ("slot_memory_mb", "LECO_SLOT_MEMORY_MB"), ("cluster_max_workers", "LECO_CLUSTER_MAX_WORKERS"),
                           ("cluster_gpus", "LECO_CLUSTER_GPUS")):
             if env.get(name):
                 values[key] = env[name]
-        return cls(**{**values, **overrides})
+        try:
+            return cls(**{**values, **overrides})
+        except ValidationError as error:  # a plain message naming each setting (not "invalid job config")
+            problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'settings'}: {e['msg']}" for e in error.errors())
+            raise ValueError(f"invalid service settings: {problems}") from None
 
 
 def machine_memory_mb() -> int:

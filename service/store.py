@@ -19,6 +19,7 @@ from pathlib import Path
 from sqlalchemy import delete, func, select, text
 from sqlalchemy.orm import Session
 
+from service import queue
 from service.db import reading, transaction
 from service.tables import ARTIFACT_KINDS, Artifact, utcnow
 from workers.store import StoreWriteError
@@ -51,15 +52,18 @@ class ArtifactStore:
 
     # ----- writing -----------------------------------------------------------------------------------
     def put(self, job_id: int, kind: str, name: str, source: Path | bytes, *, phase: str | None = None,
-            step: int | None = None, content_type: str | None = None) -> dict:
+            step: int | None = None, content_type: str | None = None, attempt: int | None = None) -> dict:
         """Stores `source` as the job's (kind, name), replacing an earlier artifact of that name; returns its
-        metadata. Raises ArtifactError (nothing stored) when the bytes cannot be written."""
+        metadata. Raises ArtifactError (nothing stored) when the bytes cannot be written. With `attempt` (a run's
+        write), only while that attempt holds the job (queue.hold; else StaleAttempt and nothing stored)."""
         if kind not in ARTIFACT_KINDS:
             raise ValueError(f"artifact kind {kind!r}: expected one of {', '.join(ARTIFACT_KINDS)}")
         staged, sha, size = self._stage(source)
         replaced: str | None = None
         try:
             with transaction(self.db_url) as session:
+                if attempt is not None:
+                    queue.hold(session, job_id, attempt)
                 self._lock(session, sha)
                 self._place(staged, sha)
                 staged = None
@@ -72,7 +76,7 @@ class ArtifactStore:
                     replaced = row.sha256
                 row.phase, row.step, row.size, row.sha256 = phase, step, size, sha
                 row.content_type = content_type or content_type_for(name)
-                row.created_at = utcnow()
+                row.created_at, row.attempt = utcnow(), attempt
                 session.flush()
                 meta = describe(row)
         except BaseException:
@@ -183,9 +187,12 @@ class ArtifactStore:
             ids = list(session.scalars(select(Artifact.id).where(Artifact.job_id == job_id)))
         return self.delete(ids) if ids else 0
 
-    def prune(self, job_id: int, kind: str, keep: int) -> int:
-        """Keeps the `keep` newest artifacts of a kind (by step) for a job, deletes the rest."""
+    def prune(self, job_id: int, kind: str, keep: int, attempt: int | None = None) -> int:
+        """Keeps the `keep` newest artifacts of a kind (by step) for a job, deletes the rest (with `attempt`:
+        only while that attempt holds the job)."""
         with transaction(self.db_url) as session:
+            if attempt is not None:
+                queue.hold(session, job_id, attempt)
             ids = list(session.scalars(select(Artifact.id).where(Artifact.job_id == job_id, Artifact.kind == kind)
                                        .order_by(Artifact.step.desc(), Artifact.id.desc()).offset(keep)))
         return self.delete(ids) if ids else 0

@@ -111,6 +111,7 @@ class Metric(Base):
     step: Mapped[int] = mapped_column(Integer, primary_key=True)
     value: Mapped[float] = mapped_column(Float)
     wall_time_s: Mapped[float | None] = mapped_column(Float)  # training time of the run at this step
+    attempt: Mapped[int | None] = mapped_column(Integer)  # the attempt that wrote it (the fencing token)
 
 
 class Artifact(Base):
@@ -129,6 +130,7 @@ class Artifact(Base):
     sha256: Mapped[str] = mapped_column(String(64), index=True)
     content_type: Mapped[str] = mapped_column(String(128))
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    attempt: Mapped[int | None] = mapped_column(Integer)  # the attempt that wrote it (the fencing token)
 
 
 class IdempotencyKey(Base):

@@ -249,7 +249,7 @@ def test_metrics_filters_polling_and_downsampling(api):
     from service import queue
 
     assert queue.claim(api.settings.db_url, "test", 60) == (job["id"], 1)
-    store = DatabaseRunStore(api.settings.db_url, str(api.settings.artifacts), job["id"], 1)
+    store = DatabaseRunStore(api.settings.db_url, str(api.settings.artifacts), job["id"], 1, api.settings.retry_s)
     for step in range(1, 21):
         store.write(step, {"phase": "occupancy", "loss": 1.0 / step, "psnr": 10.0 + step, "phase_step": step,
                            "rays_per_s": 1000.0, "wall_time_s": 0.1 * step, "note": "text is skipped",

@@ -181,7 +181,7 @@ def submit_long(api: httpx.Client, topology: Topology) -> int:
 def test_a_ray_worker_killed_mid_phase_resumes_from_its_checkpoint(topology):
     with topology.client() as api:
         job_id = submit_long(api, topology)
-        pid_file = topology.data / "runs" / f"job-{job_id}" / "workers" / "rank1.pid"
+        pid_file = topology.data / "runs" / f"job-{job_id}" / "attempt-1" / "workers" / "rank1.pid"
         job = wait_for(api, job_id, lambda j: j["step"] >= 70 and pid_file.exists())
         killed = int(pid_file.read_text())
         os.kill(killed, signal.SIGKILL)  # a Ray train worker dies mid-phase

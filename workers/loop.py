@@ -43,6 +43,10 @@ class NonFiniteRun(RuntimeError):
 class StoreFailed(RuntimeError):
     """Rank 0 could not write to the launcher's store (StoreWriteError); every rank stops at a step boundary."""
 
+    def __init__(self, message: str, retryable: bool = False):
+        super().__init__(message)
+        self.retryable = retryable
+
 
 class RunStopped(RuntimeError):
     """The launcher asked the run to stop (a cancel, a lost lease); it stopped at a step boundary after a
@@ -75,6 +79,7 @@ class RankRun:
         self.sink = JsonlSink(self.run_dir / "metrics.jsonl") if session.rank == 0 else None
         self.store = store if session.rank == 0 else None
         self.store_error: str | None = None  # rank 0's first StoreWriteError; ends the run on every rank
+        self.store_retryable = False  # ... and whether another attempt could do better (StoreWriteError.retryable)
         self.periodic = PeriodicEval(self) if session.rank == 0 and cfg.eval_every_s else None
 
     # ----- checkpoints -------------------------------------------------------------------------------
@@ -116,12 +121,13 @@ class RankRun:
         try:
             getattr(self.store, method)(*args, **kwargs)
         except StoreWriteError as error:
-            self.store_error = str(error)
+            self.store_error, self.store_retryable = str(error), error.retryable
 
     def check_store(self) -> None:
         if any_rank(self.store_error is not None, self.device):
             raise StoreFailed(f"the run stopped because its store could not be written: {self.store_error}"
-                              if self.store_error else "rank 0 could not write to the run's store")
+                              if self.store_error else "rank 0 could not write to the run's store",
+                              self.store_retryable)
 
     def restore(self) -> bool:
         with self.session.resume_dir() as path:

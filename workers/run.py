@@ -36,6 +36,11 @@ class RunInterrupted(RunError):
     """The run's store asked it to stop (cancelled, lease lost); it stopped after a checkpoint."""
 
 
+class RunGaveUp(RunError):
+    """The run stopped because its store went away past its retries or another attempt holds the job: not a
+    failure of the job, which a later attempt resumes from its last stored checkpoint."""
+
+
 def end_cleanly(run: RankRun, run_dir: Path) -> None:
     """Runs the loop; failures that a retry would only repeat, and stop requests, end it with a record
     (rank 0) instead of an exception Ray Train would answer with a restart."""
@@ -43,7 +48,8 @@ def end_cleanly(run: RankRun, run_dir: Path) -> None:
         run.train()
     except (NonFiniteRun, StoreFailed) as error:
         if run.session.rank == 0:
-            write_json(run_dir / "failure.json", {"reason": str(error)})
+            write_json(run_dir / "failure.json",
+                       {"reason": str(error), "retryable": bool(getattr(error, "retryable", False))})
     except RunStopped as error:
         if run.session.rank == 0:
             write_json(run_dir / "stopped.json", {"reason": str(error)})
@@ -84,7 +90,7 @@ def device_for(use_gpu: bool) -> torch.device:
 def train_loop_per_worker(config: dict) -> None:
     """Ray Train entry point: every worker runs this."""
     cfg = TrainConfig.model_validate(config["train"])
-    session = RaySession()
+    session = RaySession(Path(config["resume_from"]) if config.get("resume_from") else None)
     run_dir = Path(config["run_dir"])
     write_pid(run_dir, session.rank)
     torch.set_num_threads(max(1, int(config.get("threads", 1))))
@@ -105,7 +111,8 @@ def ensure_ray(num_cpus: int) -> None:
         ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
 
 
-def fit_with_ray(cfg: TrainConfig, scene_dir: Path, run_dir: Path, store: RunStore | None) -> None:
+def fit_with_ray(cfg: TrainConfig, scene_dir: Path, run_dir: Path, store: RunStore | None,
+                 resume_from: Path | None) -> None:
     import ray.train
     from ray.train.torch import TorchTrainer
 
@@ -113,7 +120,8 @@ def fit_with_ray(cfg: TrainConfig, scene_dir: Path, run_dir: Path, store: RunSto
     trainer = TorchTrainer(
         train_loop_per_worker,
         train_loop_config={"train": cfg.model_dump(mode="json"), "scene": str(scene_dir), "run_dir": str(run_dir),
-                           "threads": threads, "store": store},
+                           "threads": threads, "store": store,
+                           "resume_from": str(resume_from) if resume_from else None},
         scaling_config=ray.train.ScalingConfig(num_workers=cfg.workers, use_gpu=cfg.use_gpu,
                                                resources_per_worker=None if cfg.use_gpu else {"CPU": 1}),
         # Same storage_path and name on a re-run: Ray Train hands the loop the last checkpoint (resume).
@@ -125,13 +133,15 @@ def fit_with_ray(cfg: TrainConfig, scene_dir: Path, run_dir: Path, store: RunSto
     trainer.fit()
 
 
-def fit_locally(cfg: TrainConfig, scene_dir: Path, run_dir: Path, store: RunStore | None) -> None:
+def fit_locally(cfg: TrainConfig, scene_dir: Path, run_dir: Path, store: RunStore | None,
+                resume_from: Path | None) -> None:
     if cfg.workers != 1:
         raise RunError(f"the local backend runs one worker, not {cfg.workers}: use --backend ray for more")
     if cfg.use_gpu and not torch.cuda.is_available():
         raise RunError("--gpu asked for, but this machine has no CUDA device")
     device = torch.device("cuda") if cfg.use_gpu else torch.device("cpu")
-    end_cleanly(RankRun(cfg, scene_dir, run_dir, LocalSession(run_dir / "checkpoints"), device, store), run_dir)
+    end_cleanly(RankRun(cfg, scene_dir, run_dir, LocalSession(run_dir / "checkpoints", resume_from), device,
+                         store), run_dir)
 
 
 def summarise(cfg: TrainConfig, run_dir: Path, evaluation: dict, attempt_s: float) -> dict:
@@ -171,9 +181,10 @@ def summarise(cfg: TrainConfig, run_dir: Path, evaluation: dict, attempt_s: floa
 
 def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, backend: str = "ray",
                  on_progress: Callable[[dict], None] | None = None, poll_s: float = 1.0,
-                 store: RunStore | None = None) -> dict:
+                 store: RunStore | None = None, resume_from: Path | None = None) -> dict:
     """Train (or resume) a run to the end, evaluate it, write summary.json and return it. With a `store`,
-    rank 0 also reports metrics, checkpoints and renders to it and stops when it asks (RunInterrupted)."""
+    rank 0 also reports metrics, checkpoints and renders to it and stops when it asks (RunInterrupted).
+    `resume_from`: a folder with a checkpoint's state.pt to start from while the run has none of its own."""
     started = time.perf_counter()
     scene_dir, run_dir = Path(scene_dir), Path(run_dir)
     from model.scenes import load_scene
@@ -186,7 +197,7 @@ def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, b
     if backend == "ray":
         ensure_ray(max(2, cfg.workers))  # in the main thread: Ray installs signal handlers there
     errors: list[BaseException] = []
-    worker = threading.Thread(target=lambda: _capture(errors, fit, cfg, scene_dir, run_dir, store), daemon=True)
+    worker = threading.Thread(target=lambda: _capture(errors, fit, cfg, scene_dir, run_dir, store, resume_from), daemon=True)
     worker.start()
     while worker.is_alive():
         worker.join(poll_s)
@@ -197,7 +208,8 @@ def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, b
     if errors:
         raise RunError(f"training failed: {errors[0]}") from errors[0]
     if (run_dir / "failure.json").exists():
-        raise RunError(json.loads((run_dir / "failure.json").read_text())["reason"])
+        failure = json.loads((run_dir / "failure.json").read_text())
+        raise (RunGaveUp if failure.get("retryable") else RunError)(failure["reason"])
     if (run_dir / "stopped.json").exists():
         raise RunInterrupted(json.loads((run_dir / "stopped.json").read_text())["reason"])
     evaluation = evaluate_run(run_dir)

@@ -21,10 +21,14 @@ class Session(Protocol):
 
 
 class RaySession:
-    def __init__(self):
+    """`seed`: a checkpoint folder to start from when Ray Train has none of its own yet (a later service
+    attempt resuming in a fresh folder; Ray Train V2 has no resume_from_checkpoint)."""
+
+    def __init__(self, seed: Path | None = None):
         import ray.train
 
         self._train = ray.train
+        self.seed = seed
         context = ray.train.get_context()
         self.rank, self.world_size = context.get_world_rank(), context.get_world_size()
 
@@ -32,7 +36,7 @@ class RaySession:
     def resume_dir(self) -> Iterator[Path | None]:
         checkpoint = self._train.get_checkpoint()
         if checkpoint is None:
-            yield None
+            yield self.seed
             return
         with checkpoint.as_directory() as path:
             yield Path(path)
@@ -43,17 +47,17 @@ class RaySession:
 
 
 class LocalSession:
-    """Keeps the latest checkpoint in `root/latest` (replaced atomically)."""
+    """Keeps the latest checkpoint in `root/latest` (replaced atomically); `seed` as for RaySession."""
 
     rank, world_size = 0, 1
 
-    def __init__(self, root: Path):
-        self.root = Path(root)
+    def __init__(self, root: Path, seed: Path | None = None):
+        self.root, self.seed = Path(root), seed
 
     @contextmanager
     def resume_dir(self) -> Iterator[Path | None]:
         latest = self.root / "latest"
-        yield latest if latest.is_dir() else None
+        yield latest if latest.is_dir() else self.seed
 
     def report(self, metrics: dict, checkpoint_dir: Path | None) -> None:
         if checkpoint_dir is None:

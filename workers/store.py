@@ -11,7 +11,10 @@ from typing import Protocol
 class StoreWriteError(RuntimeError):
     """A write the store cannot make, and retrying would not help (disk full, an unwritable artifact root, the
     database away for longer than its retries): the run stops on every rank at the next step boundary, keeping
-    its last checkpoint, and fails with this reason."""
+    its last checkpoint, and fails with this reason. `retryable` errors are not the run's fault (the store was
+    away, or another attempt now holds the job): the launcher hands the job on instead of failing it."""
+
+    retryable = False
 
 
 class RunStore(Protocol):

@@ -20,7 +20,7 @@ from service.api.deps import MAX_INT, RowId, not_found, poll_cache_of
 from service.api.scenes import find_scene
 from service.api.schemas import JobList, JobOut, JobRequest, MetricsOut, PhaseOut, Point, Series
 from service.db import reading, transaction
-from service.execute import run_dir_for
+from service.execute import job_dir_for
 from service.settings import Settings
 from service.store import ArtifactStore
 from service.tables import JOB_STATES, TERMINAL, IdempotencyKey, Job, JobPhase, Metric, utcnow
@@ -250,7 +250,7 @@ def delete_job(job_id: RowId, request: Request) -> None:
     with transaction(settings.db_url) as session:
         session.execute(Job.__table__.delete().where(Job.id == job_id, Job.state.in_(TERMINAL)))
     poll_cache_of(request).forget(job_id)
-    shutil.rmtree(run_dir_for(settings, job_id), ignore_errors=True)
+    shutil.rmtree(job_dir_for(settings, job_id), ignore_errors=True)
 
 
 def downsample(points: list, max_points: int) -> list:
