@@ -13,6 +13,8 @@ import io
 import mimetypes
 import os
 import tempfile
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -160,18 +162,26 @@ class ArtifactStore:
 
     # ----- reading and deleting ----------------------------------------------------------------------
     def verified_path(self, meta: dict) -> Path:
-        """The blob's path after checking its size and sha256 against the row."""
+        """The blob's path after checking its size and sha256 against the row. The hash is computed once per
+        file version and process (issue 17: a 1-byte Range request re-hashed a whole checkpoint every time);
+        a blob rewritten in place has a new inode or mtime and is hashed again."""
         path = self.blob_path(meta["sha256"])
         what = f"artifact {meta['id']} ({meta['name']})"
-        if not path.is_file():
-            raise CorruptArtifact(f"{what}: its bytes are missing from the artifact root")
+        try:
+            stat = path.stat()
+        except FileNotFoundError:
+            raise CorruptArtifact(f"{what}: its bytes are missing from the artifact root") from None
+        identity = (meta["sha256"], stat.st_dev, stat.st_ino, stat.st_mtime_ns, stat.st_size)
+        if stat.st_size == meta["size"] and _VERIFIED.seen(identity):
+            return path
         digest = hashlib.sha256()
         with path.open("rb") as f:
             while chunk := f.read(CHUNK):
                 digest.update(chunk)
-        if digest.hexdigest() != meta["sha256"] or path.stat().st_size != meta["size"]:
+        if digest.hexdigest() != meta["sha256"] or stat.st_size != meta["size"]:
             raise CorruptArtifact(f"{what}: stored bytes do not match their sha256 {meta['sha256']} "
                                   f"(found {digest.hexdigest()}): the file was corrupted after it was written")
+        _VERIFIED.add(identity)
         return path
 
     def delete(self, artifact_ids: list[int]) -> int:
@@ -196,6 +206,29 @@ class ArtifactStore:
             ids = list(session.scalars(select(Artifact.id).where(Artifact.job_id == job_id, Artifact.kind == kind)
                                        .order_by(Artifact.step.desc(), Artifact.id.desc()).offset(keep)))
         return self.delete(ids) if ids else 0
+
+
+class _Seen:
+    """A bounded set (least recently used out) of blob versions already hashed by this process."""
+
+    def __init__(self, size: int = 65_536):
+        self.size, self.items, self.lock = size, OrderedDict(), threading.Lock()
+
+    def seen(self, key: tuple) -> bool:
+        with self.lock:
+            if key in self.items:
+                self.items.move_to_end(key)
+                return True
+            return False
+
+    def add(self, key: tuple) -> None:
+        with self.lock:
+            self.items[key] = None
+            while len(self.items) > self.size:
+                self.items.popitem(last=False)
+
+
+_VERIFIED = _Seen()
 
 
 def describe(row: Artifact) -> dict:

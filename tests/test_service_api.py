@@ -262,7 +262,11 @@ def test_metrics_filters_polling_and_downsampling(api):
     polled = api.get(f"/v1/jobs/{job['id']}/metrics", params={"name": "loss", "after_step": 17}).json()["series"][0]
     assert [p["step"] for p in polled["points"]] == [18, 19, 20]
     thin = api.get(f"/v1/jobs/{job['id']}/metrics", params={"name": "psnr", "max_points": 4}).json()["series"][0]
-    assert [p["step"] for p in thin["points"]] == [1, 7, 14, 20] and thin["total_points"] == 20
+    assert [p["step"] for p in thin["points"]] == [1, 8, 14, 20] and thin["total_points"] == 20  # in SQL
+    for m in (2, 3, 7, 19, 20, 25):  # exactly min(m, n) points, the first and the last among them, no repeats
+        steps = [p["step"] for p in api.get(f"/v1/jobs/{job['id']}/metrics",
+                                             params={"name": "psnr", "max_points": m}).json()["series"][0]["points"]]
+        assert len(steps) == len(set(steps)) == min(m, 20) and steps[0] == 1 and steps[-1] == 20, (m, steps)
     one = api.get(f"/v1/jobs/{job['id']}/metrics", params={"name": "psnr", "max_points": 1}).json()["series"][0]
     assert [p["step"] for p in one["points"]] == [20]
     shown = api.get(f"/v1/jobs/{job['id']}").json()

@@ -48,6 +48,9 @@ def test_corrupted_or_missing_bytes_are_detected(store_and_job):
     meta = store.put(job, "render", "r.png", b"\x89PNG fake image")
     path = store.blob_path(meta["sha256"])
     os.chmod(path, 0o644)
+    assert store.verified_path(meta) == path  # hashed once ...
+    os.utime(path, ns=(1, 1))
+    assert store.verified_path(meta) == path  # ... and again for a new version of the file
     path.write_bytes(b"\x89PNG fake imagE")  # one flipped byte, same size
     with pytest.raises(CorruptArtifact, match="do not match their sha256"):
         store.verified_path(meta)
@@ -112,3 +115,19 @@ def test_what_a_crash_leaves_behind_is_collected_and_nothing_else(store_and_job)
     assert not orphan.exists() and not old.exists() and fresh.exists()
     assert store.verified_path(kept).read_bytes() == b"kept bytes"
     assert store.collect_orphans(min_age_s=3600) == {"staged": 0, "blobs": 0, "bytes": 0}
+
+
+def test_a_blob_is_hashed_once_per_version_not_per_download(store_and_job, monkeypatch):
+    import service.store
+
+    store, job = store_and_job
+    meta = store.put(job, "checkpoint", "c.pt", b"x" * 100_000)
+    hashed = []
+    real = hashlib.sha256
+    monkeypatch.setattr(service.store.hashlib, "sha256", lambda *a: hashed.append(1) or real(*a))
+    for _ in range(5):
+        store.verified_path(meta)  # five Range requests: one hash
+    assert len(hashed) == 1
+    os.utime(store.blob_path(meta["sha256"]), ns=(1, 1))  # a new version of the file: hashed again
+    store.verified_path(meta)
+    assert len(hashed) == 2

@@ -7,11 +7,10 @@ import json
 import shutil
 from datetime import timedelta
 
-import numpy as np
 from fastapi import APIRouter, Header, HTTPException, Query, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.responses import JSONResponse, Response
-from sqlalchemy import func, select
+from sqlalchemy import case, func, select, true
 from sqlalchemy.exc import IntegrityError
 
 from model.memory_estimate import RUNTIME_BYTES, describe, estimate_peak_bytes
@@ -253,16 +252,6 @@ def delete_job(job_id: RowId, request: Request) -> None:
     shutil.rmtree(job_dir_for(settings, job_id), ignore_errors=True)
 
 
-def downsample(points: list, max_points: int) -> list:
-    """Evenly spaced points, always keeping the first and the last."""
-    if len(points) <= max_points:
-        return points
-    if max_points == 1:
-        return [points[-1]]
-    index = np.unique(np.round(np.linspace(0, len(points) - 1, max_points)).astype(int))
-    return [points[i] for i in index]
-
-
 @router.get("/{job_id}/metrics", response_model=MetricsOut)
 async def metrics(job_id: RowId, request: Request, phase: str | None = None, name: list[str] | None = Query(None),
                   after_step: int = Query(-1, ge=-1, le=MAX_INT), max_points: int = Query(1000, ge=1, le=100_000)
@@ -279,18 +268,31 @@ async def metrics(job_id: RowId, request: Request, phase: str | None = None, nam
 
 def metrics_json(settings: Settings, job_id: int, phase: str | None, name: list[str] | None, after_step: int,
                  max_points: int) -> bytes:
+    # Downsampled in SQL (issue 17): a long job has hundreds of thousands of rows, and only max_points a series
+    # leave the database. Row i of a series of n is kept when (i * a) mod (n - 1) < a, a = max_points - 1: the
+    # first row at or after each of a + 1 evenly spaced positions, so the first and the last always.
+    series = (Metric.phase, Metric.name)
+    i = func.row_number().over(partition_by=series, order_by=Metric.step) - 1
+    inner = select(Metric.phase, Metric.name, Metric.step, Metric.value, Metric.wall_time_s, i.label("i"),
+                   func.count().over(partition_by=series).label("n")).where(
+        Metric.job_id == job_id, Metric.step > after_step)
+    if phase:
+        inner = inner.where(Metric.phase == phase)
+    if name:
+        inner = inner.where(Metric.name.in_(name))
+    t = inner.subquery()
+    a = max_points - 1
+    thinned = (t.c.i == t.c.n - 1) if a == 0 else ((t.c.i * a) % (t.c.n - 1) < a)
+    keep = case((t.c.n <= max_points, true()), else_=thinned)  # CASE: never a modulo by zero
     with reading(settings.db_url) as session:
         get_job(session, job_id)
-        query = select(Metric.phase, Metric.name, Metric.step, Metric.value, Metric.wall_time_s) \
-            .where(Metric.job_id == job_id, Metric.step > after_step)
-        if phase:
-            query = query.where(Metric.phase == phase)
-        if name:
-            query = query.where(Metric.name.in_(name))
-        rows = session.execute(query.order_by(Metric.phase, Metric.name, Metric.step)).all()
+        rows = session.execute(select(t.c.phase, t.c.name, t.c.step, t.c.value, t.c.wall_time_s, t.c.n)
+                               .where(keep).order_by(t.c.phase, t.c.name, t.c.step)).all()
     grouped: dict[tuple[str, str], list[Point]] = {}
-    for p, n, step, value, wall in rows:
+    totals: dict[tuple[str, str], int] = {}
+    for p, n, step, value, wall, total in rows:
         grouped.setdefault((p, n), []).append(Point(step=step, value=value, wall_time_s=wall))
+        totals[(p, n)] = total
     return MetricsOut(job_id=job_id, series=[
-        Series(phase=p, name=n, points=downsample(points, max_points), total_points=len(points))
+        Series(phase=p, name=n, points=points, total_points=totals[(p, n)])
         for (p, n), points in grouped.items()]).model_dump_json().encode()
