@@ -32,6 +32,15 @@ def submission_id(job_id: int, attempt: int) -> str:
     return f"leco-job-{job_id}-attempt-{attempt}"
 
 
+def cluster_env(s: Settings) -> dict[str, str]:
+    """The settings a Ray job's `service.execute` reads: where the data is, and the lease and retry budget the
+    dispatcher holds the job under (the run must give up on the database before this dispatcher's lease lapses)."""
+    return {"DATABASE_URL": s.db_url, "LECO_DATA_DIR": str(s.data_dir.resolve()),
+            "LECO_ARTIFACT_ROOT": str(s.artifacts), "LECO_BACKEND": s.backend,
+            "LECO_LEASE_S": repr(s.lease_s), "LECO_DB_RETRY_S": repr(s.retry_s),
+            "LECO_RAY_JOBS_ADDRESS": ""}  # inside the Ray job, train on the cluster it runs on
+
+
 class Dispatcher:
     def __init__(self, settings: Settings, slots: int = 1, poll_s: float = 1.0, owner: str | None = None):
         self.settings, self.slots, self.poll_s = settings, slots, poll_s
@@ -137,13 +146,9 @@ class Dispatcher:
             except RuntimeError:
                 pass  # never submitted
         sid = submission_id(job_id, attempt)
-        s = self.settings
-        env = {"DATABASE_URL": s.db_url, "LECO_DATA_DIR": str(s.data_dir.resolve()),
-               "LECO_ARTIFACT_ROOT": str(s.artifacts), "LECO_BACKEND": s.backend,
-               "LECO_RAY_JOBS_ADDRESS": ""}  # inside the Ray job, train on the cluster it runs on
         try:
             client.submit_job(entrypoint=f"python -m service.execute --job-id {job_id} --attempt {attempt}",
-                              submission_id=sid, runtime_env={"env_vars": env})
+                              submission_id=sid, runtime_env={"env_vars": cluster_env(self.settings)})
         except RuntimeError as error:
             if "already exists" not in str(error):
                 raise  # else: this very attempt was submitted before (a retried tick); follow it

@@ -33,6 +33,16 @@ def test_a_retry_budget_that_outlives_the_lease_is_refused_at_start_up(monkeypat
     assert Settings.from_env().retry_s == 40.0
 
 
+def test_a_ray_job_runs_under_the_lease_and_retry_budget_of_its_dispatcher(monkeypatch, tmp_path):
+    from service.dispatcher import cluster_env
+
+    dispatcher = Settings(data_dir=tmp_path, lease_s=30.0)  # as the topology test's dispatcher
+    for name, value in cluster_env(dispatcher).items():
+        monkeypatch.setenv(name, value)
+    job = Settings.from_env()
+    assert (job.lease_s, job.retry_s, job.db_url) == (30.0, 20.0, dispatcher.db_url)
+
+
 def claimed_job(settings: Settings) -> int:
     """A queued smoke job on a scene row, claimed once (attempt 1)."""
     with transaction(settings.db_url) as session:
