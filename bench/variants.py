@@ -39,7 +39,7 @@ ABLATIONS = {
 PAPER_FORMULATION = {
     "occupancy.lr_final": None, "occupancy.w_g_final": None, "occupancy.w_v": 0.0,
     "occupancy.empty_gate_grad": True, "guided.jitter": False, "guided.dilate": 0, "guided.fallback": False,
-    "guided.warm_start": False, "guided.split": 8, "guided.empty_threshold": None,
+    "guided.warm_start": False, "guided.split": 8, "guided.empty_threshold": None, "guided.online": False,
 }
 
 # The ablation ladder: from the paper's formulation, one change at a time (cumulative) up to the `cpu`
@@ -53,7 +53,8 @@ RUNGS: list[tuple[str, str, dict]] = [
     ("leco-rung-jitter", "+ jittered O queries", {"guided.jitter": True}),
     ("leco-rung-dilate-1", "+ dilation by 1 bin, split 8 -> 4", {"guided.dilate": 1, "guided.split": 4}),
     ("leco-rung-dilate-2", "+ dilation by 2 bins", {"guided.dilate": 2}),
-    ("leco", "+ keep p(E_e) < 0.9, not O's top-1 (the cpu defaults)", {"guided.empty_threshold": 0.9}),
+    ("leco-rung-threshold", "+ keep p(E_e) < 0.9, not O's top-1", {"guided.empty_threshold": 0.9}),
+    ("leco", "+ O keeps learning in the main phase (the cpu defaults)", {"guided.online": True}),
 ]
 
 

@@ -22,6 +22,7 @@ from model.fields.switch_nerf import SwitchNeRF
 from model.losses import balance_loss, dispatch_fractions, rendering_loss
 from model.occupancy_grid import OccupancyGrid
 from model.occupancy_phase import field_on_edges, render_background
+from model.online_occupancy import OnlineOccupancy
 from model.profiles import Profile
 from model.rendering import Rendered, composite_batched, composite_packed, packed_transmittance
 from model.samplers import PackedSamples, guided_samples, inverse_cdf_edges, merge_edges, stratified_edges
@@ -34,6 +35,7 @@ class MainRender:
     out: FieldOutput | None  # None when no ray had a foreground sample
     samples_per_ray: float  # main-network samples per ray (the cost the samplers compete on)
     occupancy_ratio: float | None  # kept fraction of coarse samples (guided) or of march steps (grid)
+    occupancy_loss: Tensor | None = None  # O's own loss when it keeps learning (guided.online)
 
 
 def field_on_packed(field: SwitchNeRF, rays: RayBatch, samples: PackedSamples) -> FieldOutput | None:
@@ -76,7 +78,9 @@ def render_vanilla(field: SwitchNeRF, background: BackgroundField, rays: RayBatc
 
 
 def render_guided(field: SwitchNeRF, background: BackgroundField, rays: RayBatch, profile: Profile,
-                  occupied: Callable[[Tensor], Tensor], generator: torch.Generator | None) -> MainRender:
+                  occupied: Callable[[Tensor], Tensor], generator: torch.Generator | None,
+                  online: OnlineOccupancy | None = None) -> MainRender:
+    """`online`: O learning in the main phase; then `occupied` must be its `occupied` (it keeps the logits)."""
     behind = render_background(background, rays, profile.background.samples, generator).rgb
     with torch.no_grad():
         g = profile.guided
@@ -87,9 +91,10 @@ def render_guided(field: SwitchNeRF, background: BackgroundField, rays: RayBatch
         evaluated = len(samples)
         samples = cull_occluded(field, rays, samples, g.cull_transmittance)
     out = field_on_packed(field, rays, samples)
+    rendered = composite_field(out, rays, samples, behind)
+    occupancy_loss = None if online is None else online.loss(samples, rendered.weights, rays, g.coarse_samples)
     # Culled samples still ran the network once (without gradient), so they count, as vanilla's coarse ones do.
-    return MainRender(composite_field(out, rays, samples, behind), out, (evaluated + len(samples)) / len(rays),
-                      float(ratio))
+    return MainRender(rendered, out, (evaluated + len(samples)) / len(rays), float(ratio), occupancy_loss)
 
 
 def cull_occluded(field: SwitchNeRF, rays: RayBatch, samples: PackedSamples, eps: float) -> PackedSamples:
@@ -132,6 +137,9 @@ def main_loss(render: MainRender, rays: RayBatch, balance_weight: float) -> tupl
         parts.update({f"fraction_expert_{i}": float(f) for i, f in enumerate(fractions)})
     if render.occupancy_ratio is not None:
         parts["occupancy_ratio"] = render.occupancy_ratio
+    if render.occupancy_loss is not None:  # only O's parameters get its gradient
+        loss = loss + render.occupancy_loss
+        parts["occupancy_online_loss"] = float(render.occupancy_loss.detach())
     parts["loss"] = float(loss.detach())
     parts["psnr"] = -10.0 * torch.log10(torch.tensor(max(parts["rendering_loss"], 1e-10))).item()
     return loss, parts

@@ -16,9 +16,11 @@ FORMAT = "leco-occupancy-v1"
 class OccupancyPredictor:
     """`occupied(points)` for world-frame points, batched so any number of points fits in memory."""
 
-    def __init__(self, network: OccupancyNetwork, chunk: int = 1 << 16, empty_threshold: float | None = None):
-        """empty_threshold: keep points whose E_e probability is below it instead of the top-1 decision."""
-        self.network = network.eval().requires_grad_(False)
+    def __init__(self, network: OccupancyNetwork, chunk: int = 1 << 16, empty_threshold: float | None = None,
+                 frozen: bool = True):
+        """empty_threshold: keep points whose E_e probability is below it instead of the top-1 decision.
+        frozen=False shares a network that keeps training (guided.online) instead of freezing it."""
+        self.network = network.eval().requires_grad_(False) if frozen else network
         self.chunk = chunk
         self.empty_threshold = empty_threshold
 

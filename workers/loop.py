@@ -19,6 +19,7 @@ import torch
 
 from model.main_phase import grid_step_size, main_loss, render_grid, render_guided, render_vanilla
 from model.occupancy import OccupancyPredictor
+from model.online_occupancy import OnlineOccupancy
 from model.occupancy_phase import occupancy_step
 from model.schedules import phase_progress
 from model.warm_start import warm_start_main
@@ -76,6 +77,7 @@ class RankRun:
         self.phase_objects = None
         self.activation_mb: float | None = None
         self.predictor: OccupancyPredictor | None = None
+        self.online: OnlineOccupancy | None = None
         self.sink = JsonlSink(self.run_dir / "metrics.jsonl") if session.rank == 0 else None
         self.store = store if session.rank == 0 else None
         self.store_error: str | None = None  # rank 0's first StoreWriteError; ends the run on every rank
@@ -159,10 +161,15 @@ class RankRun:
         self.phase_objects = build_optimizer(self.models, phase, self.profile)
         self.to_store("phase_started", phase)
         if phase == "main" and self.cfg.method == "leco":
-            self.predictor = OccupancyPredictor.from_hmoe(  # frozen O (section 3.4)
-                self.models.hmoe, self.profile.guided.empty_threshold)
-            self.predictor.network.to(self.device)
+            threshold = self.profile.guided.empty_threshold
             self.models.hmoe.requires_grad_(False)
+            if self.profile.guided.online:  # O keeps learning, so the predictor shares the live network
+                gate = self.models.hmoe.gate.requires_grad_(True)
+                self.online = OnlineOccupancy(gate, threshold, self.profile.guided.online_surface)
+                self.predictor = OccupancyPredictor(gate, empty_threshold=threshold, frozen=False)
+            else:
+                self.predictor = OccupancyPredictor.from_hmoe(self.models.hmoe, threshold)  # frozen O (section 3.4)
+                self.predictor.network.to(self.device)
 
     def budget_left(self, phase: str) -> bool:
         if self.cfg.budget_min is None:
@@ -193,7 +200,8 @@ class RankRun:
             return occupancy_step(m.hmoe, m.occupancy_background, rays, self.profile.occupancy,
                                   self.profile.background.samples, generator, progress)
         if self.cfg.method == "leco":
-            render = render_guided(m.field, m.background, rays, self.profile, self.predictor.occupied, generator)
+            occupied = self.online.occupied if self.online else self.predictor.occupied
+            render = render_guided(m.field, m.background, rays, self.profile, occupied, generator, self.online)
         elif self.cfg.method == "grid":
             g = self.profile.grid
             step = self.progress["phase_step"]

@@ -50,6 +50,8 @@ def build_optimizer(models: RunModels, phase: str, profile: Profile):
     decaying exponentially from lr to lr_final (Switch-NeRF). Progress counts steps or, under a wall-clock
     budget, training time (model/schedules.py), so a budgeted run ends at lr_final too."""
     params = [p for m in models.phase_modules(phase) for p in m.parameters()]
+    if phase == "main" and profile.guided.online and getattr(models, "hmoe", None) is not None:
+        params += list(models.hmoe.gate.parameters())  # O keeps learning (model/online_occupancy.py)
     if phase == "occupancy":
         start, final = profile.occupancy.lr, profile.occupancy.lr_final
     else:

@@ -59,7 +59,11 @@ class OccupancyNetwork(nn.Module):
     def occupied(self, xyz: Tensor, empty_threshold: float | None = None) -> Tensor:
         """True where the top-1 gate is a scene expert (the paper); with a threshold, where E_e's gate
         probability is below it (a threshold above 0.5 keeps a superset of the top-1 decision's points)."""
-        logits = self(xyz)
+        return self.decide(self(xyz), empty_threshold)
+
+    def decide(self, logits: Tensor, empty_threshold: float | None = None) -> Tensor:
+        """`occupied` from logits already computed (O learning online computes them with gradient)."""
+        logits = logits.detach()
         if empty_threshold is None:
             return logits.argmax(dim=-1) != self.empty_index
         return torch.softmax(logits.float(), dim=-1)[:, self.empty_index] < empty_threshold

@@ -1,0 +1,77 @@
+"""O keeps learning during the main phase (issue 16; the paper freezes O after phase 1).
+
+The main network's rendering weights (detached) say, for every coarse bin the guided sampler kept, whether
+the bin holds what the ray sees. Two signals, in the spirit of a proposal network's interlevel loss:
+- a bin that carries at least `surface_weight` of its ray's weight is occupied: O is pushed to keep it;
+- a kept bin that carries less, on a ray that still sees past it (transmittance after the bin above
+  `seen_through`), is free space this view looked through: O is pushed to drop it.
+Bins the sampler skipped, and bins hidden behind what the ray already hit, teach nothing: the first because
+the main network never looked there, the second because another view may see a surface there. Dilation,
+jittered queries and the fallback keep showing the main network bins O does not yet keep, so a surface O
+missed in phase 1 can be found and learned.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from model.fields.hmoe import OccupancyNetwork
+from model.samplers import PackedSamples
+from model.scenes.rays import RayBatch
+
+
+class OnlineOccupancy:
+    """The guided sampler's `occupied` with O's logits kept (with gradient) for `loss` after the render."""
+
+    def __init__(self, network: OccupancyNetwork, empty_threshold: float | None,
+                 surface_weight: float = 0.05, seen_through: float = 0.5):
+        self.network = network
+        self.empty_threshold = empty_threshold
+        self.surface_weight, self.seen_through = surface_weight, seen_through
+        self.logits: Tensor | None = None
+
+    def occupied(self, points: Tensor) -> Tensor:
+        with torch.enable_grad():  # the sampler calls this under no_grad
+            self.logits = self.network(points)
+        return self.network.decide(self.logits, self.empty_threshold)
+
+    def bin_targets(self, samples: PackedSamples, weights: Tensor, rays: RayBatch,
+                    num_coarse: int) -> tuple[Tensor, Tensor]:
+        """(R, n) target (1 occupied, 0 free) and mask (bins that teach) from the packed render weights."""
+        r = len(rays)
+        span = (rays.far - rays.near).clamp(min=1e-12)
+        mids = samples.mids
+        index = samples.ray_index
+        bins = ((mids - rays.near[index]) / span[index] * num_coarse).long().clamp(0, num_coarse - 1)
+        flat = index * num_coarse + bins
+        mass = torch.zeros(r * num_coarse, dtype=weights.dtype, device=weights.device)
+        mass = mass.index_add_(0, flat, weights.detach()).reshape(r, num_coarse)
+        sampled = torch.zeros(r * num_coarse, dtype=torch.bool, device=weights.device)
+        sampled[flat] = True
+        sampled = sampled.reshape(r, num_coarse)
+        after = 1.0 - mass.cumsum(dim=1)  # transmittance left after each bin (skipped bins hold no mass)
+        surface = mass >= self.surface_weight
+        free = sampled & ~surface & (after > self.seen_through)
+        return surface.to(weights.dtype), surface | free
+
+    def decision_logit(self, logits: Tensor) -> Tensor:
+        """A logit that is positive exactly where the sampler keeps the point: log-odds of occupancy
+        (1 - p(E_e)) shifted by the decision threshold (top-1 without one: E_e's logit against the best other)."""
+        logits = logits.float()
+        empty = self.network.empty_index
+        scene = torch.cat([logits[:, :empty], logits[:, empty + 1:]], dim=-1)
+        if self.empty_threshold is None:
+            return scene.max(dim=-1).values - logits[:, empty]
+        occupied = torch.logsumexp(scene, dim=-1) - logits[:, empty]  # log((1 - p_e) / p_e)
+        return occupied - torch.log(torch.tensor((1 - self.empty_threshold) / self.empty_threshold))
+
+    def loss(self, samples: PackedSamples, weights: Tensor, rays: RayBatch, num_coarse: int) -> Tensor:
+        """Binary cross-entropy on the decision logit, over the bins that teach: O keeps a point where most
+        rays through its bin found a surface there, whatever the threshold the sampler decides with."""
+        target, mask = self.bin_targets(samples, weights, rays, num_coarse)
+        logit = self.decision_logit(self.logits).reshape(target.shape)
+        nll = F.binary_cross_entropy_with_logits(logit, target, reduction="none")
+        self.logits = None
+        return (nll * mask).sum() / mask.sum().clamp(min=1)

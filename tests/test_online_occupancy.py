@@ -1,0 +1,94 @@
+"""O learning during the main phase (guided.online, issue 16): which bins teach what, that the signal finds a
+surface O missed, and that a LeCO run with it trains, saves the O it ended with and reports O's loss."""
+
+import torch
+
+from model.fields.hmoe import OccupancyNetwork
+from model.online_occupancy import OnlineOccupancy
+from model.occupancy import OccupancyPredictor
+from model.rendering import packed_weights
+from model.samplers import PackedSamples, guided_samples
+from model.scenes.rays import RayBatch
+from workers.config import TrainConfig
+from workers.run import run_training
+from workers.sinks import read_metrics
+
+WALL = (4.2, 4.8)  # along x; coarse bins of [0, 8] are 1 wide, so the wall lies inside bin 4, around its mid-point
+
+
+def ray_batch(n: int) -> RayBatch:
+    g = torch.Generator().manual_seed(0)
+    dirs = torch.nn.functional.normalize(torch.tensor([1.0, 0, 0]) + 0.05 * torch.randn(n, 3, generator=g), dim=-1)
+    dirs = dirs / dirs[:, :1]  # not unit: a step of 1 in t is 1 in x, so the bins are the same in x on every ray
+    zeros = torch.zeros(n)
+    return RayBatch(origins=torch.zeros(n, 3), directions=dirs, near=zeros, far=zeros + 8.0,
+                    rgb=torch.zeros(n, 3), image_index=torch.zeros(n, dtype=torch.long), pixel=torch.arange(n))
+
+
+def test_kept_bins_teach_surface_and_seen_through_space_and_nothing_else():
+    rays = ray_batch(1)
+    # Samples in bins 0, 1 and 2 of 4 (bin 3 skipped); bin 1 holds the surface, bin 2 lies behind it.
+    samples = PackedSamples(torch.tensor([0.5, 2.5, 4.5]), torch.tensor([1.0, 3.0, 5.0]), torch.zeros(3, dtype=torch.long))
+    weights = torch.tensor([0.004, 0.8, 0.003])
+    online = OnlineOccupancy(OccupancyNetwork(2, 16, 4), empty_threshold=0.9)
+    target, mask = online.bin_targets(samples, weights, rays, num_coarse=4)
+    assert target.tolist() == [[0.0, 1.0, 0.0, 0.0]]
+    assert mask.tolist() == [[True, True, False, False]]  # bin 2 is hidden behind the surface, bin 3 unseen
+
+
+def wall_density(points: torch.Tensor) -> torch.Tensor:
+    x = points[:, 0]
+    return torch.where((x > WALL[0]) & (x < WALL[1]), 50.0, 0.0)
+
+
+def test_o_that_keeps_nothing_learns_the_wall_the_main_network_sees():
+    torch.manual_seed(0)
+    network = OccupancyNetwork(num_scene_experts=2, width=32, xyz_frequencies=4)
+    with torch.no_grad():
+        network.output.bias[network.empty_index] = 8.0  # O starts sure that everything is empty
+    online = OnlineOccupancy(network, empty_threshold=0.9)
+    optimizer = torch.optim.Adam(network.parameters(), lr=1e-2)
+    rays, generator = ray_batch(128), torch.Generator().manual_seed(1)
+    free_x = torch.linspace(0.2, 3.8, 50)
+    free = torch.stack([free_x, torch.zeros(50), torch.zeros(50)], -1)
+    wall = torch.stack([torch.linspace(WALL[0] + 0.02, WALL[1] - 0.02, 50), torch.zeros(50), torch.zeros(50)], -1)
+    assert not network.occupied(wall, 0.9).any()
+    for _ in range(150):
+        samples, _ = guided_samples(rays.near, rays.far, rays.origins, rays.directions, online.occupied, 8, 4,
+                                    generator, jitter=True, dilate=1, fallback=True)
+        xyz = rays.origins[samples.ray_index] + rays.directions[samples.ray_index] * samples.mids[:, None]
+        weights, _ = packed_weights(wall_density(xyz), samples.deltas, samples.ray_index, len(rays))
+        loss = online.loss(samples, weights, rays, num_coarse=8)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    assert network.occupied(wall, 0.9).float().mean() >= 0.9
+    assert network.occupied(free, 0.9).float().mean() <= 0.2
+
+
+def test_a_leco_run_with_online_o_trains_it_saves_it_and_reports_its_loss(tiny_scene, tmp_path):
+    final_o = {}
+    for online in (False, True):
+        cfg = TrainConfig(method="leco", profile="smoke", metrics_every=1, seed=0, overrides={
+            "occupancy.steps": 20, "main_steps": 10, "guided.online": online, "guided.fallback": True,
+            "guided.empty_threshold": 0.9})
+        run_training(cfg, tiny_scene.root, tmp_path / f"run-{online}", backend="local")
+        rows = [r for r in read_metrics(tmp_path / f"run-{online}" / "metrics.jsonl") if r["phase"] == "main"]
+        assert ("occupancy_online_loss" in rows[-1]) == online
+        if online:
+            assert all(torch.isfinite(torch.tensor(r["occupancy_online_loss"])) for r in rows)
+        saved = OccupancyPredictor.load(tmp_path / f"run-{online}" / "final" / "occupancy.pt")
+        models = torch.load(tmp_path / f"run-{online}" / "final" / "models.pt", weights_only=False)["models"]
+        for key, value in saved.network.state_dict().items():  # the saved O is the HMoE's gate as it ended
+            assert torch.equal(value, models[f"hmoe.gate.{key}"])
+        final_o[online] = saved.network.state_dict()
+    # Same seed, same phase 1: only the main phase's learning can have moved O.
+    assert any(not torch.equal(final_o[False][k], final_o[True][k]) for k in final_o[False])
+
+
+def test_the_decision_logit_is_positive_exactly_where_the_sampler_keeps_the_point():
+    network = OccupancyNetwork(num_scene_experts=3, width=16, xyz_frequencies=2)
+    logits = torch.randn(2000, 4, generator=torch.Generator().manual_seed(0)) * 3
+    for threshold in (None, 0.5, 0.9):
+        online = OnlineOccupancy(network, empty_threshold=threshold)
+        assert torch.equal(online.decision_logit(logits) > 0, network.decide(logits, threshold))
