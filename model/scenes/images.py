@@ -10,6 +10,7 @@ from PIL import Image, UnidentifiedImageError
 from torch import Tensor
 
 from model.scenes.errors import SceneError
+from model.scenes.limits import spend_pixels
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG")
 # Checked from the header before any pixel is decoded: a tiny file can claim billions of pixels (a
@@ -36,6 +37,7 @@ def read_image(path: Path, *, background: tuple[float, float, float] | None = No
             if w * h > MAX_PIXELS:
                 raise SceneError(path, f"image claims {w}x{h} pixels, more pixels than the "
                                        f"{MAX_PIXELS // 10**6} megapixel limit (a corrupt or hostile header?)")
+            spend_pixels(path, w * h)
             im.load()
             mode = im.mode
             if mode in ("RGBA", "LA") or (mode == "P" and "transparency" in im.info):

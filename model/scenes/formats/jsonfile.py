@@ -10,10 +10,12 @@ import torch
 from torch import Tensor
 
 from model.scenes.errors import SceneError
+from model.scenes.limits import MAX_JSON_BYTES, check_file_size
 from model.scenes.source import check_pose
 
 
 def read_json(path: Path) -> dict:
+    check_file_size(path, MAX_JSON_BYTES, "a JSON camera file")
     try:
         data = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:

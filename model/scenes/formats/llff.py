@@ -12,6 +12,7 @@ from model.scenes.cameras import pixel_rays
 from model.scenes.errors import SceneError
 from model.scenes.formats.points import read_colmap_points
 from model.scenes.images import IMAGE_SUFFIXES, downscale_image, read_image
+from model.scenes.limits import read_npy
 from model.scenes.paths import scene_file
 from model.scenes.source import SourceScene, SplitBuilder, check_pose, rotate_source, up_alignment
 
@@ -44,12 +45,12 @@ def pick_folder(root: Path, downscale: int | None) -> tuple[Path, int, int]:
     return folders[factor], factor, downscale // factor
 
 
+MAX_POSES = 100_000  # rows of poses_bounds.npy (one per image)
+
+
 def load_llff(root: Path, downscale: int | None) -> SourceScene:
     path = scene_file(root, root / "poses_bounds.npy")
-    try:
-        array = np.load(path, allow_pickle=False)
-    except Exception as exc:
-        raise SceneError(path, f"cannot read ({exc.__class__.__name__}: {exc})") from None
+    array = read_npy(path, max_bytes=MAX_POSES * 17 * 8)
     if array.ndim != 2 or array.shape[1] != 17 or len(array) == 0:
         raise SceneError(path, f"must be an N x 17 array, got shape {array.shape}")
     if not np.isfinite(array).all():

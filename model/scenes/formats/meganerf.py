@@ -3,9 +3,7 @@ city's optional gt/ folder (depth maps and an occupancy grid, in metres)."""
 
 from __future__ import annotations
 
-import io
 import json
-import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +12,7 @@ from torch import Tensor
 
 from model.scenes.errors import SceneError
 from model.scenes.images import check_image_size, downscale_depth, downscale_image, find_image, read_image
+from model.scenes.limits import MAX_METADATA_BYTES, check_file_size, read_npy, read_npz
 from model.scenes.paths import scene_file
 from model.scenes.source import SourceScene, SourceSplit, SplitBuilder, check_intrinsics, check_pose, scale_intrinsics
 
@@ -22,6 +21,7 @@ DRB_TO_ZUP = torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]],
 
 
 def load_pt(path: Path) -> object:
+    check_file_size(path, MAX_METADATA_BYTES, "a metadata file")
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for corrupt or hostile pickles
@@ -64,12 +64,10 @@ def read_metadata(path: Path) -> dict:
 def read_depth(path: Path, height: int, width: int) -> Tensor:
     if not path.is_file():
         raise SceneError(path, "ground-truth depth map is missing (gt/ exists, so every view needs one)")
-    try:
-        depth = torch.from_numpy(np.load(path, allow_pickle=False).astype(np.float32))
-    except Exception as exc:
-        raise SceneError(path, f"cannot read depth map ({exc.__class__.__name__}: {exc})") from None
-    if tuple(depth.shape) != (height, width):
-        raise SceneError(path, f"depth map is {tuple(depth.shape)} but its image is {height}x{width}")
+    depth = read_npy(path, shape=(height, width))  # its image's size, checked before the data is read
+    if depth.dtype.kind != "f":
+        raise SceneError(path, f"depth map must hold floats, not {depth.dtype}")
+    depth = torch.from_numpy(depth.astype(np.float32))
     if torch.isnan(depth).any() or (depth <= 0).any():
         raise SceneError(path, "depth map must be positive (inf for sky) with no NaN")
     return depth
@@ -100,11 +98,7 @@ def read_split(root: Path, split: str, origin: Tensor, scale: float, downscale: 
 def read_occupancy(path: Path) -> tuple[Tensor, Tensor]:
     """Ground-truth grid -> (occupied, aabb) in the z-up metric frame. The file's world_from_grid maps
     grid coordinates to DRB metres; combined with DRB_TO_ZUP it must be an axis-aligned map."""
-    try:
-        with zipfile.ZipFile(path) as zf:
-            arrays = {n[:-4]: np.load(io.BytesIO(zf.read(n)), allow_pickle=False) for n in zf.namelist()}
-    except Exception as exc:
-        raise SceneError(path, f"cannot read occupancy grid ({exc.__class__.__name__}: {exc})") from None
+    arrays = read_npz(path)
     if "occupied" not in arrays or "world_from_grid" not in arrays:
         raise SceneError(path, "occupancy file needs arrays 'occupied' and 'world_from_grid'")
     occupied = torch.from_numpy(arrays["occupied"].astype(bool))

@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from model.scenes.errors import SceneError
+from model.scenes.limits import MAX_POINTS_BYTES, check_file_size
 
 PLY_TYPES = {
     "char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4",
@@ -20,9 +21,12 @@ PLY_TYPES = {
 
 def read_colmap_points(path: Path) -> Tensor:
     """xyz (P, 3) float64 of a COLMAP binary points3D file."""
+    check_file_size(path, MAX_POINTS_BYTES, "a point file")
     data = path.read_bytes()
     try:
         (count,) = struct.unpack_from("<Q", data, 0)
+        if count > (len(data) - 8) // 51:  # each point takes at least 51 bytes: the header cannot claim more
+            raise SceneError(path, f"COLMAP points3D.bin claims {count:,} points but holds {len(data):,} bytes")
         offset, xyz = 8, np.empty((count, 3), dtype=np.float64)
         for i in range(count):
             # id u64, xyz 3 f64, rgb 3 u8, error f64, track length u64, then (image id, point2D idx) i32 pairs
@@ -38,6 +42,7 @@ def read_colmap_points(path: Path) -> Tensor:
 
 def read_ply_points(path: Path) -> Tensor:
     """Vertex x, y, z (P, 3) float64 of an ASCII or binary little-endian PLY file."""
+    check_file_size(path, MAX_POINTS_BYTES, "a point file")
     data = path.read_bytes()
     end = data.find(b"end_header\n")
     if not data.startswith(b"ply") or end < 0:
