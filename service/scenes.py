@@ -4,6 +4,7 @@ stored. A scene folder appears under the scenes root complete, or not at all."""
 
 from __future__ import annotations
 
+import json
 import logging
 import shutil
 import tempfile
@@ -15,6 +16,7 @@ from sqlalchemy import select
 from service.db import transaction
 from service.settings import Settings
 from service.tables import Scene
+from service.workpool import WorkPool
 
 log = logging.getLogger("leco.scenes")
 
@@ -23,11 +25,49 @@ class SceneConflict(ValueError):
     pass
 
 
-def describe_folder(path: Path) -> dict:
+def load_within_budget(settings: Settings, path: Path):
+    """The scene at `path`, its images decoded within the per-scene pixel budget (LECO_MAX_SCENE_PIXELS)."""
     from model.scenes import load_scene
+    from model.scenes.limits import pixel_budget
+
+    with pixel_budget(settings.max_scene_pixels):
+        return load_scene(path)
+
+
+def camera_layout(scene) -> dict:
+    cameras = []
+    for split, views in scene.splits.items():
+        for center, forward in zip(views.cameras.centers.tolist(), views.cameras.forward.tolist()):
+            cameras.append({"split": split, "center": center, "forward": forward})
+    return {"frame": "normalised world (z up)", "aabb": scene.bounds.aabb.tolist(), "cameras": cameras}
+
+
+def layout_path(settings: Settings, scene_id: int) -> Path:
+    """Beside the scene's folder, not in it: the folder stays exactly what the user uploaded."""
+    return settings.scenes_dir / f"scene-{scene_id}.cameras.json"
+
+
+def write_layout(path: Path, layout: dict) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(layout))
+    tmp.replace(path)
+
+
+def describe_folder(settings: Settings, path: Path) -> tuple[dict, dict]:
+    """The scene's summary for its row and its camera layout (for /cameras), from one load."""
     from model.scenes.info import describe
 
-    return describe(load_scene(path))
+    scene = load_within_budget(settings, path)
+    return describe(scene), camera_layout(scene)
+
+
+def read_layout(settings: Settings, scene_id: int, path: Path) -> dict:
+    """The layout written at registration; a scene registered before layouts were written is loaded once
+    (within the pixel budget; the caller holds a place in the scene pool) and its layout kept."""
+    target = layout_path(settings, scene_id)
+    if not target.is_file():
+        write_layout(target, camera_layout(load_within_budget(settings, path)))
+    return json.loads(target.read_text())
 
 
 def _new_row(settings: Settings, name: str, source: str, state: str, **fields) -> int:
@@ -41,20 +81,37 @@ def _new_row(settings: Settings, name: str, source: str, state: str, **fields) -
         return row.id
 
 
-def register_synthetic(settings: Settings, name: str, preset: str, seed: int) -> int:
-    scene_id = _new_row(settings, name, "synthetic", "generating", generator={"preset": preset, "seed": seed},
-                        format="meganerf")
-    start_generation(settings, scene_id)
+def register_synthetic(settings: Settings, name: str, preset: str, seed: int, pool: WorkPool) -> int:
+    """Raises Busy when the scene pool is full (before anything is stored) or SceneConflict."""
+    pool.admit()
+    try:
+        scene_id = _new_row(settings, name, "synthetic", "generating", generator={"preset": preset, "seed": seed},
+                            format="meganerf")
+    except BaseException:
+        pool.release()
+        raise
+    start_generation(settings, scene_id, pool, admitted=True)
     return scene_id
 
 
-def start_generation(settings: Settings, scene_id: int) -> threading.Thread:
-    thread = threading.Thread(target=_generate, args=(settings, scene_id), daemon=True, name=f"leco-scene-{scene_id}")
+def start_generation(settings: Settings, scene_id: int, pool: WorkPool, admitted: bool) -> threading.Thread:
+    thread = threading.Thread(target=_generate, args=(settings, scene_id, pool, admitted), daemon=True,
+                              name=f"leco-scene-{scene_id}")
     thread.start()
     return thread
 
 
-def _generate(settings: Settings, scene_id: int) -> None:
+def _generate(settings: Settings, scene_id: int, pool: WorkPool, admitted: bool) -> None:
+    if not admitted:
+        pool.admit(wait=True)
+    try:
+        with pool.running():
+            _generate_now(settings, scene_id)
+    finally:
+        pool.release()
+
+
+def _generate_now(settings: Settings, scene_id: int) -> None:
     from model.scenes.synthetic import generate
 
     with transaction(settings.db_url) as session:
@@ -63,7 +120,9 @@ def _generate(settings: Settings, scene_id: int) -> None:
     try:
         if not path.exists():  # generation is deterministic and atomic: a finished folder is the same scene
             generate(generator["preset"], int(generator["seed"]), path)
-        info, state, error = describe_folder(path), "ready", None
+        info, layout = describe_folder(settings, path)
+        write_layout(layout_path(settings, scene_id), layout)
+        state, error = "ready", None
     except Exception as exc:
         log.exception("scene %s: generation failed", scene_id)
         info, state, error = None, "failed", f"{type(exc).__name__}: {exc}"
@@ -73,18 +132,20 @@ def _generate(settings: Settings, scene_id: int) -> None:
             row.state, row.info, row.error = state, info, error
 
 
-def resume_generation(settings: Settings) -> list[int]:
-    """Scenes left 'generating' by a process that stopped: generate them again."""
+def resume_generation(settings: Settings, pool: WorkPool) -> list[int]:
+    """Scenes left 'generating' by a process that stopped: generate them again (through the pool, waiting
+    for places in their own threads)."""
     with transaction(settings.db_url) as session:
         ids = list(session.scalars(select(Scene.id).where(Scene.state == "generating")))
     for scene_id in ids:
-        start_generation(settings, scene_id)
+        start_generation(settings, scene_id, pool, admitted=False)
     return ids
 
 
 def register_upload(settings: Settings, name: str, archive: Path) -> int:
     """Extracts and loads the archive in a scratch folder; only a scene that loads is moved into place and
-    gets a row. Raises ArchiveError / SceneError (the user's archive) or SceneConflict (the name)."""
+    gets a row. Raises ArchiveError / SceneError (the user's archive) or SceneConflict (the name). The caller
+    holds a running place in the scene pool."""
     from service.archives import extract_archive
 
     with transaction(settings.db_url) as session:
@@ -94,12 +155,14 @@ def register_upload(settings: Settings, name: str, archive: Path) -> int:
     scratch = Path(tempfile.mkdtemp(dir=settings.scenes_dir, prefix=".upload-"))
     try:
         root = extract_archive(archive, scratch / "x")
-        info = describe_folder(root)
+        info, layout = describe_folder(settings, root)
         scene_id = _new_row(settings, name, "upload", "ready", format=info["format"], info=info)
         target = settings.scenes_dir / f"scene-{scene_id}"
         try:
+            write_layout(layout_path(settings, scene_id), layout)
             root.rename(target)
         except OSError:
+            layout_path(settings, scene_id).unlink(missing_ok=True)
             with transaction(settings.db_url) as session:
                 session.delete(session.get(Scene, scene_id))
             raise

@@ -108,7 +108,7 @@ def serve(args: argparse.Namespace) -> int:
         write_private(settings.data_dir / TOKEN_FILE, token)
     start_ray(settings)
     app = create_app(settings)
-    resume_generation(settings)
+    resume_generation(settings, app.state.scene_pool)
     dispatcher = None
     if not args.no_dispatcher:
         dispatcher = Dispatcher(settings, slots=args.slots)

@@ -19,6 +19,11 @@ class Settings(BaseModel):
     ray_address: str | None = None  # a Ray Jobs API address (http://head:8265) submits jobs to a cluster
     api_tokens: tuple[str, ...] = ()  # bearer tokens; none configured: /v1 is open (embedded default only)
     max_upload_bytes: int = Field(2 * 2**30, gt=0)
+    # Scene registration decodes every image in the API process: the pixels one scene may decode (3 bytes
+    # each while it is checked), and how many registrations run at once and may wait (more: 429).
+    max_scene_pixels: int = Field(400_000_000, gt=0)
+    scene_workers: int = Field(2, ge=1)
+    scene_queue: int = Field(4, ge=0)
     lease_s: float = Field(180.0, gt=0)  # a running job's lease; the dispatcher renews it every lease_s / 4
     # How long training and the dispatcher wait out a database outage before giving up (None: two thirds of the
     # lease). Must end before the lease can lapse (see `check_lease_and_retry`).
@@ -93,7 +98,8 @@ class Settings(BaseModel):
                           ("max_attempts", "LECO_MAX_ATTEMPTS"), ("local_cpus", "LECO_LOCAL_CPUS"),
                           ("backend", "LECO_BACKEND"), ("poll_cache_s", "LECO_POLL_CACHE_S"),
                           ("slot_memory_mb", "LECO_SLOT_MEMORY_MB"), ("cluster_max_workers", "LECO_CLUSTER_MAX_WORKERS"),
-                          ("cluster_gpus", "LECO_CLUSTER_GPUS")):
+                          ("cluster_gpus", "LECO_CLUSTER_GPUS"), ("max_scene_pixels", "LECO_MAX_SCENE_PIXELS"),
+                          ("scene_workers", "LECO_SCENE_WORKERS"), ("scene_queue", "LECO_SCENE_QUEUE")):
             if env.get(name):
                 values[key] = env[name]
         try:

@@ -196,3 +196,18 @@ def test_job_lists_are_cached_and_every_change_through_this_process_shows_at_onc
     listed = client.get("/v1/jobs").json()["items"]
     assert [(j["id"], j["state"], j["step"]) for j in listed] == [(second, "cancelled", 0), (job_id, "queued", 7)]
     assert client.get("/v1/jobs", params={"state": "queued"}).json()["total"] == 1
+
+
+def test_memory_stays_bounded_however_many_jobs_are_polled_and_written():
+    cache = PollCache(0.5, max_entries=64, clock=Clock())
+
+    async def scenario():
+        for job in range(1, 5001):
+            await cache.job_view(job, Source(b"view"))
+            cache.forget(job)  # a submit or cancel of each job
+            await cache.job_view(job, Source(b"view"))
+
+    run(scenario())
+    assert len(cache.entries) == 64 and not cache.in_flight
+    sizes = {name: len(value) for name, value in vars(cache).items() if hasattr(value, "__len__")}
+    assert max(sizes.values()) <= 64, sizes  # no per-job record left behind (there was one epoch per job)

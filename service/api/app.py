@@ -17,6 +17,7 @@ from service.api.headers import SecurityHeaders
 from service.api.poll_cache import PollCache
 from service.db import check_schema, first_line
 from service.settings import Settings
+from service.workpool import RETRY_AFTER_S, Busy, WorkPool
 
 
 log = logging.getLogger("leco.api")
@@ -58,6 +59,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.http_stats = {"count": Counter(), "seconds": 0.0, "started": time.monotonic()}
     app.state.poll_cache = PollCache(settings.poll_cache_s)
+    app.state.scene_pool = WorkPool(settings.scene_workers, settings.scene_queue, "scene registrations")
 
     v1 = APIRouter(prefix="/v1")  # the token is checked by Gatekeeper, before the body is read
     for module in (scenes, jobs, artifacts):
@@ -69,6 +71,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(Gatekeeper)  # token, then body size, before any route reads the body
     app.add_middleware(SecurityHeaders)
     app.add_middleware(RequestStats, stats=app.state.http_stats)
+
+    @app.exception_handler(Busy)
+    async def busy(request: Request, error: Busy):
+        return JSONResponse({"detail": str(error)}, 429, headers={"Retry-After": str(RETRY_AFTER_S)})
 
     @app.exception_handler(OperationalError)
     @app.exception_handler(InterfaceError)

@@ -1,4 +1,4 @@
-"""What every route needs: the settings and the poll cache (bearer-token auth is service/api/gate.py)."""
+"""What every route needs: the settings, the poll cache and the scene pool (bearer-token auth is service/api/gate.py)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from fastapi import HTTPException, Path, Request
 
 from service.api.poll_cache import PollCache
 from service.settings import Settings
+from service.workpool import WorkPool
 
 
 # Both are `async def` although they wait for nothing: FastAPI runs a plain `def` dependency in its threadpool,
@@ -18,6 +19,10 @@ async def settings_of(request: Request) -> Settings:
 
 def poll_cache_of(request: Request) -> PollCache:
     return request.app.state.poll_cache
+
+
+def scene_pool_of(request: Request) -> WorkPool:
+    return request.app.state.scene_pool
 
 
 def not_found(what: str, ident) -> HTTPException:

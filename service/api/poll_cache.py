@@ -10,8 +10,9 @@ Consistency, within one API process:
 - a metrics answer is served only while the job view it was computed under is still the current one. Training
   writes a step's metrics and the job's progress in one transaction, so once a poller has seen a job view
   (say `succeeded`), every metrics answer it gets afterwards includes the metrics that view implies;
-- this process's own writes (submit, cancel, delete) drop the job's entries and every job list at once, and a
-  read that was already in flight then is not stored.
+- this process's own writes (submit, cancel, delete) drop the job's entries and every job list at once, and no
+  read that was already in flight then is stored.
+Memory is bounded: at most `max_entries` answers (least recently stored dropped first) and one epoch number.
 """
 
 from __future__ import annotations
@@ -41,7 +42,11 @@ class PollCache:
         self.ttl_s, self.max_entries, self.clock = ttl_s, max_entries, clock
         self.entries: OrderedDict[Hashable, Entry] = OrderedDict()
         self.in_flight: dict[Hashable, tuple[bytes | None, int, asyncio.Task]] = {}
-        self.epochs: dict[int, int] = {}  # per job, bumped by forget(): reads begun before it are not stored
+        # Bumped by every forget(): a read begun before any forget is not stored. One number for all jobs, not
+        # one per job, so the cache's memory stays bounded however many jobs it has ever seen; a write then
+        # also leaves other jobs' reads in flight unstored (they are still served), which writes' rarity makes
+        # cheap.
+        self.epoch = 0
         self.lock = threading.Lock()  # forget() runs in worker threads, the rest on the event loop
         self.hits = self.misses = 0
 
@@ -52,7 +57,7 @@ class PollCache:
     async def job_view(self, job_id: int, compute: Callable[[], bytes]) -> bytes:
         if not self.enabled:
             return await run_in_threadpool(compute)
-        return (await self._get(("job", job_id), job_id, compute, view=None)).body
+        return (await self._get(("job", job_id), compute, view=None)).body
 
     async def metrics(self, job_id: int, key: tuple, compute_view: Callable[[], bytes],
                       compute: Callable[[], bytes]) -> bytes:
@@ -60,40 +65,39 @@ class PollCache:
         if not self.enabled:
             return await run_in_threadpool(compute)
         view = await self.job_view(job_id, compute_view)
-        return (await self._get(("metrics", job_id, key), job_id, compute, view=view)).body
+        return (await self._get(("metrics", job_id, key), compute, view=view)).body
 
     async def job_list(self, key: tuple, compute: Callable[[], bytes]) -> bytes:
         if not self.enabled:
             return await run_in_threadpool(compute)
-        return (await self._get(("jobs", LISTS, key), LISTS, compute, view=None)).body
+        return (await self._get(("jobs", LISTS, key), compute, view=None)).body
 
     def forget(self, job_id: int) -> None:
         """Drops the job's entries and every job list; safe to call from a worker thread (a request handler in
         the threadpool)."""
         with self.lock:
-            for touched in {job_id, LISTS}:
-                self.epochs[touched] = self.epochs.get(touched, 0) + 1
+            self.epoch += 1
             for key in [k for k in self.entries if k[1] in (job_id, LISTS)]:
                 del self.entries[key]
 
-    async def _get(self, key: tuple, job_id: int, compute: Callable[[], bytes], view: bytes | None) -> Entry:
+    async def _get(self, key: tuple, compute: Callable[[], bytes], view: bytes | None) -> Entry:
         entry = self.entries.get(key)
         if entry is not None and self.clock() - entry.made_at < self.ttl_s and entry.view == view:
             self.hits += 1
             return entry
-        epoch = self.epochs.get(job_id, 0)
+        epoch = self.epoch
         pending = self.in_flight.get(key)
         if pending is not None and pending[:2] == (view, epoch):  # the same read is under way: share it
             self.hits += 1
             return await asyncio.shield(pending[2])
         self.misses += 1
         # A task of its own, so that a requester that goes away does not cancel the read the others wait for.
-        task = asyncio.ensure_future(self._load(key, job_id, epoch, compute, view))
+        task = asyncio.ensure_future(self._load(key, epoch, compute, view))
         task.add_done_callback(lambda t: t.cancelled() or t.exception())  # retrieved even if nobody waits
         self.in_flight[key] = (view, epoch, task)
         return await asyncio.shield(task)
 
-    async def _load(self, key: tuple, job_id: int, epoch: int, compute: Callable[[], bytes],
+    async def _load(self, key: tuple, epoch: int, compute: Callable[[], bytes],
                     view: bytes | None) -> Entry:
         made_at = self.clock()
         try:
@@ -102,7 +106,7 @@ class PollCache:
             if self.in_flight.get(key, (None, None, None))[2] is asyncio.current_task():
                 del self.in_flight[key]
         with self.lock:
-            if self.epochs.get(job_id, 0) == epoch:
+            if self.epoch == epoch:
                 self.entries[key] = entry
                 self.entries.move_to_end(key)
                 while len(self.entries) > self.max_entries:

@@ -3,18 +3,18 @@
 from __future__ import annotations
 
 import tempfile
-from functools import lru_cache
 from pathlib import Path
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from sqlalchemy import func, select
 
 from service import scenes as registry
-from service.api.deps import MAX_INT, not_found, settings_of
+from service.api.deps import MAX_INT, not_found, scene_pool_of, settings_of
 from service.api.schemas import NAME, SceneOut, SyntheticSceneRequest
 from service.db import reading, transaction
 from service.settings import Settings
 from service.tables import Job, Scene
+from service.workpool import WorkPool
 
 router = APIRouter(prefix="/scenes", tags=["scenes"])
 
@@ -37,10 +37,11 @@ def find_scene(session, ident: int | str) -> Scene | None:
 
 @router.post("/synthetic", status_code=202, response_model=SceneOut,
              summary="Register a synthetic city; it is generated in the background (state 'generating' -> 'ready')")
-def create_synthetic(body: SyntheticSceneRequest, settings: Settings = Depends(settings_of)) -> SceneOut:
+def create_synthetic(body: SyntheticSceneRequest, settings: Settings = Depends(settings_of),
+                     pool: WorkPool = Depends(scene_pool_of)) -> SceneOut:
     name = body.name or f"{body.preset}-{body.seed}"
     try:
-        scene_id = registry.register_synthetic(settings, name, body.preset, body.seed)
+        scene_id = registry.register_synthetic(settings, name, body.preset, body.seed, pool)
     except registry.SceneConflict as error:
         raise HTTPException(409, str(error))
     with reading(settings.db_url) as session:
@@ -52,12 +53,19 @@ def create_synthetic(body: SyntheticSceneRequest, settings: Settings = Depends(s
              openapi_extra={"requestBody": {"required": True, "content": {
                  "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}})
 async def upload(request: Request, name: str = Query(..., pattern=NAME),
-                 settings: Settings = Depends(settings_of)) -> SceneOut:
-    from starlette.concurrency import run_in_threadpool
-
+                 settings: Settings = Depends(settings_of), pool: WorkPool = Depends(scene_pool_of)) -> SceneOut:
     declared = request.headers.get("content-length")
     if declared and declared.isdigit() and int(declared) > settings.max_upload_bytes:
         raise HTTPException(413, f"upload is {int(declared)} bytes; the limit is {settings.max_upload_bytes}")
+    with pool.admitted():  # Busy -> 429 before the body is read: a flood of uploads cannot fill the disk
+        scene_id = await _receive_and_register(request, name, settings, pool)
+    with reading(settings.db_url) as session:
+        return scene_out(session.get(Scene, scene_id))
+
+
+async def _receive_and_register(request: Request, name: str, settings: Settings, pool: WorkPool) -> int:
+    from starlette.concurrency import run_in_threadpool
+
     settings.scenes_dir.mkdir(parents=True, exist_ok=True)
     with tempfile.NamedTemporaryFile(dir=settings.scenes_dir, prefix=".archive-") as tmp:
         size = 0
@@ -70,13 +78,16 @@ async def upload(request: Request, name: str = Query(..., pattern=NAME),
         if size == 0:
             raise HTTPException(422, "empty upload: send the archive's bytes as the request body")
         try:
-            scene_id = await run_in_threadpool(registry.register_upload, settings, name, Path(tmp.name))
+            return await run_in_threadpool(_register_when_running, pool, settings, name, Path(tmp.name))
         except registry.SceneConflict as error:
             raise HTTPException(409, str(error))
         except (ValueError, OSError) as error:  # ArchiveError, SceneError, unreadable images: the user's archive
             raise HTTPException(422, f"archive refused: {error}".replace(str(settings.scenes_dir), "<upload>"))
-    with reading(settings.db_url) as session:
-        return scene_out(session.get(Scene, scene_id))
+
+
+def _register_when_running(pool: WorkPool, settings: Settings, name: str, archive: Path) -> int:
+    with pool.running():
+        return registry.register_upload(settings, name, archive)
 
 
 @router.get("", response_model=list[SceneOut])
@@ -107,30 +118,25 @@ def delete_scene(scene: str, settings: Settings = Depends(settings_of)) -> None:
         jobs = session.scalar(select(func.count()).select_from(Job).where(Job.scene_id == row.id))
         if jobs:
             raise HTTPException(409, f"scene {row.name!r} is used by {jobs} job(s); delete those jobs first")
-        path = Path(row.path)
+        path, layout = Path(row.path), registry.layout_path(settings, row.id)
         session.delete(row)
     shutil.rmtree(path, ignore_errors=True)
-
-
-@lru_cache(maxsize=16)
-def _camera_layout(path: str, mtime: float) -> dict:
-    from model.scenes import load_scene
-
-    scene = load_scene(path)
-    cameras = []
-    for split, views in scene.splits.items():
-        for center, forward in zip(views.cameras.centers.tolist(), views.cameras.forward.tolist()):
-            cameras.append({"split": split, "center": center, "forward": forward})
-    return {"frame": "normalised world (z up)", "aabb": scene.bounds.aabb.tolist(), "cameras": cameras}
+    layout.unlink(missing_ok=True)
 
 
 @router.get("/{scene}/cameras", summary="Camera centres and viewing directions, and the automatic foreground box")
-def cameras(scene: str, settings: Settings = Depends(settings_of)) -> dict:
+def cameras(scene: str, settings: Settings = Depends(settings_of), pool: WorkPool = Depends(scene_pool_of)) -> dict:
     with reading(settings.db_url) as session:
         row = find_scene(session, scene)
         if row is None:
             raise not_found("scene", scene)
         if row.state != "ready":
             raise HTTPException(409, f"scene {row.name!r} is {row.state}")
-        path = row.path
-    return _camera_layout(path, Path(path).stat().st_mtime)
+        scene_id, path = row.id, Path(row.path)
+    if registry.layout_path(settings, scene_id).is_file():  # written at registration: no decoding here
+        return registry.read_layout(settings, scene_id, path)
+    with pool.admitted(), pool.running():  # a scene registered before layouts were kept: loaded once, bounded
+        try:
+            return registry.read_layout(settings, scene_id, path)
+        except ValueError as error:  # SceneError: over today's pixel budget, or changed on disk since
+            raise HTTPException(422, f"cannot read the scene's cameras: {error}".replace(str(path), "<scene>"))
