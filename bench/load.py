@@ -27,6 +27,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from bench.attacks import attack_tasks, verdict
+
 ROOT = Path(__file__).resolve().parents[1]
 STEP = re.compile(rb'"step":(\d+)')
 
@@ -163,12 +165,16 @@ async def poller(url: str, token: str, job: int, start: float, until: float, int
     connection.close()
 
 
-async def poll_all(url: str, token: str, job: int, pollers: int, seconds: float, interval: float) -> dict:
-    samples = {"job": [], "metrics": [], "errors": []}
+async def poll_all(url: str, token: str, job: int, pollers: int, seconds: float, interval: float,
+                   attack: bool = False) -> dict:
+    samples = {"job": [], "metrics": [], "errors": [], "attacks": {}}
     begin = time.monotonic()
     # Spread evenly over one interval, as dashboards opened at different moments.
-    await asyncio.gather(*[poller(url, token, job, begin + i * interval / pollers, begin + seconds, interval, samples)
-                           for i in range(pollers)])
+    tasks = [poller(url, token, job, begin + i * interval / pollers, begin + seconds, interval, samples)
+             for i in range(pollers)]
+    if attack:
+        tasks += attack_tasks(url, token, begin + seconds, samples["attacks"])
+    await asyncio.gather(*tasks)
     return samples
 
 
@@ -196,7 +202,7 @@ def poll_cache_counts(api: httpx.Client) -> dict:
 
 def run_loadtest(database_url: str | None, pollers: int = 200, seconds: float = 30.0, interval: float = 1.0,
                  profile: str = "cpu", overrides: dict | None = None, data_dir: Path | None = None,
-                 baseline_s: float = 10.0) -> dict:
+                 baseline_s: float = 10.0, attack: bool = False) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         with Service(Path(data_dir or tmp) / "data", database_url) as service, service.client() as api:
             job = start_job(api, profile, overrides)
@@ -204,7 +210,7 @@ def run_loadtest(database_url: str | None, pollers: int = 200, seconds: float = 
             cache_before, started = poll_cache_counts(api), time.perf_counter()
             gc.freeze()  # this process's own full collections would stall its pollers, not the server
             step_before = api.get(f"/v1/jobs/{job}").json()["step"]
-            samples = asyncio.run(poll_all(service.url, service.token, job, pollers, seconds, interval))
+            samples = asyncio.run(poll_all(service.url, service.token, job, pollers, seconds, interval, attack))
             elapsed = time.perf_counter() - started
             after = api.get(f"/v1/jobs/{job}").json()
             cache_after = poll_cache_counts(api)
@@ -219,6 +225,7 @@ def run_loadtest(database_url: str | None, pollers: int = 200, seconds: float = 
         "poll_cache": {kind: cache_after[kind] - cache_before[kind] for kind in cache_after},
         "training_steps_during_test": after["step"] - step_before, "job_state_after": after["state"],
         "training_steps_per_s": {"alone": rate_alone, "polled": (after["step"] - step_before) / elapsed},
+        **({"attacks": verdict(samples["attacks"])} if attack else {}),
     }
 
 
@@ -277,13 +284,15 @@ def loadtest_command(args) -> int:
         raise SystemExit("leco loadtest: --pollers must be at least 1, --seconds and --interval above 0")
     if args.postgres:
         with throwaway_database(args.postgres) as url:
-            result = run_loadtest(url, args.pollers, args.seconds, args.interval, args.profile)
+            result = run_loadtest(url, args.pollers, args.seconds, args.interval, args.profile, attack=args.attack)
     else:
         if args.database_url:
             refuse_used_database(args.database_url)
-        result = run_loadtest(args.database_url, args.pollers, args.seconds, args.interval, args.profile)
+        result = run_loadtest(args.database_url, args.pollers, args.seconds, args.interval, args.profile,
+                              attack=args.attack)
     print(json.dumps(result, indent=2))
-    return 0 if result["errors"] == 0 else 1
+    attacks_ok = all(a["as_expected"] for a in result.get("attacks", {}).values())
+    return 0 if result["errors"] == 0 and attacks_ok else 1
 
 
 def add_commands(commands) -> None:
@@ -297,4 +306,7 @@ def add_commands(commands) -> None:
     load.add_argument("--seconds", type=float, default=30.0, help="how long the pollers run")
     load.add_argument("--interval", type=float, default=1.0, help="each poller's period between polls (s)")
     load.add_argument("--profile", default="cpu", help="profile of the job being trained meanwhile")
+    load.add_argument("--attack", action="store_true",
+                      help="meanwhile send hostile uploads (bombs, traversal, no token, a flood of valid scenes); "
+                           "each must get the 4xx it deserves (bench/attacks.py)")
     load.set_defaults(func=loadtest_command)
