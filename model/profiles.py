@@ -110,7 +110,7 @@ PROFILES: dict[str, Profile] = {
         # undoes them.
         occupancy=OccupancyPhaseConfig(samples_per_ray=64, steps=1500, lr=2e-3, w_g=5e-2, empty_gate_grad=False),
         guided=GuidedConfig(coarse_samples=16, split=4, dilate=2, jitter=True, fallback=True, warm_start=True,
-                            empty_threshold=0.9, online=True),
+                            empty_threshold=0.9),
         vanilla=VanillaConfig(coarse_samples=32, fine_samples=64),
         grid=GridConfig(resolution=128, march_steps=256),
         rays_per_device=256,
