@@ -34,6 +34,12 @@ class UTCDateTime(TypeDecorator):
         return value.replace(tzinfo=timezone.utc) if value is not None else None
 
 
+# SQLite gives a new row the largest id + 1 unless the table is AUTOINCREMENT: deleting the newest job would hand
+# its id to the next one, and whoever still held the old id (a client, a dashboard, an idempotent replay) would be
+# shown another job. PostgreSQL's sequences never reuse an id.
+NEVER_REUSED = {"sqlite_autoincrement": True}
+
+
 def one_of(column: str, values: tuple[str, ...]) -> CheckConstraint:
     return CheckConstraint(f"{column} IN ({', '.join(repr(v) for v in values)})", name=f"{column}_valid")
 
@@ -44,7 +50,7 @@ class Base(DeclarativeBase):
 
 class Scene(Base):
     __tablename__ = "scenes"
-    __table_args__ = (one_of("state", SCENE_STATES),)
+    __table_args__ = (one_of("state", SCENE_STATES), NEVER_REUSED)
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     name: Mapped[str] = mapped_column(String(128), unique=True)
@@ -60,7 +66,7 @@ class Scene(Base):
 
 class Job(Base):
     __tablename__ = "jobs"
-    __table_args__ = (one_of("state", JOB_STATES), Index("ix_jobs_state_id", "state", "id"))
+    __table_args__ = (one_of("state", JOB_STATES), Index("ix_jobs_state_id", "state", "id"), NEVER_REUSED)
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     scene_id: Mapped[int] = mapped_column(ForeignKey("scenes.id", ondelete="RESTRICT"), index=True)
@@ -118,7 +124,7 @@ class Artifact(Base):
     """Metadata only: the bytes live under the artifact root, named by their sha256."""
 
     __tablename__ = "artifacts"
-    __table_args__ = (UniqueConstraint("job_id", "kind", "name"), one_of("kind", ARTIFACT_KINDS))
+    __table_args__ = (UniqueConstraint("job_id", "kind", "name"), one_of("kind", ARTIFACT_KINDS), NEVER_REUSED)
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)

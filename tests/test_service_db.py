@@ -10,8 +10,9 @@ from alembic.migration import MigrationContext
 from sqlalchemy import inspect, select, update
 
 from service import queue
-from service.db import SchemaError, check_schema, current_revision, engine_for, head_revision, transaction, upgrade
-from service.tables import Base, Job, JobPhase, Scene, utcnow
+from service.db import (SchemaError, alembic_config, check_schema, current_revision, engine_for, head_revision,
+                        transaction, upgrade)
+from service.tables import Artifact, Base, Job, JobPhase, Scene, utcnow
 from workers.config import TrainConfig
 
 
@@ -39,6 +40,39 @@ def test_migrations_upgrade_an_empty_database_to_the_models(database_url):
         tables = set(inspect(connection).get_table_names())
     assert {"scenes", "jobs", "job_phases", "metrics", "artifacts", "idempotency_keys", "alembic_version"} <= tables
     assert upgrade(database_url) == (head_revision(), head_revision())  # a second upgrade changes nothing
+
+
+def add_artifact(url, job_id, name="summary.json") -> int:
+    with transaction(url) as session:
+        row = Artifact(job_id=job_id, kind="report", name=name, size=2, sha256="0" * 64,
+                       content_type="application/json")
+        session.add(row)
+        session.flush()
+        return row.id
+
+
+def test_ids_of_deleted_scenes_jobs_and_artifacts_are_never_given_out_again(database_url):
+    # Found by the stateful API fuzz: SQLite gave a new row the largest id + 1, so the job submitted after the
+    # newest one was deleted took its id, and a client or an idempotent replay holding that id was shown another
+    # job. Rows written before migration 0004 (which rebuilds SQLite's tables) keep their ids.
+    from alembic import command
+
+    command.upgrade(alembic_config(database_url), "0003")
+    scene = add_scene(database_url, "before")
+    [job] = add_jobs(database_url, scene, 1)
+    artifact = add_artifact(database_url, job)
+    upgrade(database_url)
+    with transaction(database_url) as session:
+        assert session.get(Scene, scene).name == "before" and session.get(Job, job).scene_id == scene
+        assert session.get(Artifact, artifact).job_id == job
+        assert len(session.scalars(select(JobPhase).where(JobPhase.job_id == job)).all()) == 2
+        session.delete(session.get(Job, job))  # the newest of each, phases and artifact with it
+        session.flush()
+        session.delete(session.get(Scene, scene))
+    scene_2 = add_scene(database_url, "after")
+    [job_2] = add_jobs(database_url, scene_2, 1)
+    artifact_2 = add_artifact(database_url, job_2)
+    assert scene_2 > scene and job_2 > job and artifact_2 > artifact
 
 
 def test_server_refuses_an_out_of_date_schema(database_url, tmp_path):
