@@ -21,7 +21,8 @@ class TrainConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     method: Method
-    profile: str = "cpu"
+    # Validated below (with a message naming the profiles); the enum tells API clients and the fuzz the choices.
+    profile: str = Field("cpu", json_schema_extra={"enum": list(PROFILES)})
     overrides: dict[str, Any] = Field(default_factory=dict)
     workers: int = Field(1, ge=1, le=MAX_WORKERS)
     use_gpu: bool = False

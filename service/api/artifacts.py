@@ -3,12 +3,13 @@ HTTP Range. The bytes are verified against their sha256 before they are served."
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, HTTPException, Request
+from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.responses import FileResponse, Response
 from sqlalchemy import select
 
 from service.api.deps import RowId, not_found, settings_of
 from service.api.jobs import get_job
+from service.api.links import artifact_links, links
 from service.api.schemas import ArtifactOut
 from service.db import reading
 from service.settings import Settings
@@ -22,8 +23,11 @@ def artifact_out(meta: dict) -> ArtifactOut:
     return ArtifactOut(**meta, url=f"/v1/artifacts/{meta['id']}/download")
 
 
-@router.get("/jobs/{job_id}/artifacts", response_model=list[ArtifactOut])
-def list_artifacts(job_id: RowId, kind: str | None = None, settings: Settings = Depends(settings_of)):
+@router.get("/jobs/{job_id}/artifacts", response_model=list[ArtifactOut], operation_id="listJobArtifacts",
+            responses=links(200, artifact_links("/0")))
+def list_artifacts(job_id: RowId, settings: Settings = Depends(settings_of),
+                   # Checked below (422 naming the kinds); the enum tells clients and the fuzz the choices.
+                   kind: str | None = Query(None, json_schema_extra={"enum": list(ARTIFACT_KINDS)})):
     if kind is not None and kind not in ARTIFACT_KINDS:
         raise HTTPException(422, [{"loc": ["query", "kind"], "type": "value_error",
                                    "msg": f"unknown kind {kind!r}: one of {', '.join(ARTIFACT_KINDS)}"}])
@@ -43,13 +47,14 @@ def find_artifact(settings: Settings, artifact_id: int) -> dict:
         return describe(row)
 
 
-@router.get("/artifacts/{artifact_id}", response_model=ArtifactOut)
+@router.get("/artifacts/{artifact_id}", response_model=ArtifactOut, operation_id="getArtifact",
+            responses=links(200, artifact_links()))
 def show_artifact(artifact_id: RowId, settings: Settings = Depends(settings_of)):
     return artifact_out(find_artifact(settings, artifact_id))
 
 
 @router.head("/artifacts/{artifact_id}/download", include_in_schema=False)
-@router.get("/artifacts/{artifact_id}/download",
+@router.get("/artifacts/{artifact_id}/download", operation_id="downloadArtifact",
                   responses={206: {"description": "the requested byte range"}, 304: {"description": "ETag matched"},
                              416: {"description": "range not satisfiable"},
                              500: {"description": "the stored bytes failed their sha256 check"}})

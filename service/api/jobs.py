@@ -16,6 +16,7 @@ from sqlalchemy.exc import IntegrityError
 from model.memory_estimate import RUNTIME_BYTES, describe, estimate_peak_bytes
 from service import queue
 from service.api.deps import MAX_INT, RowId, not_found, poll_cache_of
+from service.api.links import cancelled_job_links, deleted_job_links, job_links, links, submitted_job_links
 from service.api.scenes import find_scene
 from service.api.schemas import JobList, JobOut, JobRequest, MetricsOut, PhaseOut, Point, Series
 from service.db import reading, transaction
@@ -115,7 +116,8 @@ def record_answer(session, key: str, status: int, payload: dict) -> None:
     row.state, row.status_code, row.response = "done", status, payload
 
 
-@router.post("", status_code=201, response_model=JobOut, responses={
+@router.post("", status_code=201, response_model=JobOut, operation_id="submitJob", responses={
+    **links(201, submitted_job_links()),
     409: {"description": "a request with this Idempotency-Key is still in flight"},
     422: {"description": "invalid body, or the Idempotency-Key was used with another body"}})
 def submit(body: JobRequest, request: Request, idempotency_key: str | None = Header(None, max_length=255)):
@@ -176,7 +178,7 @@ def begin_idempotent(settings: Settings, key: str, digest: str) -> JSONResponse 
     return JSONResponse(row.response, row.status_code, headers={"Idempotent-Replayed": "true"})
 
 
-@router.get("", response_model=JobList)
+@router.get("", response_model=JobList, operation_id="listJobs", responses=links(200, job_links("/items/0")))
 async def list_jobs(request: Request, state: str | None = Query(None, pattern="^(" + "|".join(JOB_STATES) + ")$"),
                     scene: str | None = None, method: str | None = Query(None, pattern="^(leco|switch|grid)$"),
                     limit: int = Query(50, ge=1, le=200), offset: int = Query(0, ge=0, le=MAX_INT)) -> Response:
@@ -217,7 +219,7 @@ def job_view_json(settings: Settings, job_id: int) -> bytes:
         return job_out(session, get_job(session, job_id)).model_dump_json().encode()
 
 
-@router.get("/{job_id}", response_model=JobOut)
+@router.get("/{job_id}", response_model=JobOut, operation_id="getJob")
 async def show_job(job_id: RowId, request: Request) -> Response:
     # Polled by every open dashboard: served from the poll cache (service/api/poll_cache.py), at most
     # LECO_POLL_CACHE_S old, encoded once for all pollers.
@@ -226,7 +228,8 @@ async def show_job(job_id: RowId, request: Request) -> Response:
     return Response(body, media_type="application/json")
 
 
-@router.post("/{job_id}/cancel", response_model=JobOut, responses={409: {"description": "the job already ended"}})
+@router.post("/{job_id}/cancel", response_model=JobOut, operation_id="cancelJob", responses={
+    **links(200, cancelled_job_links()), 409: {"description": "the job already ended"}})
 def cancel_job(job_id: RowId, request: Request) -> Response:
     settings = request.app.state.settings
     state = queue.cancel(settings.db_url, job_id)
@@ -238,7 +241,8 @@ def cancel_job(job_id: RowId, request: Request) -> Response:
     return Response(job_view_json(settings, job_id), media_type="application/json")
 
 
-@router.delete("/{job_id}", status_code=204, responses={409: {"description": "the job has not ended"}})
+@router.delete("/{job_id}", status_code=204, operation_id="deleteJob", responses={
+    **links(204, deleted_job_links()), 409: {"description": "the job has not ended"}})
 def delete_job(job_id: RowId, request: Request) -> None:
     settings = request.app.state.settings
     with reading(settings.db_url) as session:
@@ -252,7 +256,7 @@ def delete_job(job_id: RowId, request: Request) -> None:
     shutil.rmtree(job_dir_for(settings, job_id), ignore_errors=True)
 
 
-@router.get("/{job_id}/metrics", response_model=MetricsOut)
+@router.get("/{job_id}/metrics", response_model=MetricsOut, operation_id="getJobMetrics")
 async def metrics(job_id: RowId, request: Request, phase: str | None = None, name: list[str] | None = Query(None),
                   after_step: int = Query(-1, ge=-1, le=MAX_INT), max_points: int = Query(1000, ge=1, le=100_000)
                   ) -> Response:

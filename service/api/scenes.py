@@ -10,6 +10,7 @@ from sqlalchemy import func, select
 
 from service import scenes as registry
 from service.api.deps import MAX_INT, not_found, scene_pool_of, settings_of
+from service.api.links import deleted_scene_links, links, scene_links
 from service.api.schemas import NAME, SceneOut, SyntheticSceneRequest
 from service.db import reading, transaction
 from service.settings import Settings
@@ -35,7 +36,8 @@ def find_scene(session, ident: int | str) -> Scene | None:
     return session.scalars(select(Scene).where(Scene.name == str(ident))).first()
 
 
-@router.post("/synthetic", status_code=202, response_model=SceneOut,
+@router.post("/synthetic", status_code=202, response_model=SceneOut, operation_id="registerSyntheticScene",
+             responses=links(202, scene_links()),
              summary="Register a synthetic city; it is generated in the background (state 'generating' -> 'ready')")
 def create_synthetic(body: SyntheticSceneRequest, settings: Settings = Depends(settings_of),
                      pool: WorkPool = Depends(scene_pool_of)) -> SceneOut:
@@ -48,7 +50,8 @@ def create_synthetic(body: SyntheticSceneRequest, settings: Settings = Depends(s
         return scene_out(session.get(Scene, scene_id))
 
 
-@router.post("/upload", status_code=201, response_model=SceneOut,
+@router.post("/upload", status_code=201, response_model=SceneOut, operation_id="uploadScene",
+             responses=links(201, scene_links()),
              summary="Upload a dataset archive (tar or zip of a Mega-NeRF, nerfstudio, Blender or LLFF folder)",
              openapi_extra={"requestBody": {"required": True, "content": {
                  "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}})
@@ -90,13 +93,13 @@ def _register_when_running(pool: WorkPool, settings: Settings, name: str, archiv
         return registry.register_upload(settings, name, archive)
 
 
-@router.get("", response_model=list[SceneOut])
+@router.get("", response_model=list[SceneOut], operation_id="listScenes", responses=links(200, scene_links("/0")))
 def list_scenes(settings: Settings = Depends(settings_of)) -> list[SceneOut]:
     with reading(settings.db_url) as session:
         return [scene_out(r) for r in session.scalars(select(Scene).order_by(Scene.id))]
 
 
-@router.get("/{scene}", response_model=SceneOut)
+@router.get("/{scene}", response_model=SceneOut, operation_id="getScene")
 def show_scene(scene: str, settings: Settings = Depends(settings_of)) -> SceneOut:
     with reading(settings.db_url) as session:
         row = find_scene(session, scene)
@@ -105,7 +108,7 @@ def show_scene(scene: str, settings: Settings = Depends(settings_of)) -> SceneOu
         return scene_out(row)
 
 
-@router.delete("/{scene}", status_code=204)
+@router.delete("/{scene}", status_code=204, operation_id="deleteScene", responses=links(204, deleted_scene_links()))
 def delete_scene(scene: str, settings: Settings = Depends(settings_of)) -> None:
     import shutil
 
@@ -124,7 +127,8 @@ def delete_scene(scene: str, settings: Settings = Depends(settings_of)) -> None:
     layout.unlink(missing_ok=True)
 
 
-@router.get("/{scene}/cameras", summary="Camera centres and viewing directions, and the automatic foreground box")
+@router.get("/{scene}/cameras", operation_id="getSceneCameras",
+            summary="Camera centres and viewing directions, and the automatic foreground box")
 def cameras(scene: str, settings: Settings = Depends(settings_of), pool: WorkPool = Depends(scene_pool_of)) -> dict:
     with reading(settings.db_url) as session:
         row = find_scene(session, scene)
