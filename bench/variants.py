@@ -53,7 +53,8 @@ RUNGS: list[tuple[str, str, dict]] = [
     ("leco-rung-jitter", "+ jittered O queries", {"guided.jitter": True}),
     ("leco-rung-dilate-1", "+ dilation by 1 bin, split 8 -> 4", {"guided.dilate": 1, "guided.split": 4}),
     ("leco-rung-dilate-2", "+ dilation by 2 bins", {"guided.dilate": 2}),
-    ("leco", "+ keep p(E_e) < 0.9, not O's top-1 (the cpu defaults)", {"guided.empty_threshold": 0.9}),
+    ("leco-rung-threshold", "+ keep p(E_e) < 0.9, not O's top-1", {"guided.empty_threshold": 0.9}),
+    ("leco", "+ O keeps learning in the main phase (the cpu defaults)", {"guided.online": True}),
 ]
 
 

@@ -68,6 +68,7 @@ class GuidedConfig(Frozen):
     # O keeps learning in the main phase from the main network's detached weights (model/online_occupancy.py)
     online: bool = False
     online_surface: float = Field(0.05, gt=0, lt=1)  # ... a kept bin with this share of its ray's weight is a surface
+    online_warmup: int = Field(500, ge=0, le=10**7)  # ... O starts learning after this many main-phase steps
 
 
 class VanillaConfig(Frozen):
@@ -110,7 +111,7 @@ PROFILES: dict[str, Profile] = {
         # undoes them.
         occupancy=OccupancyPhaseConfig(samples_per_ray=64, steps=1500, lr=2e-3, w_g=5e-2, empty_gate_grad=False),
         guided=GuidedConfig(coarse_samples=16, split=4, dilate=2, jitter=True, fallback=True, warm_start=True,
-                            empty_threshold=0.9),
+                            empty_threshold=0.9, online=True),
         vanilla=VanillaConfig(coarse_samples=32, fine_samples=64),
         grid=GridConfig(resolution=128, march_steps=256),
         rays_per_device=256,

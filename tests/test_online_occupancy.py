@@ -70,13 +70,14 @@ def test_a_leco_run_with_online_o_trains_it_saves_it_and_reports_its_loss(tiny_s
     final_o = {}
     for online in (False, True):
         cfg = TrainConfig(method="leco", profile="smoke", metrics_every=1, seed=0, overrides={
-            "occupancy.steps": 20, "main_steps": 10, "guided.online": online, "guided.fallback": True,
-            "guided.empty_threshold": 0.9})
+            "occupancy.steps": 20, "main_steps": 10, "guided.online": online, "guided.online_warmup": 4,
+            "guided.fallback": True, "guided.empty_threshold": 0.9})
         run_training(cfg, tiny_scene.root, tmp_path / f"run-{online}", backend="local")
         rows = [r for r in read_metrics(tmp_path / f"run-{online}" / "metrics.jsonl") if r["phase"] == "main"]
-        assert ("occupancy_online_loss" in rows[-1]) == online
+        learned = [r["phase_step"] for r in rows if "occupancy_online_loss" in r]
+        assert learned == (list(range(5, 11)) if online else [])  # O learns from the 5th main step (warm-up 4)
         if online:
-            assert all(torch.isfinite(torch.tensor(r["occupancy_online_loss"])) for r in rows)
+            assert all(torch.isfinite(torch.tensor(r["occupancy_online_loss"])) for r in rows if r["phase_step"] > 4)
         saved = OccupancyPredictor.load(tmp_path / f"run-{online}" / "final" / "occupancy.pt")
         models = torch.load(tmp_path / f"run-{online}" / "final" / "models.pt", weights_only=False)["models"]
         for key, value in saved.network.state_dict().items():  # the saved O is the HMoE's gate as it ended

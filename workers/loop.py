@@ -200,8 +200,10 @@ class RankRun:
             return occupancy_step(m.hmoe, m.occupancy_background, rays, self.profile.occupancy,
                                   self.profile.background.samples, generator, progress)
         if self.cfg.method == "leco":
-            occupied = self.online.occupied if self.online else self.predictor.occupied
-            render = render_guided(m.field, m.background, rays, self.profile, occupied, generator, self.online)
+            # O learns once the main network has had `online_warmup` steps to fit what its weights will teach
+            online = self.online if self.progress["phase_step"] >= self.profile.guided.online_warmup else None
+            occupied = online.occupied if online else self.predictor.occupied
+            render = render_guided(m.field, m.background, rays, self.profile, occupied, generator, online)
         elif self.cfg.method == "grid":
             g = self.profile.grid
             step = self.progress["phase_step"]
