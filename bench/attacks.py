@@ -100,13 +100,14 @@ def scene_archive() -> bytes:
         return buffer.getvalue()
 
 
-def attack_tasks(url: str, token: str, until: float, results: dict, flooders: int = 8) -> list:
-    """One attacker per hostile body (a request every 0.5 s each) and `flooders` uploading valid scenes
-    back to back."""
+def attack_tasks(url: str, token: str, until: float, results: dict, flooders: int = 8,
+                 flood_pause: float = 0.0) -> list:
+    """One attacker per hostile body (a request every 0.5 s each) and `flooders` uploading valid scenes,
+    each waiting `flood_pause` seconds after an answer (0: back to back)."""
     bodies = attack_bodies(scene_archive())
     tasks = []
     for kind, spec in bodies.items():
-        copies, pause = (flooders, 0.0) if kind == "valid scene flood" else (1, 0.5)
+        copies, pause = (flooders, flood_pause) if kind == "valid scene flood" else (1, 0.5)
         tasks += [attacker(url, token, kind, spec, until, pause, results) for _ in range(copies)]
     return tasks
 

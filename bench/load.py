@@ -166,14 +166,14 @@ async def poller(url: str, token: str, job: int, start: float, until: float, int
 
 
 async def poll_all(url: str, token: str, job: int, pollers: int, seconds: float, interval: float,
-                   attack: bool = False) -> dict:
+                   attack: bool = False, flood_pause: float = 0.0) -> dict:
     samples = {"job": [], "metrics": [], "errors": [], "attacks": {}}
     begin = time.monotonic()
     # Spread evenly over one interval, as dashboards opened at different moments.
     tasks = [poller(url, token, job, begin + i * interval / pollers, begin + seconds, interval, samples)
              for i in range(pollers)]
     if attack:
-        tasks += attack_tasks(url, token, begin + seconds, samples["attacks"])
+        tasks += attack_tasks(url, token, begin + seconds, samples["attacks"], flood_pause=flood_pause)
     await asyncio.gather(*tasks)
     return samples
 
@@ -202,7 +202,7 @@ def poll_cache_counts(api: httpx.Client) -> dict:
 
 def run_loadtest(database_url: str | None, pollers: int = 200, seconds: float = 30.0, interval: float = 1.0,
                  profile: str = "cpu", overrides: dict | None = None, data_dir: Path | None = None,
-                 baseline_s: float = 10.0, attack: bool = False) -> dict:
+                 baseline_s: float = 10.0, attack: bool = False, flood_pause: float = 0.0) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         with Service(Path(data_dir or tmp) / "data", database_url) as service, service.client() as api:
             job = start_job(api, profile, overrides)
@@ -210,7 +210,8 @@ def run_loadtest(database_url: str | None, pollers: int = 200, seconds: float = 
             cache_before, started = poll_cache_counts(api), time.perf_counter()
             gc.freeze()  # this process's own full collections would stall its pollers, not the server
             step_before = api.get(f"/v1/jobs/{job}").json()["step"]
-            samples = asyncio.run(poll_all(service.url, service.token, job, pollers, seconds, interval, attack))
+            samples = asyncio.run(poll_all(service.url, service.token, job, pollers, seconds, interval, attack,
+                                           flood_pause))
             elapsed = time.perf_counter() - started
             after = api.get(f"/v1/jobs/{job}").json()
             cache_after = poll_cache_counts(api)
@@ -225,7 +226,7 @@ def run_loadtest(database_url: str | None, pollers: int = 200, seconds: float = 
         "poll_cache": {kind: cache_after[kind] - cache_before[kind] for kind in cache_after},
         "training_steps_during_test": after["step"] - step_before, "job_state_after": after["state"],
         "training_steps_per_s": {"alone": rate_alone, "polled": (after["step"] - step_before) / elapsed},
-        **({"attacks": verdict(samples["attacks"])} if attack else {}),
+        **({"attacks": verdict(samples["attacks"]), "flood_pause_s": flood_pause} if attack else {}),
     }
 
 
@@ -280,16 +281,17 @@ def refuse_used_database(url: str) -> None:
 
 
 def loadtest_command(args) -> int:
-    if args.pollers < 1 or args.seconds <= 0 or args.interval <= 0:
-        raise SystemExit("leco loadtest: --pollers must be at least 1, --seconds and --interval above 0")
+    if args.pollers < 1 or args.seconds <= 0 or args.interval <= 0 or args.flood_pause < 0:
+        raise SystemExit("leco loadtest: --pollers must be at least 1, --seconds and --interval above 0, "
+                         "--flood-pause at least 0")
+    attack = {"attack": args.attack, "flood_pause": args.flood_pause}
     if args.postgres:
         with throwaway_database(args.postgres) as url:
-            result = run_loadtest(url, args.pollers, args.seconds, args.interval, args.profile, attack=args.attack)
+            result = run_loadtest(url, args.pollers, args.seconds, args.interval, args.profile, **attack)
     else:
         if args.database_url:
             refuse_used_database(args.database_url)
-        result = run_loadtest(args.database_url, args.pollers, args.seconds, args.interval, args.profile,
-                              attack=args.attack)
+        result = run_loadtest(args.database_url, args.pollers, args.seconds, args.interval, args.profile, **attack)
     print(json.dumps(result, indent=2))
     attacks_ok = all(a["as_expected"] for a in result.get("attacks", {}).values())
     return 0 if result["errors"] == 0 and attacks_ok else 1
@@ -309,4 +311,7 @@ def add_commands(commands) -> None:
     load.add_argument("--attack", action="store_true",
                       help="meanwhile send hostile uploads (bombs, traversal, no token, a flood of valid scenes); "
                            "each must get the 4xx it deserves (bench/attacks.py)")
+    load.add_argument("--flood-pause", type=float, default=0.0, metavar="S",
+                      help="with --attack: each of the 8 flooding clients waits S seconds after an answer "
+                           "(default 0: back to back, as fast as this machine can send)")
     load.set_defaults(func=loadtest_command)

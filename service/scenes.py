@@ -25,15 +25,45 @@ class SceneConflict(ValueError):
     pass
 
 
-def load_within_budget(settings: Settings, path: Path):
+# ----- the heavy parts: module-level functions of plain data, run in the scene pool's processes -----------
+def load_within_budget(path: Path, max_pixels: int):
     """The scene at `path`, its images decoded within the per-scene pixel budget (LECO_MAX_SCENE_PIXELS)."""
     from model.scenes import load_scene
     from model.scenes.limits import pixel_budget
 
-    with pixel_budget(settings.max_scene_pixels):
+    with pixel_budget(max_pixels):
         return load_scene(path)
 
 
+def describe_folder(path: Path, max_pixels: int) -> tuple[dict, dict]:
+    """The scene's summary for its row and its camera layout (for /cameras), from one load."""
+    from model.scenes.info import describe
+
+    scene = load_within_budget(path, max_pixels)
+    return describe(scene), camera_layout(scene)
+
+
+def read_upload(archive: Path, dest: Path, max_pixels: int) -> tuple[Path, dict, dict]:
+    """Extracts the archive into `dest` and loads the scene: its root folder, summary and camera layout."""
+    from service.archives import extract_archive
+
+    root = extract_archive(archive, dest)
+    return (root, *describe_folder(root, max_pixels))
+
+
+def generate_folder(preset: str, seed: int, path: Path, max_pixels: int) -> tuple[dict, dict]:
+    from model.scenes.synthetic import generate
+
+    if not path.exists():  # generation is deterministic and atomic: a finished folder is the same scene
+        generate(preset, seed, path)
+    return describe_folder(path, max_pixels)
+
+
+def layout_of(path: Path, max_pixels: int) -> dict:
+    return camera_layout(load_within_budget(path, max_pixels))
+
+
+# ----- in the API process: rows, files and the pool ---------------------------------------------------------
 def camera_layout(scene) -> dict:
     cameras = []
     for split, views in scene.splits.items():
@@ -53,20 +83,12 @@ def write_layout(path: Path, layout: dict) -> None:
     tmp.replace(path)
 
 
-def describe_folder(settings: Settings, path: Path) -> tuple[dict, dict]:
-    """The scene's summary for its row and its camera layout (for /cameras), from one load."""
-    from model.scenes.info import describe
-
-    scene = load_within_budget(settings, path)
-    return describe(scene), camera_layout(scene)
-
-
-def read_layout(settings: Settings, scene_id: int, path: Path) -> dict:
+def read_layout(settings: Settings, scene_id: int, path: Path, pool: WorkPool) -> dict:
     """The layout written at registration; a scene registered before layouts were written is loaded once
-    (within the pixel budget; the caller holds a place in the scene pool) and its layout kept."""
+    (within the pixel budget, in the pool; the caller holds a running place) and its layout kept."""
     target = layout_path(settings, scene_id)
     if not target.is_file():
-        write_layout(target, camera_layout(load_within_budget(settings, path)))
+        write_layout(target, pool.call(layout_of, path, settings.max_scene_pixels))
     return json.loads(target.read_text())
 
 
@@ -106,21 +128,18 @@ def _generate(settings: Settings, scene_id: int, pool: WorkPool, admitted: bool)
         pool.admit(wait=True)
     try:
         with pool.running():
-            _generate_now(settings, scene_id)
+            _generate_now(settings, scene_id, pool)
     finally:
         pool.release()
 
 
-def _generate_now(settings: Settings, scene_id: int) -> None:
-    from model.scenes.synthetic import generate
-
+def _generate_now(settings: Settings, scene_id: int, pool: WorkPool) -> None:
     with transaction(settings.db_url) as session:
         row = session.get(Scene, scene_id)
         path, generator = Path(row.path), dict(row.generator)
     try:
-        if not path.exists():  # generation is deterministic and atomic: a finished folder is the same scene
-            generate(generator["preset"], int(generator["seed"]), path)
-        info, layout = describe_folder(settings, path)
+        info, layout = pool.call(generate_folder, generator["preset"], int(generator["seed"]), path,
+                                 settings.max_scene_pixels)
         write_layout(layout_path(settings, scene_id), layout)
         state, error = "ready", None
     except Exception as exc:
@@ -142,20 +161,17 @@ def resume_generation(settings: Settings, pool: WorkPool) -> list[int]:
     return ids
 
 
-def register_upload(settings: Settings, name: str, archive: Path) -> int:
-    """Extracts and loads the archive in a scratch folder; only a scene that loads is moved into place and
-    gets a row. Raises ArchiveError / SceneError (the user's archive) or SceneConflict (the name). The caller
-    holds a running place in the scene pool."""
-    from service.archives import extract_archive
-
+def register_upload(settings: Settings, name: str, archive: Path, pool: WorkPool) -> int:
+    """Extracts and loads the archive in a scratch folder (in the pool's process); only a scene that loads is
+    moved into place and gets a row. Raises ArchiveError / SceneError (the user's archive), WorkerLost or
+    SceneConflict (the name). The caller holds a running place in the scene pool."""
     with transaction(settings.db_url) as session:
         if session.scalar(select(Scene.id).where(Scene.name == name)) is not None:
             raise SceneConflict(f"a scene named {name!r} already exists: choose another name or delete it first")
     settings.scenes_dir.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(dir=settings.scenes_dir, prefix=".upload-"))
     try:
-        root = extract_archive(archive, scratch / "x")
-        info, layout = describe_folder(settings, root)
+        root, info, layout = pool.call(read_upload, archive, scratch / "x", settings.max_scene_pixels)
         scene_id = _new_row(settings, name, "upload", "ready", format=info["format"], info=info)
         target = settings.scenes_dir / f"scene-{scene_id}"
         try:

@@ -19,8 +19,9 @@ class Settings(BaseModel):
     ray_address: str | None = None  # a Ray Jobs API address (http://head:8265) submits jobs to a cluster
     api_tokens: tuple[str, ...] = ()  # bearer tokens; none configured: /v1 is open (embedded default only)
     max_upload_bytes: int = Field(2 * 2**30, gt=0)
-    # Scene registration decodes every image in the API process: the pixels one scene may decode (3 bytes
-    # each while it is checked), and how many registrations run at once and may wait (more: 429).
+    # Scene registration decodes every image (in the scene pool's own processes, not the API's): the pixels one
+    # scene may decode (3 bytes each while it is checked), how many registrations run at once (processes) and
+    # how many may wait (more: 429).
     max_scene_pixels: int = Field(400_000_000, gt=0)
     scene_workers: int = Field(2, ge=1)
     scene_queue: int = Field(4, ge=0)

@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 from service.api.app import create_app
 from service.scenes import layout_path
 from service.settings import Settings
-from service.workpool import Busy, WorkPool
+from service.workpool import Busy, WorkerLost, WorkPool
 from tests.test_service_api import TOKEN, ready_scene, tar_of
 
 
@@ -99,3 +99,18 @@ def test_a_scene_without_a_kept_layout_is_loaded_once_through_the_pool(api):
         pool.release()
     assert busy.status_code == 429 and not layout.exists()
     assert api.get(f"/v1/scenes/{scene['id']}/cameras").json() == expected and layout.exists()
+
+
+def test_the_work_runs_in_the_pools_own_processes_and_a_killed_one_is_replaced():
+    import os
+
+    pool = WorkPool(workers=1, queue=0, what="scene registrations")
+    try:
+        with pool.admitted(), pool.running():
+            first = pool.call(os.getpid)
+            assert first != os.getpid()  # not this process: decoding never holds the API's interpreter lock
+            with pytest.raises(WorkerLost, match="stopped before it finished"):
+                pool.call(os._exit, 1)  # as the kernel's OOM killer would
+            assert pool.call(os.getpid) not in (first, os.getpid())  # a fresh process takes the next call
+    finally:
+        pool.close()

@@ -10,3 +10,6 @@ class SceneError(ValueError):
         self.path = Path(path)
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
+
+    def __reduce__(self):  # crosses process boundaries whole (the service decodes uploads in worker processes)
+        return type(self), (self.path, self.problem)

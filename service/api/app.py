@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
+from contextlib import asynccontextmanager
 
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -17,7 +18,7 @@ from service.api.headers import SecurityHeaders
 from service.api.poll_cache import PollCache
 from service.db import check_schema, first_line
 from service.settings import Settings
-from service.workpool import RETRY_AFTER_S, Busy, WorkPool
+from service.workpool import RETRY_AFTER_S, Busy, WorkerLost, WorkPool
 
 
 log = logging.getLogger("leco.api")
@@ -53,7 +54,12 @@ class RequestStats:
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings.from_env()
     check_schema(settings.db_url)  # raises SchemaError naming the command to run
-    app = FastAPI(title="LeCO-NeRF Service", version="1",
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        yield
+        app.state.scene_pool.close()  # its worker processes end with the server
+
+    app = FastAPI(title="LeCO-NeRF Service", version="1", lifespan=lifespan,
                   description="Register scenes, submit LeCO-NeRF / Switch-NeRF / occupancy-grid training jobs, "
                               "follow their metrics, download their artifacts.")
     app.state.settings = settings
@@ -75,6 +81,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.exception_handler(Busy)
     async def busy(request: Request, error: Busy):
         return JSONResponse({"detail": str(error)}, 429, headers={"Retry-After": str(RETRY_AFTER_S)})
+
+    @app.exception_handler(WorkerLost)
+    async def worker_lost(request: Request, error: WorkerLost):
+        return JSONResponse({"detail": str(error)}, 503, headers={"Retry-After": str(RETRY_AFTER_S)})
 
     @app.exception_handler(OperationalError)
     @app.exception_handler(InterfaceError)

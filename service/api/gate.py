@@ -9,8 +9,11 @@ from __future__ import annotations
 import hmac
 import json
 
+from service.workpool import RETRY_AFTER_S
+
 MAX_JSON_BODY = 64 * 1024  # a job request with every override is a few KiB
 STREAMED = {("POST", "/v1/scenes/upload")}  # the route streams its body and caps it at LECO_MAX_UPLOAD_BYTES
+REGISTERS = {("POST", "/v1/scenes/upload"), ("POST", "/v1/scenes/synthetic")}  # take a place in the scene pool
 
 
 def token_ok(tokens: tuple[str, ...], authorization: str) -> bool:
@@ -42,7 +45,13 @@ class Gatekeeper:
         if not token_ok(settings.api_tokens, headers.get("authorization", "")):
             return await answer(send, 401, "missing or invalid bearer token (send 'Authorization: Bearer <token>')",
                                 {"www-authenticate": "Bearer"})
-        streamed = (scope["method"], scope["path"]) in STREAMED
+        route = (scope["method"], scope["path"])
+        pool = scope["app"].state.scene_pool
+        if route in REGISTERS and pool.full:
+            # The route refuses too (admission decides); here a client that floods without backing off costs
+            # the event loop a header parse, not a trip through routing, validation and the exception handler.
+            return await answer(send, 429, str(pool.busy()), {"retry-after": str(RETRY_AFTER_S)})
+        streamed = route in STREAMED
         limit = settings.max_upload_bytes if streamed else MAX_JSON_BODY
         declared = headers.get("content-length", "")
         if declared and (not declared.isdigit() or int(declared) > limit):

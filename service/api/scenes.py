@@ -15,7 +15,7 @@ from service.api.schemas import NAME, SceneOut, SyntheticSceneRequest
 from service.db import reading, transaction
 from service.settings import Settings
 from service.tables import Job, Scene
-from service.workpool import WorkPool
+from service.workpool import WorkerLost, WorkPool
 
 router = APIRouter(prefix="/scenes", tags=["scenes"])
 
@@ -84,13 +84,15 @@ async def _receive_and_register(request: Request, name: str, settings: Settings,
             return await run_in_threadpool(_register_when_running, pool, settings, name, Path(tmp.name))
         except registry.SceneConflict as error:
             raise HTTPException(409, str(error))
+        except WorkerLost as error:  # killed while reading it: the same archive would be killed again
+            raise HTTPException(422, f"archive refused: {error}")
         except (ValueError, OSError) as error:  # ArchiveError, SceneError, unreadable images: the user's archive
             raise HTTPException(422, f"archive refused: {error}".replace(str(settings.scenes_dir), "<upload>"))
 
 
 def _register_when_running(pool: WorkPool, settings: Settings, name: str, archive: Path) -> int:
     with pool.running():
-        return registry.register_upload(settings, name, archive)
+        return registry.register_upload(settings, name, archive, pool)
 
 
 @router.get("", response_model=list[SceneOut], operation_id="listScenes", responses=links(200, scene_links("/0")))
@@ -138,9 +140,9 @@ def cameras(scene: str, settings: Settings = Depends(settings_of), pool: WorkPoo
             raise HTTPException(409, f"scene {row.name!r} is {row.state}")
         scene_id, path = row.id, Path(row.path)
     if registry.layout_path(settings, scene_id).is_file():  # written at registration: no decoding here
-        return registry.read_layout(settings, scene_id, path)
+        return registry.read_layout(settings, scene_id, path, pool)
     with pool.admitted(), pool.running():  # a scene registered before layouts were kept: loaded once, bounded
         try:
-            return registry.read_layout(settings, scene_id, path)
+            return registry.read_layout(settings, scene_id, path, pool)
         except ValueError as error:  # SceneError: over today's pixel budget, or changed on disk since
             raise HTTPException(422, f"cannot read the scene's cameras: {error}".replace(str(path), "<scene>"))
