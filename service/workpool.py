@@ -27,12 +27,11 @@ class WorkerLost(RuntimeError):
 
 
 class WorkPool:
-    def __init__(self, workers: int, queue: int, what: str, processes: bool = True):
+    def __init__(self, workers: int, queue: int, what: str):
         self._running = threading.BoundedSemaphore(workers)
         self._places = threading.Condition()
         self._taken = 0  # running and waiting
         self.workers, self.queue, self.what = workers, queue, what
-        self.processes = processes
         self._executor: ProcessPoolExecutor | None = None
         self._lock = threading.Lock()
 
@@ -77,10 +76,8 @@ class WorkPool:
             yield
 
     def call(self, fn: Callable[..., Any], *args: Any) -> Any:
-        """fn(*args) in one of the pool's processes (in this thread when `processes` is off); the caller holds
-        a running place. fn and its arguments cross a process boundary: a module-level function, plain data."""
-        if not self.processes:
-            return fn(*args)
+        """fn(*args) in one of the pool's processes; the caller holds a running place. fn and its arguments
+        cross a process boundary: a module-level function, plain data."""
         with self._lock:
             if self._executor is None:  # spawned, not forked: the API process has threads and open sockets
                 # Niced: decoding is background work, and the API answering its pollers must win the cores.

@@ -46,11 +46,11 @@ class Gatekeeper:
             return await answer(send, 401, "missing or invalid bearer token (send 'Authorization: Bearer <token>')",
                                 {"www-authenticate": "Bearer"})
         route = (scope["method"], scope["path"])
-        pool = scope["app"].state.scene_pool
-        if route in REGISTERS and pool.full:
+        if route in REGISTERS and scope["app"].state.scene_pool.full:
             # The route refuses too (admission decides); here a client that floods without backing off costs
             # the event loop a header parse, not a trip through routing, validation and the exception handler.
-            return await answer(send, 429, str(pool.busy()), {"retry-after": str(RETRY_AFTER_S)})
+            busy = scope["app"].state.scene_pool.busy()
+            return await answer(send, 429, str(busy), {"retry-after": str(RETRY_AFTER_S)})
         streamed = route in STREAMED
         limit = settings.max_upload_bytes if streamed else MAX_JSON_BODY
         declared = headers.get("content-length", "")
