@@ -69,6 +69,12 @@ class GuidedConfig(Frozen):
     online: bool = False
     online_surface: float = Field(0.05, gt=0, lt=1)  # ... a kept bin with this share of its ray's weight is a surface
     online_warmup: int = Field(500, ge=0, le=10**7)  # ... O starts learning after this many main-phase steps
+    online_every: int = Field(1, ge=1, le=1000)  # ... and then learns on every k-th step (its backward is not free)
+
+    def online_learns(self, main_step: int) -> bool:
+        """Whether O learns at this main-phase step (0-based), given `online`, its warm-up and its period."""
+        past_warmup = main_step - self.online_warmup
+        return self.online and past_warmup >= 0 and past_warmup % self.online_every == 0
 
 
 class VanillaConfig(Frozen):

@@ -45,12 +45,21 @@ def test_equal_psnr_speedups_and_targets_from_curves():
     assert list(speed) == ["switch", "grid"]
     assert speed["switch"]["rays_per_s"] == pytest.approx(3.0)
     assert speed["switch"]["time_to_equal_psnr"] == pytest.approx(240 / 90)
+    # against each baseline's own best PSNR: vanilla's 20 dB (LeCO at 90 s), the grid's 21 dB (LeCO at 105 s)
+    assert speed["switch"]["time_to_its_best_psnr_per_seed"] == pytest.approx([240 / 90])
+    assert speed["grid"]["time_to_its_best_psnr"] == pytest.approx(240 / 105)
     assert speed["switch"]["samples_per_ray_fraction"] == pytest.approx(0.2)
     assert speed["switch"]["activation_memory_fraction"] == pytest.approx(0.4)
     met = {t["target"]: t["met"] for t in targets(runs, speed)}
     assert all(met.values()), met
     runs[0]["summary"]["occupancy"]["occupancy_ratio"] = 0.25
     assert [t["target"] for t in targets(runs, speed) if t["met"] is False] == ["LeCO occupancy ratio <= 20%"]
+    runs[1]["curve"][-1]["val_psnr"] = 23.0  # vanilla ends above anything LeCO reached
+    speed = speedups(runs, equal_psnr(runs))
+    assert speed["switch"]["time_to_its_best_psnr_per_seed"] == [None]
+    assert speed["switch"]["time_to_its_best_psnr"] is None
+    half = [t for t in targets(runs, speed) if t["target"].startswith("reaches vanilla's best PSNR")]
+    assert half == [{"target": half[0]["target"], "measured": "never", "met": False}]
 
 
 def test_ladder_climbs_from_the_papers_formulation_to_the_cpu_defaults():

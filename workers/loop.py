@@ -201,7 +201,7 @@ class RankRun:
                                   self.profile.background.samples, generator, progress)
         if self.cfg.method == "leco":
             # O learns once the main network has had `online_warmup` steps to fit what its weights will teach
-            online = self.online if self.progress["phase_step"] >= self.profile.guided.online_warmup else None
+            online = self.online if self.profile.guided.online_learns(self.progress["phase_step"]) else None
             occupied = online.occupied if online else self.predictor.occupied
             render = render_guided(m.field, m.background, rays, self.profile, occupied, generator, online)
         elif self.cfg.method == "grid":
