@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from model.fields import FrequencyEncoding, HMoE, OccupancyNetwork, SwitchNeRF
-from model.fields.experts import capacity_keep, top1
+from model.fields.experts import Expert, capacity_keep, dispatch, top1
 from model.losses import balance_loss, density_loss, gate_statistics, imbalanced_gate_loss
 
 
@@ -86,6 +86,33 @@ def test_switch_dispatch_equals_dense_evaluation():
     mixed = torch.relu(dense[torch.arange(200), out.expert] * chosen)
     _, sigma, rgb = model.head(mixed, model.dir_encoding(dirs), model.appearance(img))
     assert torch.allclose(out.sigma, sigma, atol=1e-6) and torch.allclose(out.rgb, rgb, atol=1e-6)
+
+
+def test_dispatch_matches_each_expert_on_its_own_points_in_value_and_gradient():
+    torch.manual_seed(3)
+    experts = torch.nn.ModuleList(Expert(16, layers=2, residual_at=0) for _ in range(4))
+    h = torch.randn(300, 16, requires_grad=True)
+    index = torch.randint(0, 3, (300,))  # expert 3 gets no points
+    keep = torch.rand(300) > 0.2
+    out = dispatch(experts, h, index, keep)
+    for e in range(4):
+        mine = (index == e) & keep
+        if mine.any():
+            assert torch.allclose(out[mine], experts[e](h[mine]), atol=1e-6)
+    assert (out[~keep] == 0).all()
+    out.square().sum().backward()
+    grad_h = h.grad.clone()
+    h.grad = None
+    reference = torch.zeros(300, 16)
+    for e in range(3):
+        mine = (index == e) & keep
+        reference = reference.index_put((mine.nonzero().squeeze(1),), experts[e](h[mine]))
+    experts.zero_grad()
+    reference.square().sum().backward()
+    assert torch.allclose(grad_h, h.grad, atol=1e-5)
+    assert (grad_h[~keep] == 0).all()
+    empty = dispatch(experts, h[:0], index[:0], keep[:0])
+    assert empty.shape == (0, 16)
 
 
 def test_capacity_drops_least_confident_overflow():
