@@ -10,6 +10,7 @@ from torch import Tensor
 
 from model.scenes.bounds import ray_aabb
 from model.scenes.cameras import pixel_rays
+from model.scenes.permutation import FeistelPermutation
 from model.scenes.scene import Views
 
 
@@ -80,10 +81,11 @@ def shard(batch: Tensor, rank: int, world_size: int) -> Tensor:
 
 
 class RaySampler:
-    """Seeded shuffling over all pixels: each epoch is one permutation drawn from (seed, epoch); global
+    """Seeded shuffling over all pixels: each epoch is one permutation keyed by (seed, epoch); global
     batches are consecutive slices of it (the incomplete tail is skipped) and every rank takes its shard
-    of the same global batch. Its position is a state dict, so a resumed run continues with the very
-    next batch."""
+    of the same global batch. The permutation is evaluated per batch (model/scenes/permutation.py), so the
+    sampler's memory is its batch, whatever the number of pixels. Its position is a state dict, so a
+    resumed run continues with the very next batch."""
 
     def __init__(
         self, views: Views, aabb: Tensor, batch_size: int, seed: int, rank: int = 0, world_size: int = 1
@@ -96,23 +98,22 @@ class RaySampler:
         self.aabb, self.batch_size, self.seed = aabb, batch_size, seed
         self.rank, self.world_size = rank, world_size
         self.epoch, self.offset = 0, 0
-        self._perm: Tensor | None = None
+        self._perm: FeistelPermutation | None = None
 
     @property
     def batches_per_epoch(self) -> int:
         return len(self.table) // self.batch_size
 
-    def _permutation(self) -> Tensor:
+    def _permutation(self) -> FeistelPermutation:
         if self._perm is None:
-            g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
-            self._perm = torch.randperm(len(self.table), generator=g)
+            self._perm = FeistelPermutation(len(self.table), self.seed * 1_000_003 + self.epoch)
         return self._perm
 
     def next_global(self) -> Tensor:
         """The next global batch of pixel ids (the same on every rank)."""
         if self.offset + self.batch_size > len(self.table):
             self.epoch, self.offset, self._perm = self.epoch + 1, 0, None
-        batch = self._permutation()[self.offset : self.offset + self.batch_size]
+        batch = self._permutation()(torch.arange(self.offset, self.offset + self.batch_size))
         self.offset += self.batch_size
         return batch
 
