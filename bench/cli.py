@@ -32,11 +32,11 @@ def bench_command(args: argparse.Namespace) -> int:
     except (ValueError, ValidationError) as error:
         raise SystemExit(f"leco bench: {error}")
     scene_dir, out = Path(args.scene), Path(args.out)
-    scene = load_scene(scene_dir)  # a broken scene fails here, naming what is wrong
+    scene = load_scene(scene_dir, downscale=args.downscale)  # a broken scene fails here, naming what is wrong
     every = args.eval_every_s or (args.budget_min * 60 / 15 if args.budget_min else 30.0)
     plan = Plan(scene=scene_dir, profile=args.profile, out=out, budget_min=args.budget_min, seeds=seeds,
                 eval_every_s=every, eval_views=args.eval_views, backend=args.backend, workers=args.workers,
-                use_gpu=args.gpu, overrides=overrides)
+                use_gpu=args.gpu, overrides=overrides, downscale=args.downscale)
     try:
         for variant in variants:  # every config is valid before the first run starts
             config_for(variant, plan, seeds[0])
@@ -74,7 +74,9 @@ def bench_command(args: argparse.Namespace) -> int:
     results = {
         "plan": {"scene": str(scene_dir), "profile": args.profile, "budget_min": args.budget_min, "seeds": seeds,
                  "methods": [v.name for v in variants], "eval_every_s": every, "eval_views": args.eval_views,
-                 "backend": args.backend, "workers": args.workers, "gpu": args.gpu, "overrides": overrides},
+                 "backend": args.backend, "workers": args.workers, "gpu": args.gpu, "overrides": overrides,
+                 # the factor the runs trained and were scored at (the scene's own when none was asked for)
+                 "downscale": scene.downscale, "downscale_asked": args.downscale},
         "command": command_line(args),
         "machine": report.machine(), "finished_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
         "bench_wall_s": time.perf_counter() - started, "occupancy_reference": reference,
@@ -102,7 +104,8 @@ def command_line(args: argparse.Namespace) -> str:
     """The invocation, rebuilt from the parsed arguments (so it is exact however the command was called)."""
     words = ["leco", "bench", "--scene", args.scene, "--profile", args.profile, "--out", args.out,
              "--methods", args.methods, "--seeds", args.seeds, "--eval-views", str(args.eval_views)]
-    for flag, value in (("--budget-min", args.budget_min), ("--eval-every-s", args.eval_every_s)):
+    for flag, value in (("--budget-min", args.budget_min), ("--eval-every-s", args.eval_every_s),
+                        ("--downscale", args.downscale)):
         if value is not None:
             words += [flag, str(value)]
     if args.backend != "local":
@@ -139,5 +142,7 @@ def add_commands(commands) -> None:
                        help="local (default): one process per method; ray: Ray Train workers")
     bench.add_argument("--workers", type=int, default=1, help="data-parallel workers (ray backend)")
     bench.add_argument("--gpu", action="store_true", help="train on GPUs")
+    bench.add_argument("--downscale", type=int, default=None,
+                       help="integer factor for images and intrinsics, in training and evaluation alike (default: the scene's own scale; the paper uses 4 on Mega-NeRF scenes)")
     bench.add_argument("--set", action="append", metavar="KEY=VALUE", help="profile override for every method")
     bench.set_defaults(func=bench_command)

@@ -135,6 +135,13 @@ def write_results(results: dict, out: Path) -> None:
     tmp.replace(out / "results.json")
 
 
+def scale_text(plan: dict) -> str:
+    """Which image scale the runs trained and were scored at (results written before downscale existed: 1)."""
+    factor, asked = plan.get("downscale", 1), plan.get("downscale_asked")
+    where = "asked for with --downscale" if asked is not None else "the scene's own"
+    return f"images at 1/{factor} scale for training and validation alike ({where})"
+
+
 def write_report(results: dict, out: Path) -> None:
     runs = results["runs"]
     labels = {r["variant"]: r["label"] for r in runs}
@@ -146,7 +153,8 @@ def write_report(results: dict, out: Path) -> None:
         f"- scene: `{plan['scene']}`; profile `{plan['profile']}`; "
         + (f"wall-clock budget {plan['budget_min']:g} min per method; " if plan["budget_min"]
            else "no budget (the profile's step counts); ") +
-        f"seeds {', '.join(map(str, plan['seeds']))}; backend {plan['backend']} x {plan['workers']} worker(s)",
+        f"seeds {', '.join(map(str, plan['seeds']))}; backend {plan['backend']} x {plan['workers']} worker(s); "
+        + scale_text(plan),
         f"- machine: {m['cpu']}, {m['cores']} cores{', ' + m['gpu'] if m.get('gpu') else ''}; torch {m['torch']}; "
         f"Python {m['python']}; {results['finished_at']}",
         f"- command: `{results['command']}`",

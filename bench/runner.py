@@ -40,6 +40,7 @@ class Plan:
     workers: int = 1
     use_gpu: bool = False
     overrides: dict | None = None
+    downscale: int | None = None  # None: the scene's own scale
 
 
 def config_for(variant: Variant, plan: Plan, seed: int) -> TrainConfig:
@@ -48,7 +49,8 @@ def config_for(variant: Variant, plan: Plan, seed: int) -> TrainConfig:
         overrides["main_steps"] = UNBOUNDED_STEPS
     return TrainConfig(method=variant.method, profile=plan.profile, overrides=overrides, budget_min=plan.budget_min,
                        seed=seed, eval_every_s=plan.eval_every_s, eval_views=plan.eval_views,
-                       checkpoint_every=CHECKPOINT_EVERY, workers=plan.workers, use_gpu=plan.use_gpu)
+                       checkpoint_every=CHECKPOINT_EVERY, workers=plan.workers, use_gpu=plan.use_gpu,
+                       downscale=plan.downscale)
 
 
 def run_dir_for(plan: Plan, variant: Variant, seed: int) -> Path:

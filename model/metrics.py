@@ -1,4 +1,4 @@
-"""Image and occupancy metrics: PSNR, SSIM (11x11 Gaussian, sigma 1.5), occupancy accuracy/precision/recall/F1."""
+"""Image and occupancy metrics: PSNR, SSIM (11x11 Gaussian, sigma 1.5; smaller on smaller images), occupancy accuracy/precision/recall/F1."""
 
 from __future__ import annotations
 
@@ -26,7 +26,10 @@ def ssim(pred: Tensor, target: Tensor, k1: float = 0.01, k2: float = 0.03) -> fl
     """Mean SSIM of two (H, W, 3) images in [0, 1] (valid-region filtering, as in the NeRF papers' code)."""
     x = pred.float().permute(2, 0, 1)[None]
     y = target.float().permute(2, 0, 1)[None]
-    window = _gaussian_window().to(x.device)[None, None].expand(3, 1, 11, 11)
+    # An image narrower than the 11-pixel window (a small view downscaled, then halved by the validation
+    # protocol) takes the largest odd window that fits instead of failing.
+    size = min(11, (min(x.shape[-2:]) - 1) // 2 * 2 + 1)
+    window = _gaussian_window(size).to(x.device)[None, None].expand(3, 1, size, size)
     blur = lambda z: F.conv2d(z, window, groups=3)
     mu_x, mu_y = blur(x), blur(y)
     var_x = blur(x * x) - mu_x**2

@@ -130,7 +130,8 @@ def submit_command(args: argparse.Namespace) -> int:
     scene = wait_ready(api, ensure_scene(api, args), stream)
     body = {"scene": scene["id"], "method": args.method, "profile": args.profile,
             "overrides": parse_overrides(args.set or []), "workers": args.workers, "use_gpu": args.gpu,
-            "budget_min": args.budget_min, "seed": args.seed, "eval_every_s": args.eval_every_s}
+            "budget_min": args.budget_min, "seed": args.seed, "eval_every_s": args.eval_every_s,
+            "downscale": args.downscale}
     job = api.call("POST", "/v1/jobs", json=body, headers={"Idempotency-Key": str(uuid.uuid4())}).json()
     print(f"submitted job {job['id']} ({args.method}, profile {args.profile}) on scene {scene['name']}: "
           f"{api.url}/v1/jobs/{job['id']}", file=stream, flush=True)
@@ -171,6 +172,8 @@ def add_submit(commands) -> None:
     sub.add_argument("--gpu", action="store_true")
     sub.add_argument("--budget-min", type=float, default=None)
     sub.add_argument("--seed", type=int, default=0)
+    sub.add_argument("--downscale", type=int, default=None,
+                     help="integer factor for images and intrinsics, in training and evaluation alike (default: the scene's own scale; the paper uses 4 on Mega-NeRF scenes)")
     sub.add_argument("--eval-every-s", type=float, default=None,
                      help="validation PSNR every this many training seconds (the dashboard's comparison uses it)")
     sub.add_argument("--set", action="append", metavar="KEY=VALUE", help="profile override (repeatable)")

@@ -54,7 +54,8 @@ def train_command(args: argparse.Namespace) -> int:
 
     cfg = TrainConfig(method=args.method, profile=args.profile, overrides=parse_overrides(args.set or []),
                       workers=args.workers, use_gpu=args.gpu, budget_min=args.budget_min, seed=args.seed,
-                      checkpoint_every=args.checkpoint_every, eval_every_s=args.eval_every_s)
+                      checkpoint_every=args.checkpoint_every, eval_every_s=args.eval_every_s,
+                      downscale=args.downscale)
     progress = ProgressPrinter(cfg)
     try:
         summary = run_training(cfg, args.scene, args.out, backend=args.backend, on_progress=progress)
@@ -83,6 +84,8 @@ def add_commands(commands) -> None:
     train.add_argument("--gpu", action="store_true", help="one GPU per worker (nccl)")
     train.add_argument("--budget-min", type=float, default=None, help="wall-clock budget in minutes")
     train.add_argument("--seed", type=int, default=0)
+    train.add_argument("--downscale", type=int, default=None,
+                       help="integer factor for images and intrinsics, in training and evaluation alike (default: the scene's own scale; the paper uses 4 on Mega-NeRF scenes)")
     train.add_argument("--checkpoint-every", type=int, default=200, help="steps between checkpoints")
     train.add_argument("--eval-every-s", type=float, default=None,
                        help="validation PSNR/SSIM every this many seconds of training time (not counted in it)")

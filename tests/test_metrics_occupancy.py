@@ -18,6 +18,11 @@ def test_psnr_and_ssim_known_values():
     noisy = (image + 0.1 * torch.randn(32, 32, 3, generator=g)).clamp(0, 1)
     assert 0.3 < ssim(noisy, image) < 0.95
     assert ssim(torch.full((32, 32, 3), 0.5), image) < ssim(noisy, image)
+    # images narrower than the 11-pixel window are scored with the largest odd window that fits
+    for h, w in ((15, 5), (4, 30), (1, 1)):
+        small = torch.rand(h, w, 3, generator=g)
+        assert ssim(small, small) == pytest.approx(1.0, abs=1e-6)
+        assert ssim((small + 0.3).clamp(0, 1), small) < 1.0 - 1e-3
 
 
 def test_occupancy_metrics_counts():

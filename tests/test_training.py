@@ -175,6 +175,27 @@ def test_leco_eval_command_reevaluates_a_finished_run(tiny_scene, tmp_path, caps
     assert "no finished run here" in capsys.readouterr().err
 
 
+def test_downscale_trains_and_scores_at_the_same_reduced_scale(tiny_scene, tmp_path):
+    from PIL import Image
+
+    from model.scenes import load_scene
+    from workers.evaluate import evaluate_run
+
+    cfg = TrainConfig(method="switch", profile="smoke", downscale=2, overrides={"main_steps": 3})
+    summary = run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")
+    assert summary["config"]["downscale"] == 2
+    half = load_scene(tiny_scene.root, downscale=2).splits["val"]
+    full = tiny_scene.splits["val"]
+    w, h = int(half.cameras.width[0]), int(half.cameras.height[0])
+    assert (w, h) == (int(full.cameras.width[0]) // 2, int(full.cameras.height[0]) // 2)
+    final = sorted((tmp_path / "run" / "renders").glob("final_*.png"))
+    assert final and all(Image.open(f).size == (3 * w, h) for f in final)  # prediction | truth | depth
+    again = evaluate_run(tmp_path / "run")  # re-scored at the scale it trained at, not the scene's own
+    assert again["val"]["psnr"] == pytest.approx(summary["val"]["psnr"], abs=1e-6)
+    with pytest.raises(ValueError, match="downscale"):
+        TrainConfig(method="switch", downscale=0)
+
+
 @pytest.mark.slow
 def test_leco_pipeline_on_the_tiny_city_learns_occupancy(tiny_scene, tmp_path):
     """Both phases through the real runner at cpu-profile width: most points to E_e, most occupied cells found."""

@@ -28,6 +28,9 @@ class TrainConfig(BaseModel):
     use_gpu: bool = False
     budget_min: float | None = Field(None, gt=0, le=7 * 24 * 60)  # wall-clock budget for the whole run (both phases)
     seed: int = Field(0, ge=0, le=2**31 - 1)
+    # Integer factor applied to images and intrinsics for training and evaluation alike (None: the scene's own
+    # scale; for LLFF its smallest images_N folder). The paper trains and scores Mega-NeRF scenes at 4.
+    downscale: int | None = Field(None, ge=1, le=64)
     checkpoint_every: int = Field(200, ge=1, le=MAX_STEPS)
     metrics_every: int = Field(10, ge=1, le=MAX_STEPS)
     # Validation renders during training (None: only at the end); at least every 10 steps, or it only renders.

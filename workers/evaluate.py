@@ -34,7 +34,7 @@ def load_final(run_dir: Path, device: torch.device):
     saved = torch.load(final / "models.pt", map_location=device, weights_only=False)
     run = json.loads((Path(run_dir) / "run.json").read_text())
     cfg = TrainConfig.model_validate(saved["config"])
-    scene = load_scene(run["scene"])
+    scene = load_scene(run["scene"], downscale=cfg.downscale)
     models = RunModels(cfg.method, cfg.resolved_profile(), scene.num_images, scene.bounds.aabb, cfg.seed).to(device)
     models.load_state_dict(saved["models"])
     models.load_grid_state(saved["grid"])

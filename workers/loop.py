@@ -65,7 +65,7 @@ class RankRun:
                  store: RunStore | None = None):
         self.cfg, self.run_dir, self.session, self.device = cfg, Path(run_dir), session, device
         self.profile = cfg.resolved_profile()
-        self.scene = load_scene(scene_dir)
+        self.scene = load_scene(scene_dir, downscale=cfg.downscale)
         self.aabb = self.scene.bounds.aabb
         self.models = RunModels(cfg.method, self.profile, self.scene.num_images, self.aabb, cfg.seed).to(device)
         self.sampler = RaySampler(self.scene.train, self.aabb, cfg.global_batch, cfg.seed, session.rank,

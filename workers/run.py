@@ -189,7 +189,7 @@ def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, b
     scene_dir, run_dir = Path(scene_dir), Path(run_dir)
     from model.scenes import load_scene
 
-    load_scene(scene_dir)  # a broken scene fails here, before any worker starts
+    load_scene(scene_dir, downscale=cfg.downscale)  # a broken scene fails here, before any worker starts
     prepare_run_dir(cfg, scene_dir, run_dir)
     (run_dir / "failure.json").unlink(missing_ok=True)
     (run_dir / "stopped.json").unlink(missing_ok=True)
