@@ -27,7 +27,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from bench.attacks import attack_tasks, verdict
+from bench.attacks import attack_bodies as build_attack_bodies
+from bench.attacks import attack_tasks, scene_archive, verdict
 
 ROOT = Path(__file__).resolve().parents[1]
 STEP = re.compile(rb'"step":(\d+)')
@@ -166,14 +167,16 @@ async def poller(url: str, token: str, job: int, start: float, until: float, int
 
 
 async def poll_all(url: str, token: str, job: int, pollers: int, seconds: float, interval: float,
-                   attack: bool = False, flood_pause: float = 0.0) -> dict:
+                   attack_bodies: dict | None = None, flood_pause: float = 0.0) -> dict:
     samples = {"job": [], "metrics": [], "errors": [], "attacks": {}}
+    # Nothing slow may run between `begin` and the gather: pollers whose first due times have passed fire
+    # back to back until they catch up, and that burst, not the server, would be what the tail measures.
     begin = time.monotonic()
     # Spread evenly over one interval, as dashboards opened at different moments.
     tasks = [poller(url, token, job, begin + i * interval / pollers, begin + seconds, interval, samples)
              for i in range(pollers)]
-    if attack:
-        tasks += attack_tasks(url, token, begin + seconds, samples["attacks"], flood_pause=flood_pause)
+    if attack_bodies is not None:
+        tasks += attack_tasks(url, token, attack_bodies, begin + seconds, samples["attacks"], flood_pause=flood_pause)
     await asyncio.gather(*tasks)
     return samples
 
@@ -203,6 +206,7 @@ def poll_cache_counts(api: httpx.Client) -> dict:
 def run_loadtest(database_url: str | None, pollers: int = 200, seconds: float = 30.0, interval: float = 1.0,
                  profile: str = "cpu", overrides: dict | None = None, data_dir: Path | None = None,
                  baseline_s: float = 10.0, attack: bool = False, flood_pause: float = 0.0) -> dict:
+    bodies = build_attack_bodies(scene_archive()) if attack else None  # seconds of CPU: before any clock
     with tempfile.TemporaryDirectory() as tmp:
         with Service(Path(data_dir or tmp) / "data", database_url) as service, service.client() as api:
             job = start_job(api, profile, overrides)
@@ -210,7 +214,7 @@ def run_loadtest(database_url: str | None, pollers: int = 200, seconds: float = 
             cache_before, started = poll_cache_counts(api), time.perf_counter()
             gc.freeze()  # this process's own full collections would stall its pollers, not the server
             step_before = api.get(f"/v1/jobs/{job}").json()["step"]
-            samples = asyncio.run(poll_all(service.url, service.token, job, pollers, seconds, interval, attack,
+            samples = asyncio.run(poll_all(service.url, service.token, job, pollers, seconds, interval, bodies,
                                            flood_pause))
             elapsed = time.perf_counter() - started
             after = api.get(f"/v1/jobs/{job}").json()
