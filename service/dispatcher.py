@@ -38,6 +38,7 @@ def cluster_env(s: Settings) -> dict[str, str]:
     return {"DATABASE_URL": s.db_url, "LECO_DATA_DIR": str(s.data_dir.resolve()),
             "LECO_ARTIFACT_ROOT": str(s.artifacts), "LECO_BACKEND": s.backend,
             "LECO_LEASE_S": repr(s.lease_s), "LECO_DB_RETRY_S": repr(s.retry_s),
+            "LECO_PIXEL_CACHE": str(s.data_dir.resolve() / "pixel-cache"),
             "LECO_RAY_JOBS_ADDRESS": ""}  # inside the Ray job, train on the cluster it runs on
 
 

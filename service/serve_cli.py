@@ -40,6 +40,9 @@ def prepare(settings, upgrade_embedded: bool) -> None:
         upgrade(settings.db_url)
     check_schema(settings.db_url)
     collect_orphans(settings)
+    # Training pixel stores (model/scenes/pixel_store.py) live on the data volume, shared by every job and,
+    # through the environment Ray's workers inherit, by every rank on this node.
+    os.environ.setdefault("LECO_PIXEL_CACHE", str(settings.data_dir.resolve() / "pixel-cache"))
 
 
 def collect_orphans(settings) -> dict:

@@ -16,6 +16,17 @@ def shared_dataset(name: str) -> Path:
     return path
 
 
+@pytest.fixture(scope="session", autouse=True)
+def pixel_cache(tmp_path_factory) -> Path:
+    """Training pixel stores (model/scenes/pixel_store.py) go to a folder of this session, never to the
+    user's ~/.cache; services and Ray workers the tests start inherit it."""
+    import os
+
+    cache = tmp_path_factory.mktemp("pixel-cache")
+    os.environ["LECO_PIXEL_CACHE"] = str(cache)
+    return cache
+
+
 @pytest.fixture(scope="session")
 def lego_dir() -> Path:
     return shared_dataset("nerf_synthetic_lego_200")

@@ -24,6 +24,7 @@ from model.occupancy_phase import occupancy_step
 from model.schedules import phase_progress
 from model.warm_start import warm_start_main
 from model.scenes import RaySampler, load_scene
+from model.scenes.pixel_store import PixelStore, ensure_store
 from workers.config import TrainConfig
 from workers.distributed import any_rank, any_rank_each, average_gradients, grads_finite, is_distributed
 from workers.memory import SavedTensorBytes
@@ -60,6 +61,16 @@ def peak_memory_mb(device: torch.device) -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
 
 
+def training_pixels(scene) -> PixelStore:
+    """The training split's memory-mapped pixel store in the cache (LECO_PIXEL_CACHE, default
+    ~/.cache/leco/pixels; the service points it at its data folder), built on first use."""
+    cache = Path(os.environ.get("LECO_PIXEL_CACHE") or Path.home() / ".cache" / "leco" / "pixels")
+    views = scene.train
+    sizes = [(int(h), int(w)) for h, w in zip(views.cameras.height, views.cameras.width)]
+    log = lambda text: print(f"[leco] {text}", flush=True)
+    return ensure_store(cache, scene.root, "train", scene.downscale, sizes, lambda i: views.images[i], log)
+
+
 class RankRun:
     def __init__(self, cfg: TrainConfig, scene_dir: Path, run_dir: Path, session: Session, device: torch.device,
                  store: RunStore | None = None):
@@ -69,7 +80,7 @@ class RankRun:
         self.aabb = self.scene.bounds.aabb
         self.models = RunModels(cfg.method, self.profile, self.scene.num_images, self.aabb, cfg.seed).to(device)
         self.sampler = RaySampler(self.scene.train, self.aabb, cfg.global_batch, cfg.seed, session.rank,
-                                  session.world_size)
+                                  session.world_size, store=training_pixels(self.scene))
         # Per-rank seeds, on the device the samplers draw on (a CPU generator cannot fill CUDA tensors).
         self.generator = torch.Generator(device=device).manual_seed(cfg.seed * 7919 + session.rank)
         self.progress = {"phase": cfg.phases[0], "phase_step": 0, "step": 0, "elapsed": {}, "steps": {},

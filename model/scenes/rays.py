@@ -11,6 +11,7 @@ from torch import Tensor
 from model.scenes.bounds import ray_aabb
 from model.scenes.cameras import pixel_rays
 from model.scenes.permutation import FeistelPermutation
+from model.scenes.pixel_store import PixelStore
 from model.scenes.scene import Views
 
 
@@ -32,13 +33,17 @@ class RayBatch:
 
 
 class PixelTable:
-    """Flat pixel ids over all images of a Views: id = offset[image] + v * W + u."""
+    """Flat pixel ids over all images of a Views: id = offset[image] + v * W + u. Colours come from a
+    memory-mapped PixelStore when one is given, else from one concatenated copy of the images."""
 
-    def __init__(self, views: Views):
+    def __init__(self, views: Views, store: PixelStore | None = None):
         self.views = views
         sizes = (views.cameras.width * views.cameras.height).long()
         self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), sizes.cumsum(0)])
-        self.colours = torch.cat([img.reshape(-1, 3) for img in views.images])  # uint8, 3 bytes a pixel
+        if store is not None and store.offsets != self.offsets.tolist():
+            raise ValueError(f"pixel store {store.folder} holds other image sizes than these views")
+        self.store = store
+        self.colours = None if store else torch.cat([img.reshape(-1, 3) for img in views.images])  # uint8
 
     def __len__(self) -> int:
         return int(self.offsets[-1])
@@ -54,7 +59,8 @@ class PixelTable:
         image, u, v = self.locate(pixel)
         origins, directions = pixel_rays(self.views.cameras, image, u, v)
         near, far = ray_aabb(origins, directions, aabb)
-        rgb = self.colours[pixel].float() / 255.0
+        colours = self.store.gather(pixel) if self.store is not None else self.colours[pixel]
+        rgb = colours.float() / 255.0
         return RayBatch(origins, directions, near, far, self.views.appearance[image], rgb, pixel)
 
     def image_pixels(self, image: int, columns: tuple[int, int] | None = None) -> Tensor:
@@ -88,9 +94,10 @@ class RaySampler:
     resumed run continues with the very next batch."""
 
     def __init__(
-        self, views: Views, aabb: Tensor, batch_size: int, seed: int, rank: int = 0, world_size: int = 1
+        self, views: Views, aabb: Tensor, batch_size: int, seed: int, rank: int = 0, world_size: int = 1,
+        store: PixelStore | None = None,
     ):
-        self.table = PixelTable(views)
+        self.table = PixelTable(views, store)
         if batch_size % world_size:
             raise ValueError(f"batch_size {batch_size} must be a multiple of world_size {world_size}")
         if batch_size > len(self.table):

@@ -1,0 +1,175 @@
+"""Decoded training pixels on disk, built once per (scene, split, downscale) and memory-mapped (issue 18).
+
+Every rank used to hold a concatenated copy of all decoded pixels of its split. A store is one raw file of
+uint8 RGB (`pixels.u8`, 3 bytes a pixel, image after image in the PixelTable's id order) and a manifest:
+image sizes, offsets, a CRC-32 per image, and a fingerprint of the source files. Ranks on one node share it
+through the page cache, nodes through a shared volume; a rank's own memory is the pages it touches.
+
+Building is atomic and resumable: the file grows in `<store>.partial/`, whose `progress.json` records the
+images already written and flushed, and the folder is renamed into place only when the manifest is complete.
+A store whose manifest, size or checksums do not match (a crash, a truncated copy, a flipped bit) is removed
+and rebuilt; a store built from other source files (another fingerprint) is never opened for this scene.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import json
+import os
+import shutil
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+from torch import Tensor
+
+VERSION = 1
+CHUNK = 16 * 2**20  # bytes per checksum read: bounded memory whatever the image size
+
+
+class StoreError(RuntimeError):
+    """A store that cannot be used; the message says what is wrong with it."""
+
+
+@dataclass(frozen=True)
+class PixelStore:
+    folder: Path
+    sizes: list[tuple[int, int]]  # (height, width) per image
+    offsets: list[int]  # first pixel id of each image, then the total
+    pixels: np.memmap  # (num_pixels, 3) uint8, read-only
+
+    def __len__(self) -> int:
+        return self.offsets[-1]
+
+    def gather(self, pixel: Tensor) -> Tensor:
+        """uint8 (B, 3) colours of flat pixel ids; reads only the pages those ids fall in."""
+        return torch.from_numpy(np.ascontiguousarray(self.pixels[pixel.cpu().numpy()]))
+
+    def image(self, index: int) -> Tensor:
+        """One whole image, uint8 (H, W, 3), copied out of the map."""
+        h, w = self.sizes[index]
+        return torch.from_numpy(np.array(self.pixels[self.offsets[index] : self.offsets[index + 1]])).reshape(h, w, 3)
+
+
+def _crc(data: np.ndarray) -> int:
+    flat, crc = data.reshape(-1), 0
+    for start in range(0, len(flat), CHUNK):
+        crc = zlib.crc32(memoryview(flat[start : start + CHUNK]), crc)
+    return crc
+
+
+def _manifest(folder: Path) -> dict:
+    try:
+        return json.loads((folder / "manifest.json").read_text())
+    except (OSError, ValueError) as error:
+        raise StoreError(f"{folder}: no readable manifest ({error})") from None
+
+
+def open_store(folder: Path, fingerprint: str, verify: bool = True) -> PixelStore:
+    """The finished store in `folder` if it is whole and was built from sources with this fingerprint."""
+    folder = Path(folder)
+    manifest = _manifest(folder)
+    if manifest.get("version") != VERSION or manifest.get("fingerprint") != fingerprint:
+        raise StoreError(f"{folder}: built from other sources or by another version")
+    sizes = [tuple(s) for s in manifest["sizes"]]
+    offsets = [0] + np.cumsum([h * w for h, w in sizes]).tolist()
+    path = folder / "pixels.u8"
+    if not path.is_file() or path.stat().st_size != 3 * offsets[-1]:
+        raise StoreError(f"{folder}: pixels.u8 is missing or not {3 * offsets[-1]:,} bytes (truncated?)")
+    pixels = np.memmap(path, dtype=np.uint8, mode="r", shape=(offsets[-1], 3)) if offsets[-1] else \
+        np.zeros((0, 3), np.uint8)
+    if verify:
+        for i, crc in enumerate(manifest["crc32"]):
+            if _crc(pixels[offsets[i] : offsets[i + 1]]) != crc:
+                raise StoreError(f"{folder}: image {i} does not match its checksum (corrupted)")
+    return PixelStore(folder, sizes, offsets, pixels)
+
+
+def build_store(folder: Path, fingerprint: str, sizes: list[tuple[int, int]], images: Callable[[int], Tensor],
+                progress: Callable[[int, int], None] | None = None) -> PixelStore:
+    """Writes image i = images(i) (uint8 (H, W, 3), decoded on demand) for every i into a new store at
+    `folder`, resuming a partial build of the same plan, and returns it opened."""
+    folder = Path(folder)
+    partial = folder.with_name(folder.name + ".partial")
+    plan = {"version": VERSION, "fingerprint": fingerprint, "sizes": [list(s) for s in sizes]}
+    done, crcs = _resume(partial, plan)
+    total = sum(h * w for h, w in sizes)
+    pixels = np.memmap(partial / "pixels.u8", dtype=np.uint8, mode="r+" if done else "w+", shape=(max(total, 1), 3))
+    offset = sum(h * w for h, w in sizes[:done])
+    for i in range(done, len(sizes)):
+        image = images(i)
+        if tuple(image.shape) != (*sizes[i], 3) or image.dtype != torch.uint8:
+            raise StoreError(f"image {i} is {tuple(image.shape)} {image.dtype}; the plan says {sizes[i]} uint8")
+        block = image.reshape(-1, 3).numpy()
+        pixels[offset : offset + len(block)] = block
+        pixels.flush()  # on disk before progress says so: a crash never leaves a recorded image unwritten
+        crcs.append(_crc(block))
+        offset += len(block)
+        _write_json(partial / "progress.json", {**plan, "crc32": crcs})
+        if progress is not None:
+            progress(i + 1, len(sizes))
+    del pixels
+    if total == 0:
+        (partial / "pixels.u8").write_bytes(b"")
+    _write_json(partial / "manifest.json", {**plan, "crc32": crcs})
+    (partial / "progress.json").unlink()
+    if folder.exists():
+        shutil.rmtree(folder)  # a stale or corrupt store this one replaces
+    os.replace(partial, folder)  # the whole store appears at once, or not at all
+    return open_store(folder, fingerprint, verify=False)
+
+
+def _resume(partial: Path, plan: dict) -> tuple[int, list[int]]:
+    """(images already written, their checksums) of a partial build of the same plan, else a fresh start."""
+    try:
+        record = json.loads((partial / "progress.json").read_text())
+        if {k: record.get(k) for k in plan} == plan and (partial / "pixels.u8").is_file():
+            return len(record["crc32"]), list(record["crc32"])
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    return 0, []
+
+
+def _write_json(path: Path, data: dict) -> None:
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(data))
+    os.replace(tmp, path)
+
+
+def source_fingerprint(root: Path, extra: str) -> str:
+    """Every file under the scene folder by path, size and modification time (a stat each: cheap at every
+    start, where hashing the contents would read the whole capture; an edited file gets a new mtime), plus
+    `extra` (split, scale)."""
+    h = hashlib.sha256(extra.encode())
+    for path in sorted(p for p in Path(root).rglob("*") if p.is_file()):
+        stat = path.stat()
+        h.update(f"{path.relative_to(root)}\0{stat.st_size}\0{stat.st_mtime_ns}\n".encode())
+    return h.hexdigest()
+
+
+def ensure_store(cache: Path, root: Path, split: str, downscale: int, sizes: list[tuple[int, int]],
+                 images: Callable[[int], Tensor], log: Callable[[str], None] = lambda text: None) -> PixelStore:
+    """The store of this scene split at this scale under `cache`: opened when whole and current, else built
+    (or its partial build resumed). Ranks that ask at once wait for one builder (a file lock), then open it."""
+    root = Path(root).resolve()
+    fingerprint = source_fingerprint(root, f"{split}:{downscale}")
+    key = hashlib.sha256(str(root).encode()).hexdigest()[:16]
+    folder = Path(cache) / f"{root.name}-{key}-{split}-x{downscale}"
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    with open(folder.with_name(folder.name + ".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            return open_store(folder, fingerprint)
+        except StoreError as why:
+            if folder.exists() or folder.with_name(folder.name + ".partial").exists():
+                log(f"pixel store {folder.name}: rebuilding ({why})")
+        step = max(1, len(sizes) // 20)
+        report = lambda done, total: log(f"pixel store {folder.name}: {done}/{total} images") \
+            if done % step == 0 or done == total else None
+        return build_store(folder, fingerprint, sizes, images, report)

@@ -1,0 +1,135 @@
+"""Issue 18 item 2: the memory-mapped pixel store: exact contents, atomic and resumable builds, corruption and
+changed sources detected and rebuilt, one builder among concurrent ranks."""
+
+import json
+import os
+import tempfile
+import threading
+from pathlib import Path
+
+import pytest
+import torch
+
+from model.scenes.pixel_store import StoreError, build_store, ensure_store, open_store
+from model.scenes.rays import PixelTable
+from tests.test_rays import AABB, small_views
+
+SIZES = [(6, 8), (5, 7), (9, 4), (3, 3)]
+
+
+def images_for(sizes, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return [torch.randint(0, 256, (h, w, 3), generator=g, dtype=torch.uint8) for h, w in sizes]
+
+
+def test_a_store_holds_exactly_the_images_in_pixel_id_order(tmp_path):
+    images = images_for(SIZES)
+    store = build_store(tmp_path / "s", "fp", SIZES, lambda i: images[i])
+    flat = torch.cat([im.reshape(-1, 3) for im in images])
+    assert len(store) == len(flat) and torch.equal(store.gather(torch.arange(len(flat))), flat)
+    ids = torch.tensor([5, 0, len(flat) - 1, 5])
+    assert torch.equal(store.gather(ids), flat[ids])
+    assert all(torch.equal(store.image(i), images[i]) for i in range(len(images)))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s"]  # no partial folder left behind
+    reopened = open_store(tmp_path / "s", "fp")
+    assert torch.equal(reopened.gather(ids), flat[ids])
+    with pytest.raises(StoreError, match="other sources"):
+        open_store(tmp_path / "s", "another fingerprint")
+
+
+def test_an_interrupted_build_is_never_used_and_resumes_where_it_stopped(tmp_path):
+    images, calls = images_for(SIZES), []
+
+    def failing(i):
+        calls.append(i)
+        if i == 2:
+            raise KeyboardInterrupt  # the process dies while decoding the third image
+        return images[i]
+
+    with pytest.raises(KeyboardInterrupt):
+        build_store(tmp_path / "s", "fp", SIZES, failing)
+    assert not (tmp_path / "s").exists() and (tmp_path / "s.partial").is_dir()
+    with pytest.raises(StoreError, match="no readable manifest"):
+        open_store(tmp_path / "s", "fp")
+    calls.clear()
+    store = build_store(tmp_path / "s", "fp", SIZES, lambda i: calls.append(i) or images[i])
+    assert calls == [2, 3]  # the two images written before the crash are not decoded again
+    assert all(torch.equal(store.image(i), images[i]) for i in range(len(images)))
+    # a partial build of another plan is discarded, not resumed
+    (tmp_path / "t.partial").mkdir()
+    (tmp_path / "t.partial" / "progress.json").write_text('{"version": 1, "fingerprint": "old", "crc32": [1]}')
+    calls.clear()
+    build_store(tmp_path / "t", "fp", SIZES, lambda i: calls.append(i) or images[i])
+    assert calls == [0, 1, 2, 3]
+
+
+def test_a_corrupted_or_truncated_store_is_detected_and_rebuilt(tmp_path):
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (scene / "a.png").write_bytes(b"source")
+    images, messages = images_for(SIZES), []
+    ensure = lambda: ensure_store(tmp_path / "cache", scene, "train", 1, SIZES, lambda i: images[i], messages.append)
+    store = ensure()
+    path = store.folder / "pixels.u8"
+    data = bytearray(path.read_bytes())
+    data[3 * 6 * 8 + 5] ^= 0xFF  # a flipped byte in the second image (the first is 6 x 8 pixels)
+    path.write_bytes(bytes(data))
+    fingerprint = json.loads((store.folder / "manifest.json").read_text())["fingerprint"]
+    with pytest.raises(StoreError, match="image 1 does not match its checksum"):
+        open_store(store.folder, fingerprint)
+    rebuilt = ensure()
+    assert any("rebuilding" in m and "checksum" in m for m in messages)
+    assert torch.equal(rebuilt.image(1), images[1])
+    path.write_bytes(path.read_bytes()[:-3])  # a copy cut short
+    messages.clear()
+    assert torch.equal(ensure().image(3), images[3])
+    assert any("truncated" in m for m in messages)
+
+
+def test_changed_sources_or_another_scale_get_their_own_store(tmp_path):
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (scene / "a.png").write_bytes(b"source")
+    first, second = images_for(SIZES, 0), images_for(SIZES, 1)
+    cache = tmp_path / "cache"
+    a = ensure_store(cache, scene, "train", 1, SIZES, lambda i: first[i])
+    assert torch.equal(ensure_store(cache, scene, "train", 1, SIZES, lambda i: second[i]).image(0), first[0])  # reused
+    (scene / "a.png").write_bytes(b"edited")  # a source changed: the old pixels must not be served
+    os.utime(scene / "a.png", ns=(1, 1))
+    b = ensure_store(cache, scene, "train", 1, SIZES, lambda i: second[i])
+    assert b.folder == a.folder and torch.equal(b.image(0), second[0])
+    half = [(h // 2 or 1, w // 2 or 1) for h, w in SIZES]
+    c = ensure_store(cache, scene, "train", 2, half, lambda i: images_for(half)[i])
+    assert c.folder != a.folder and c.sizes == half
+
+
+def test_concurrent_ranks_wait_for_one_builder(tmp_path):
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (scene / "a.png").write_bytes(b"source")
+    images, builds, stores = images_for(SIZES), [], []
+
+    def decode(i):
+        builds.append(i)
+        return images[i]
+
+    ranks = [threading.Thread(target=lambda: stores.append(
+        ensure_store(tmp_path / "cache", scene, "train", 1, SIZES, decode))) for _ in range(3)]
+    for t in ranks:
+        t.start()
+    for t in ranks:
+        t.join()
+    assert builds == [0, 1, 2, 3] and len(stores) == 3  # each image decoded once, by one rank
+
+
+def test_pixel_table_reads_the_same_rays_from_a_store():
+    views = small_views()
+    sizes = [(int(h), int(w)) for h, w in zip(views.cameras.height, views.cameras.width)]
+    with tempfile.TemporaryDirectory() as tmp:
+        store = build_store(Path(tmp) / "s", "fp", sizes, lambda i: views.images[i])
+        ids = torch.randperm(views.num_pixels, generator=torch.Generator().manual_seed(0))[:40]
+        plain, mapped = PixelTable(views).rays(ids, AABB), PixelTable(views, store).rays(ids, AABB)
+        assert torch.equal(plain.rgb, mapped.rgb) and torch.equal(plain.origins, mapped.origins)
+        other = build_store(Path(tmp) / "o", "fp", sizes[:2], lambda i: views.images[i])
+        with pytest.raises(ValueError, match="other image sizes"):
+            PixelTable(views, other)
