@@ -133,6 +133,8 @@ def test_bench_smoke_on_the_tiny_city(tiny_scene, tmp_path, capsys):
     report = (out / "report.md").read_text()
     for heading in ("Table 1", "Table 3", "Speed-up of LeCO", "Targets", "Tables 4 and 5"):
         assert heading in report
+    assert "images at 1/1 scale for training and validation alike (the scene's own)" in report
+    assert results["plan"]["downscale"] == 1 and results["plan"]["downscale_asked"] is None
     assert "| S+Ours (LeCO) |" in report and "| Homo. MoE, no L_d |" in report
 
     capsys.readouterr()
