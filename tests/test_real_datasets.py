@@ -75,6 +75,9 @@ def test_lego_bounds_hold_the_model(lego):
 
 def test_fern_cameras_and_intrinsics(fern, fern_dir):
     assert fern.format == "llff" and fern.downscale == 8
+    from model.scenes.info import describe
+
+    assert describe(fern)["image_folder_factors"] == [8]  # what the API checks a job's downscale against
     assert {k: len(v) for k, v in fern.splits.items()} == {"train": 17, "val": 3}
     assert fern.splits["val"].names == ["image000", "image008", "image016"]
     cams = fern.train.cameras

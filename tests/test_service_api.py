@@ -174,6 +174,19 @@ def test_hostile_scene_contents_are_refused_with_the_file_named(api, lego_dir, s
     assert not scenes_dir.exists() or list(scenes_dir.iterdir()) == []
 
 
+def test_a_downscale_an_llff_scene_cannot_serve_is_refused_at_submit(api, fern_dir):
+    upload = api.post("/v1/scenes/upload", params={"name": "fern"}, content=tar_of(fern_dir))
+    assert upload.status_code == 201, upload.text
+    fern = upload.json()  # it has images_8 only
+    refused = api.post("/v1/jobs", json={"scene": fern["id"], "method": "leco", "downscale": 4})
+    assert refused.status_code == 422, refused.text
+    assert refused.json()["detail"][0]["loc"] == ["body", "downscale"]
+    assert "LLFF capture with images_8: downscale 4 must be a multiple of 8" in refused.text
+    assert api.get("/v1/jobs").json()["total"] == 0  # nothing stored
+    accepted = api.post("/v1/jobs", json={"scene": fern["id"], "method": "leco", "downscale": 16})
+    assert accepted.status_code == 201, accepted.text
+
+
 def test_job_requests_are_validated_field_by_field(api):
     scene = ready_scene(api)
     cases = [

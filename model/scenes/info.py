@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from model.scenes.bounds import COVERAGE_RATIO, FAR_FACTOR, MARGIN
+from model.scenes.formats.llff import image_folders
 from model.scenes.rays import PixelTable
 from model.scenes.scene import Scene
 
@@ -55,6 +56,8 @@ def describe(scene: Scene) -> dict:
         "path": str(scene.root),
         "format": scene.format,
         "downscale": scene.downscale,
+        # LLFF only: the factors a job's downscale may be a multiple of (images -> 1, images_N -> N)
+        **({"image_folder_factors": sorted(image_folders(scene.root))} if scene.format == "llff" else {}),
         "cameras": scene.num_images,
         "splits": splits,
         "world_convention": "right-handed, z up; camera-to-world in OpenGL axes (right, up, back)",

@@ -14,6 +14,7 @@ from sqlalchemy import case, func, select, true
 from sqlalchemy.exc import IntegrityError
 
 from model.memory_estimate import RUNTIME_BYTES, describe, estimate_peak_bytes
+from model.scenes.formats.llff import folder_factor
 from service import queue
 from service.api.deps import MAX_INT, RowId, not_found, poll_cache_of
 from service.api.links import cancelled_job_links, deleted_job_links, job_links, links, submitted_job_links
@@ -91,12 +92,24 @@ def check_resources(cfg: TrainConfig, settings: Settings, num_images: int) -> No
         raise HTTPException(422, problems)
 
 
+def check_downscale(cfg: TrainConfig, scene_name: str, factors: list[int] | None) -> None:
+    """An LLFF scene serves a downscale only as a multiple of one of its image folders' factors: refuse any
+    other at submit time (422) instead of failing in the worker."""
+    if cfg.downscale is None or not factors or folder_factor(factors, cfg.downscale) is not None:
+        return
+    have = ", ".join("images" if f == 1 else f"images_{f}" for f in factors)
+    raise HTTPException(422, [{"loc": ["body", "downscale"], "type": "value_error",
+                               "msg": f"scene {scene_name!r} is an LLFF capture with {have}: downscale "
+                                      f"{cfg.downscale} must be a multiple of {' or '.join(map(str, factors))}"}])
+
+
 def create_job(body: JobRequest, settings: Settings, idempotency_key: str | None = None) -> tuple[int, dict]:
     cfg = body.train_config()
     with reading(settings.db_url) as session:  # the estimate runs outside the write transaction
         scene = find_scene(session, body.scene)
-        cameras = None if scene is None else (scene.info or {}).get("cameras")
-    check_resources(cfg, settings, cameras or 1000)
+        info = {} if scene is None else (scene.info or {})
+    check_downscale(cfg, scene.name if scene is not None else "", info.get("image_folder_factors"))
+    check_resources(cfg, settings, info.get("cameras") or 1000)
     with transaction(settings.db_url) as session:
         scene = find_scene(session, body.scene)
         if scene is None:

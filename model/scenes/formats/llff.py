@@ -37,12 +37,17 @@ def pick_folder(root: Path, downscale: int | None) -> tuple[Path, int, int]:
     if downscale is None:
         factor = min(folders)
         return folders[factor], factor, 1
-    usable = [f for f in folders if downscale % f == 0]
-    if not usable:
+    factor = folder_factor(folders, downscale)
+    if factor is None:
         have = ", ".join(folders[f].name for f in sorted(folders))
         raise SceneError(root, f"downscale {downscale} is not a multiple of any image folder's factor (have {have})")
-    factor = max(usable)
     return folders[factor], factor, downscale // factor
+
+
+def folder_factor(factors, downscale: int) -> int | None:
+    """The largest image-folder factor that `downscale` is a multiple of (resizing the least), else None."""
+    usable = [f for f in factors if downscale % f == 0]
+    return max(usable) if usable else None
 
 
 MAX_POSES = 100_000  # rows of poses_bounds.npy (one per image)
