@@ -103,6 +103,8 @@ def serve(args: argparse.Namespace) -> int:
                          "use it only with a loopback host (127.0.0.1, ::1, localhost)")
     if not args.no_auth and "LECO_API_TOKENS" not in os.environ:
         token = secrets.token_urlsafe(24)
+        while token.startswith("-"):  # `leco submit --token -x...` would read it as an option
+            token = secrets.token_urlsafe(24)
         overrides["api_tokens"] = (token,)
     settings = settings_from(args, **overrides)
     prepare(settings, upgrade_embedded=True)

@@ -147,9 +147,10 @@ def test_every_route_wants_the_token_and_ray_wants_its_own(topology):
 
 
 def test_a_smoke_job_runs_end_to_end_through_leco_submit(topology):
-    done = topology.run(sys.executable, "-m", "service.cli", "submit", "--url", topology.url, "--token", topology.token,
-                        "--scene", str(topology.scene), "--method", "leco", "--profile", "smoke", "--workers", "2",
-                        timeout=400)
+    # --token=VALUE: a random token may start with "-", which argparse would read as an option
+    done = topology.run(sys.executable, "-m", "service.cli", "submit", "--url", topology.url,
+                        f"--token={topology.token}", "--scene", str(topology.scene), "--method", "leco",
+                        "--profile", "smoke", "--workers", "2", timeout=400)
     result = json.loads(done.stdout)
     assert result["state"] == "succeeded", result
     assert result["summary"]["steps"]["total"] == 40 and result["summary"]["method"] == "leco"
