@@ -133,3 +133,9 @@ def test_pixel_table_reads_the_same_rays_from_a_store():
         other = build_store(Path(tmp) / "o", "fp", sizes[:2], lambda i: views.images[i])
         with pytest.raises(ValueError, match="other image sizes"):
             PixelTable(views, other)
+
+
+def test_an_unwritable_cache_is_named_with_the_setting_to_change(tmp_path):
+    (tmp_path / "a-file").write_text("not a folder")
+    with pytest.raises(StoreError, match=r"cache folder .*a-file cannot be written .*set LECO_PIXEL_CACHE"):
+        ensure_store(tmp_path / "a-file", tmp_path, "train", 1, SIZES, lambda i: images_for(SIZES)[i])

@@ -161,8 +161,13 @@ def ensure_store(cache: Path, root: Path, split: str, downscale: int, sizes: lis
     fingerprint = source_fingerprint(root, f"{split}:{downscale}")
     key = hashlib.sha256(str(root).encode()).hexdigest()[:16]
     folder = Path(cache) / f"{root.name}-{key}-{split}-x{downscale}"
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    with open(folder.with_name(folder.name + ".lock"), "w") as lock:
+    try:
+        folder.parent.mkdir(parents=True, exist_ok=True)
+        lock_file = open(folder.with_name(folder.name + ".lock"), "w")
+    except OSError as error:
+        raise StoreError(f"pixel store cache folder {cache} cannot be written ({error.strerror}); "
+                         "set LECO_PIXEL_CACHE to a writable folder") from None
+    with lock_file as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
             return open_store(folder, fingerprint)
