@@ -43,7 +43,7 @@ class PixelTable:
         if store is not None and store.offsets != self.offsets.tolist():
             raise ValueError(f"pixel store {store.folder} holds other image sizes than these views")
         self.store = store
-        self.colours = None if store else torch.cat([img.reshape(-1, 3) for img in views.images])  # uint8
+        self.colours = None if store is not None else torch.cat([img.reshape(-1, 3) for img in views.images])
 
     def __len__(self) -> int:
         return int(self.offsets[-1])
