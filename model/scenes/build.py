@@ -5,9 +5,11 @@ from __future__ import annotations
 from dataclasses import replace
 
 import torch
+from torch import Tensor
 
 from model.scenes.bounds import foreground_aabb
 from model.scenes.errors import SceneError
+from model.scenes.frames import frames
 from model.scenes.scene import Bounds, Normalization, OccupancyGrid, Scene, Views
 from model.scenes.source import SourceScene
 
@@ -34,7 +36,7 @@ def build_scene(source: SourceScene) -> Scene:
         c2w = c2w.float()
         appearance = torch.arange(next_appearance, next_appearance + len(split.names))
         next_appearance += len(split.names)
-        depth = None if split.depth is None else [d / scale for d in split.depth]
+        depth = None if split.depth is None else frames(split.depth).map(_Divide(scale))
         splits[name] = Views(split.names, split.images, replace(split.cameras, c2w=c2w), appearance, depth)
 
     occupancy = None
@@ -53,3 +55,13 @@ def build_scene(source: SourceScene) -> Scene:
         points=points,
         extras=source.extras,
     )
+
+
+class _Divide:
+    """Depth in source units -> world units, as each map is read (a class, not a lambda: picklable)."""
+
+    def __init__(self, scale: float):
+        self.scale = scale
+
+    def __call__(self, depth: Tensor) -> Tensor:
+        return depth / self.scale

@@ -1,7 +1,12 @@
-"""Reading dataset images with validation and optional integer downscaling."""
+"""Reading dataset images with validation and optional integer downscaling.
+
+Loading a scene reads image headers only (`probe_image`: size, pixel limits, a truncation check on the
+file's tail); pixels are decoded when an `ImageFile` is called, one image at a time, by whoever needs them
+(the pixel store's build, a test)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -29,15 +34,56 @@ def find_image(stem: Path) -> Path:
     raise SceneError(stem, "image is missing (looked for .png/.jpg/.jpeg)")
 
 
+def _open_checked(im: Image.Image, path: Path) -> tuple[int, int]:
+    w, h = im.size
+    if w * h > MAX_PIXELS:
+        raise SceneError(path, f"image claims {w}x{h} pixels, more pixels than the "
+                               f"{MAX_PIXELS // 10**6} megapixel limit (a corrupt or hostile header?)")
+    return w, h
+
+
+def _bomb(path: Path, exc: Exception) -> SceneError:  # PIL's own guard fires first beyond ~179 MP, at open
+    return SceneError(path, f"image claims more pixels than the {MAX_PIXELS // 10**6} megapixel limit "
+                            f"(a corrupt or hostile header?): {exc}")
+
+
+# A file cut short (an interrupted copy or upload) loses its end marker: PNG's IEND chunk, JPEG's EOI. Checking
+# the last bytes finds that without decoding; corruption inside the data shows when the pixels are decoded.
+PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+JPEG_END = b"\xff\xd9"
+
+
+def _check_tail(path: Path, image_format: str | None) -> None:
+    with open(path, "rb") as f:
+        f.seek(max(0, path.stat().st_size - 64))
+        tail = f.read()
+    if image_format == "PNG" and not tail.endswith(PNG_END):
+        raise SceneError(path, "image is unreadable (truncated: the PNG has no IEND chunk at its end)")
+    if image_format == "JPEG" and JPEG_END not in tail:
+        raise SceneError(path, "image is unreadable (truncated: the JPEG has no end-of-image marker)")
+
+
+def probe_image(path: Path) -> tuple[int, int]:
+    """(width, height) from the header, charged to the pixel budget, after the size limit and a truncation
+    check; nothing is decoded."""
+    try:
+        with Image.open(path) as im:
+            w, h = _open_checked(im, path)
+            image_format = im.format
+    except Image.DecompressionBombError as exc:
+        raise _bomb(path, exc) from None
+    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
+        raise SceneError(path, f"image is unreadable ({exc.__class__.__name__}: {exc})") from None
+    _check_tail(path, image_format)
+    spend_pixels(path, w * h)
+    return w, h
+
+
 def read_image(path: Path, *, background: tuple[float, float, float] | None = None) -> Tensor:
     """uint8 (H, W, 3). RGBA is composited on `background` (RGB in [0, 1]; black when None)."""
     try:
         with Image.open(path) as im:
-            w, h = im.size
-            if w * h > MAX_PIXELS:
-                raise SceneError(path, f"image claims {w}x{h} pixels, more pixels than the "
-                                       f"{MAX_PIXELS // 10**6} megapixel limit (a corrupt or hostile header?)")
-            spend_pixels(path, w * h)
+            _open_checked(im, path)
             im.load()
             mode = im.mode
             if mode in ("RGBA", "LA") or (mode == "P" and "transparency" in im.info):
@@ -49,12 +95,38 @@ def read_image(path: Path, *, background: tuple[float, float, float] | None = No
                 array = np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
             else:
                 array = np.asarray(im.convert("RGB"), dtype=np.uint8)
-    except Image.DecompressionBombError as exc:  # PIL's own guard fires first beyond ~179 MP, at open
-        raise SceneError(path, f"image claims more pixels than the {MAX_PIXELS // 10**6} megapixel limit "
-                               f"(a corrupt or hostile header?): {exc}") from None
+    except Image.DecompressionBombError as exc:
+        raise _bomb(path, exc) from None
     except (UnidentifiedImageError, OSError, SyntaxError) as exc:
         raise SceneError(path, f"image is unreadable ({exc.__class__.__name__}: {exc})") from None
     return torch.from_numpy(array.copy())
+
+
+def downscaled_size(width: int, height: int, factor: int) -> tuple[int, int]:
+    """(width, height) after `downscale_image` by `factor`: rounded down, at least 1."""
+    return max(1, width // factor), max(1, height // factor)
+
+
+@dataclass(frozen=True)
+class ImageFile:
+    """One dataset image, decoded on call: read, checked against its probed size, composited, downscaled."""
+
+    path: Path
+    width: int  # of the file, as probed
+    height: int
+    factor: int = 1
+    background: tuple[float, float, float] | None = None
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(height, width) of the decoded, downscaled image."""
+        w, h = downscaled_size(self.width, self.height, self.factor)
+        return h, w
+
+    def __call__(self) -> Tensor:
+        image = read_image(self.path, background=self.background)
+        check_image_size(self.path, image, self.width, self.height)  # the file changed since it was probed
+        return downscale_image(image, self.factor)
 
 
 def downscale_image(image: Tensor, factor: int) -> Tensor:
@@ -62,7 +134,7 @@ def downscale_image(image: Tensor, factor: int) -> Tensor:
     if factor == 1:
         return image
     h, w = image.shape[:2]
-    new_w, new_h = max(1, w // factor), max(1, h // factor)
+    new_w, new_h = downscaled_size(w, h, factor)
     pil = Image.fromarray(image.numpy()).resize((new_w, new_h), Image.Resampling.BOX)
     return torch.from_numpy(np.asarray(pil, dtype=np.uint8).copy())
 
@@ -79,7 +151,8 @@ def downscale_depth(depth: Tensor, factor: int) -> Tensor:
     return depth[rows][:, cols].contiguous()
 
 
-def check_image_size(path: Path, image: Tensor, width: int, height: int) -> None:
-    h, w = image.shape[:2]
+def check_image_size(path: Path, image: Tensor | tuple[int, int], width: int, height: int) -> None:
+    """The image (or its probed (width, height)) has the size its camera says."""
+    w, h = (image.shape[1], image.shape[0]) if isinstance(image, Tensor) else image
     if (w, h) != (width, height):
         raise SceneError(path, f"image is {w}x{h} pixels but its camera says {width}x{height}")

@@ -21,9 +21,9 @@ def ray_segment_stats(scene: Scene, max_rays: int = 20_000, seed: int = 0) -> di
     table = PixelTable(scene.train)
     g = torch.Generator().manual_seed(seed)
     pixels = torch.randint(0, len(table), (min(max_rays, len(table)),), generator=g)
-    rays = table.rays(pixels, scene.bounds.aabb)
-    hit = rays.far > rays.near
-    near, far = rays.near[hit], rays.far[hit]
+    _, _, _, near, far = table.geometry(pixels, scene.bounds.aabb)  # no pixel is decoded
+    hit = far > near
+    near, far = near[hit], far[hit]
     stats = {"rays_sampled": len(pixels), "fraction_hitting_foreground": float(hit.float().mean())}
     if len(near):
         stats.update(near_median=float(near.median()), near_min=float(near.min()),

@@ -31,7 +31,8 @@ def check_file_size(path: Path, limit: int, what: str) -> None:
         raise SceneError(path, f"{what} is {size:,} bytes; at most {limit:,} are accepted")
 
 
-def _read_array(stream: BinaryIO, path: Path, max_bytes: int, shape: tuple[int, ...] | None) -> np.ndarray:
+def _array_header(stream: BinaryIO, path: Path, max_bytes: int, shape: tuple[int, ...] | None):
+    """(shape, fortran order, dtype) of a .npy stream, checked against the limits; the data is not read."""
     try:
         version = np.lib.format.read_magic(stream)
         header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
@@ -46,6 +47,12 @@ def _read_array(stream: BinaryIO, path: Path, max_bytes: int, shape: tuple[int, 
     if nbytes > max_bytes:
         raise SceneError(path, f"array {tuple(found)} of {dtype} would take {nbytes:,} bytes; "
                                f"at most {max_bytes:,} are accepted")
+    return found, fortran, dtype
+
+
+def _read_array(stream: BinaryIO, path: Path, max_bytes: int, shape: tuple[int, ...] | None) -> np.ndarray:
+    found, fortran, dtype = _array_header(stream, path, max_bytes, shape)
+    nbytes = math.prod(found) * dtype.itemsize
     data, filled = bytearray(nbytes), 0  # writable, so the tensors made from it are too
     view = memoryview(data)
     while filled < nbytes:
@@ -64,6 +71,20 @@ def read_npy(path: Path, max_bytes: int = MAX_ARRAY_BYTES, shape: tuple[int, ...
             return _read_array(stream, path, max_bytes, shape)
     except OSError as exc:
         raise SceneError(path, f"cannot read file ({exc.strerror})") from None
+
+
+def read_npy_header(path: Path, max_bytes: int = MAX_ARRAY_BYTES, shape: tuple[int, ...] | None = None) -> np.dtype:
+    """The dtype of a .npy file after its header's checks (as read_npy), without reading the data; a file
+    too short to hold the data it declares is refused here too."""
+    try:
+        with open(path, "rb") as stream:
+            found, _, dtype = _array_header(stream, path, max_bytes, shape)
+            have, need = path.stat().st_size - stream.tell(), math.prod(found) * dtype.itemsize
+    except OSError as exc:
+        raise SceneError(path, f"cannot read file ({exc.strerror})") from None
+    if have < need:
+        raise SceneError(path, f"array is truncated: {have:,} of {need:,} bytes")
+    return dtype
 
 
 def read_npz(path: Path, max_bytes: int = MAX_ARRAY_BYTES) -> dict[str, np.ndarray]:

@@ -34,19 +34,29 @@ class RayBatch:
 
 class PixelTable:
     """Flat pixel ids over all images of a Views: id = offset[image] + v * W + u. Colours come from a
-    memory-mapped PixelStore when one is given, else from one concatenated copy of the images."""
+    memory-mapped PixelStore (the one given, else the one attached to the views), else from one concatenated
+    copy of the decoded images, made on the first colour read (small scenes, tests)."""
 
     def __init__(self, views: Views, store: PixelStore | None = None):
         self.views = views
         sizes = (views.cameras.width * views.cameras.height).long()
         self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), sizes.cumsum(0)])
+        store = store if store is not None else views.store
         if store is not None and store.offsets != self.offsets.tolist():
             raise ValueError(f"pixel store {store.folder} holds other image sizes than these views")
         self.store = store
-        self.colours = None if store is not None else torch.cat([img.reshape(-1, 3) for img in views.images])
+        self._colours: Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.offsets[-1])
+
+    def colours(self, pixel: Tensor) -> Tensor:
+        """uint8 (B, 3) colours of flat pixel ids."""
+        if self.store is not None:
+            return self.store.gather(pixel)
+        if self._colours is None:
+            self._colours = torch.cat([img.reshape(-1, 3) for img in self.views.images])
+        return self._colours[pixel]
 
     def locate(self, pixel: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """(image, u, v) of flat pixel ids."""
@@ -55,12 +65,16 @@ class PixelTable:
         width = self.views.cameras.width[image]
         return image, local % width, local // width
 
-    def rays(self, pixel: Tensor, aabb: Tensor) -> RayBatch:
+    def geometry(self, pixel: Tensor, aabb: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """(image, origins, directions, near, far) of flat pixel ids: everything but the colours."""
         image, u, v = self.locate(pixel)
         origins, directions = pixel_rays(self.views.cameras, image, u, v)
         near, far = ray_aabb(origins, directions, aabb)
-        colours = self.store.gather(pixel) if self.store is not None else self.colours[pixel]
-        rgb = colours.float() / 255.0
+        return image, origins, directions, near, far
+
+    def rays(self, pixel: Tensor, aabb: Tensor) -> RayBatch:
+        image, origins, directions, near, far = self.geometry(pixel, aabb)
+        rgb = self.colours(pixel).float() / 255.0
         return RayBatch(origins, directions, near, far, self.views.appearance[image], rgb, pixel)
 
     def image_pixels(self, image: int, columns: tuple[int, int] | None = None) -> Tensor:

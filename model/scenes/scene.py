@@ -8,6 +8,7 @@ Frames (see docs/SCENES.md):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -15,21 +16,30 @@ import torch
 from torch import Tensor
 
 from model.scenes.cameras import Cameras
+from model.scenes.pixel_store import PixelStore
 
 
 @dataclass
 class Views:
     """The images of one split with their cameras. Depth (ground truth, optional) is the distance
-    along the unit ray from the camera centre in world units; +inf where the ray sees no surface."""
+    along the unit ray from the camera centre in world units; +inf where the ray sees no surface.
+
+    Loaded scenes decode an image (or depth map) only when it is indexed (`images` is a LazyFrames). Once a
+    pixel store is attached (`store`), `image(i)` and every PixelTable of these views read from it."""
 
     names: list[str]
-    images: list[Tensor]  # uint8 (H, W, 3) each
+    images: Sequence[Tensor]  # uint8 (H, W, 3) each
     cameras: Cameras
     appearance: Tensor  # (N,) int64: the per-image appearance-embedding index, unique across splits
-    depth: list[Tensor] | None = None  # float32 (H, W) each
+    depth: Sequence[Tensor] | None = None  # float32 (H, W) each
+    store: PixelStore | None = None  # this split's decoded pixels on disk, when a worker attached them
 
     def __len__(self) -> int:
         return len(self.names)
+
+    def image(self, index: int) -> Tensor:
+        """uint8 (H, W, 3): from the pixel store when one is attached, else decoded from its file."""
+        return self.store.image(index) if self.store is not None else self.images[index]
 
     @property
     def num_pixels(self) -> int:

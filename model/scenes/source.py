@@ -3,6 +3,7 @@ into the z-up / OpenGL-camera convention, plus whatever geometric evidence the d
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -11,14 +12,15 @@ from torch import Tensor
 
 from model.scenes.cameras import Cameras, make_cameras, rotation_error
 from model.scenes.errors import SceneError
+from model.scenes.frames import frames
 
 
 @dataclass
 class SourceSplit:
     names: list[str]
-    images: list[Tensor]  # uint8 (H, W, 3), already downscaled
+    images: Sequence[Tensor]  # uint8 (H, W, 3), already downscaled; a LazyFrames: decoded when indexed
     cameras: Cameras  # positions in source units (rotated by SourceScene.axes)
-    depth: list[Tensor] | None = None  # float32 (H, W), source units, +inf = no surface
+    depth: Sequence[Tensor] | None = None  # float32 (H, W), source units, +inf = no surface; lazy too
 
 
 @dataclass
@@ -59,21 +61,27 @@ def check_intrinsics(path: Path, intrinsics: Tensor, width: int, height: int) ->
         raise SceneError(path, f"image size must be positive, got {width}x{height}")
 
 
+Frame = Tensor | Callable[[], Tensor]  # a decoded tensor, or a loader that decodes it when called
+
+
 class SplitBuilder:
-    """Collects one split's views as a reader finds them; `build` stacks them into a SourceSplit."""
+    """Collects one split's views as a reader finds them; `build` stacks them into a SourceSplit. Images and
+    depth maps may be loaders (an ImageFile) with their decoded (height, width) given as `size`."""
 
     def __init__(self) -> None:
         self.names: list[str] = []
-        self.images: list[Tensor] = []
-        self.depth: list[Tensor] = []
+        self.images: list[Frame] = []
+        self.depth: list[Frame] = []
+        self._sizes: list[tuple[int, int]] = []
         self._intrinsics: list[Tensor] = []
         self._c2w: list[Tensor] = []
         self._distortion: list[Tensor] = []
 
-    def add(self, name: str, image: Tensor, intrinsics: Tensor, c2w: Tensor, distortion: Tensor | None = None,
-            depth: Tensor | None = None) -> None:
+    def add(self, name: str, image: Frame, intrinsics: Tensor, c2w: Tensor, distortion: Tensor | None = None,
+            depth: Frame | None = None, size: tuple[int, int] | None = None) -> None:
         self.names.append(name)
         self.images.append(image)
+        self._sizes.append(size if size is not None else tuple(image.shape[:2]))
         self._intrinsics.append(torch.as_tensor(intrinsics, dtype=torch.float64).reshape(4))
         self._c2w.append(torch.as_tensor(c2w, dtype=torch.float64).reshape(3, 4))
         self._distortion.append(torch.zeros(4) if distortion is None else torch.as_tensor(distortion).reshape(4))
@@ -85,16 +93,16 @@ class SplitBuilder:
         cameras = make_cameras(
             torch.stack(self._intrinsics) if n else torch.zeros(0, 4),
             torch.stack(self._c2w) if n else torch.zeros(0, 3, 4),
-            torch.tensor([im.shape[1] for im in self.images], dtype=torch.long),
-            torch.tensor([im.shape[0] for im in self.images], dtype=torch.long),
+            torch.tensor([w for _, w in self._sizes], dtype=torch.long),
+            torch.tensor([h for h, _ in self._sizes], dtype=torch.long),
             torch.stack(self._distortion) if n else torch.zeros(0, 4),
         )
-        return SourceSplit(self.names, self.images, cameras, self.depth if self.depth else None)
+        return SourceSplit(self.names, frames(self.images), cameras, frames(self.depth) if self.depth else None)
 
 
-def scale_intrinsics(intrinsics: Tensor, image: Tensor, width: int, height: int) -> Tensor:
-    """Intrinsics for `image` after it was resized from width x height."""
-    sx, sy = image.shape[1] / width, image.shape[0] / height
+def scale_intrinsics(intrinsics: Tensor, size: tuple[int, int], width: int, height: int) -> Tensor:
+    """Intrinsics for an image of `size` (height, width) resized from width x height."""
+    sx, sy = size[1] / width, size[0] / height
     fx, fy, cx, cy = torch.as_tensor(intrinsics, dtype=torch.float64).reshape(4).tolist()
     return torch.tensor([fx * sx, fy * sy, cx * sx, cy * sy], dtype=torch.float64)
 

@@ -9,7 +9,7 @@ import torch
 
 from model.scenes.errors import SceneError
 from model.scenes.formats.jsonfile import field, frames, number, opengl_pose, read_json
-from model.scenes.images import check_image_size, downscale_image, find_image, read_image
+from model.scenes.images import ImageFile, check_image_size, find_image, probe_image
 from model.scenes.paths import named_file, scene_file
 from model.scenes.source import SourceScene, SplitBuilder, scale_intrinsics
 
@@ -31,15 +31,14 @@ def load_blender(root: Path, downscale: int, background: tuple[float, float, flo
             where = f" (frame {i})"
             image_path = scene_file(root, find_image(named_file(root, field(path, frame, "file_path", where), path,
                                                                 f"file_path{where}")))
-            image = read_image(image_path, background=background)
-            h, w = image.shape[:2]
+            w, h = probe_image(image_path)
             size = size or (w, h)
-            check_image_size(image_path, image, *size)  # the format has one camera for all frames
+            check_image_size(image_path, (w, h), *size)  # the format has one camera for all frames
             focal = 0.5 * w / math.tan(0.5 * angle)
             c2w = opengl_pose(path, frame, where)
-            small = downscale_image(image, downscale)
-            intrinsics = scale_intrinsics(torch.tensor([focal, focal, w / 2, h / 2]), small, w, h)
-            builder.add(Path(image_path).stem, small, intrinsics, c2w)
+            image = ImageFile(image_path, w, h, downscale, background)
+            intrinsics = scale_intrinsics(torch.tensor([focal, focal, w / 2, h / 2]), image.size, w, h)
+            builder.add(Path(image_path).stem, image, intrinsics, c2w, size=image.size)
         if not builder.names:
             raise SceneError(path, "split has no frames")
         splits[split] = builder.build()

@@ -11,7 +11,7 @@ import torch
 from model.scenes.cameras import pixel_rays
 from model.scenes.errors import SceneError
 from model.scenes.formats.points import read_colmap_points
-from model.scenes.images import IMAGE_SUFFIXES, downscale_image, read_image
+from model.scenes.images import IMAGE_SUFFIXES, ImageFile, probe_image
 from model.scenes.limits import read_npy
 from model.scenes.paths import scene_file
 from model.scenes.source import SourceScene, SplitBuilder, check_pose, rotate_source, up_alignment
@@ -73,17 +73,17 @@ def load_llff(root: Path, downscale: int | None) -> SourceScene:
         down, right, back, t = poses[i, :, 0], poses[i, :, 1], poses[i, :, 2], poses[i, :, 3]
         c2w = torch.stack([right, -down, back, t], dim=1)  # LLFF [down, right, back] -> OpenGL [right, up, back]
         check_pose(path, c2w, f" (row {i})")
-        image = read_image(image_path)
-        h, w = image.shape[:2]
+        w, h = probe_image(image_path)
         if abs(w * factor - w_full) > factor or abs(h * factor - h_full) > factor:
             raise SceneError(
                 image_path, f"image is {w}x{h} but poses_bounds.npy says {w_full:.0f}x{h_full:.0f} / {factor}"
             )
-        small = downscale_image(image, extra)
-        s = small.shape[1] / w_full
-        intrinsics = torch.tensor([focal * s, focal * s, small.shape[1] / 2, small.shape[0] / 2])
+        image = ImageFile(image_path, w, h, extra)
+        small_h, small_w = image.size
+        s = small_w / w_full
+        intrinsics = torch.tensor([focal * s, focal * s, small_w / 2, small_h / 2])
         split = "val" if i % VAL_EVERY == 0 else "train"
-        builders[split].add(image_path.stem, small, intrinsics, c2w)
+        builders[split].add(image_path.stem, image, intrinsics, c2w, size=image.size)
     splits = {name: b.build() for name, b in builders.items() if b.names}
 
     sparse = root / "sparse" / "0" / "points3D.bin"

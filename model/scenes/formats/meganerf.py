@@ -11,8 +11,8 @@ import torch
 from torch import Tensor
 
 from model.scenes.errors import SceneError
-from model.scenes.images import check_image_size, downscale_depth, downscale_image, find_image, read_image
-from model.scenes.limits import MAX_METADATA_BYTES, check_file_size, read_npy, read_npz
+from model.scenes.images import ImageFile, check_image_size, downscale_depth, find_image, probe_image
+from model.scenes.limits import MAX_METADATA_BYTES, check_file_size, read_npy, read_npy_header, read_npz
 from model.scenes.paths import scene_file
 from model.scenes.source import SourceScene, SourceSplit, SplitBuilder, check_intrinsics, check_pose, scale_intrinsics
 
@@ -61,9 +61,16 @@ def read_metadata(path: Path) -> dict:
     return {"W": width, "H": height, "intrinsics": intrinsics, "c2w": c2w, "distortion": distortion}
 
 
-def read_depth(path: Path, height: int, width: int) -> Tensor:
+def check_depth_file(path: Path, height: int, width: int) -> None:
+    """Present, with a float array of its image's size: the header only (the data is read when needed)."""
     if not path.is_file():
         raise SceneError(path, "ground-truth depth map is missing (gt/ exists, so every view needs one)")
+    dtype = read_npy_header(path, shape=(height, width))
+    if dtype.kind != "f":
+        raise SceneError(path, f"depth map must hold floats, not {dtype}")
+
+
+def read_depth(path: Path, height: int, width: int) -> Tensor:
     depth = read_npy(path, shape=(height, width))  # its image's size, checked before the data is read
     if depth.dtype.kind != "f":
         raise SceneError(path, f"depth map must hold floats, not {depth.dtype}")
@@ -73,25 +80,34 @@ def read_depth(path: Path, height: int, width: int) -> Tensor:
     return depth
 
 
+class DepthFile:
+    """A ground-truth depth map, read and downscaled when called."""
+
+    def __init__(self, path: Path, height: int, width: int, factor: int):
+        self.path, self.height, self.width, self.factor = path, height, width, factor
+
+    def __call__(self) -> Tensor:
+        return downscale_depth(read_depth(self.path, self.height, self.width), self.factor)
+
+
 def read_split(root: Path, split: str, origin: Tensor, scale: float, downscale: int, with_depth: bool) -> SourceSplit:
     meta_dir, rgb_dir = root / split / "metadata", root / split / "rgbs"
     builder = SplitBuilder()
     for meta_path in sorted(meta_dir.glob("*.pt")) if meta_dir.is_dir() else []:
         meta = read_metadata(scene_file(root, meta_path))
         image_path = scene_file(root, find_image(rgb_dir / meta_path.stem))
-        image = read_image(image_path)
-        check_image_size(image_path, image, meta["W"], meta["H"])
-        image = downscale_image(image, downscale)
+        check_image_size(image_path, probe_image(image_path), meta["W"], meta["H"])
+        image = ImageFile(image_path, meta["W"], meta["H"], downscale)
         # DRB normalised -> metres, then rotate into the z-up frame; rotation keeps the camera axes' roles.
         c2w = meta["c2w"].clone()
         c2w[:, 3] = origin + scale * c2w[:, 3]
         depth = None
         if with_depth:
-            depth = read_depth(scene_file(root, root / "gt" / "depth" / split / f"{meta_path.stem}.npy"), meta["H"],
-                               meta["W"])
-            depth = downscale_depth(depth, downscale)
-        intrinsics = scale_intrinsics(meta["intrinsics"], image, meta["W"], meta["H"])
-        builder.add(meta_path.stem, image, intrinsics, DRB_TO_ZUP @ c2w, meta["distortion"], depth)
+            depth_path = scene_file(root, root / "gt" / "depth" / split / f"{meta_path.stem}.npy")
+            check_depth_file(depth_path, meta["H"], meta["W"])
+            depth = DepthFile(depth_path, meta["H"], meta["W"], downscale)
+        intrinsics = scale_intrinsics(meta["intrinsics"], image.size, meta["W"], meta["H"])
+        builder.add(meta_path.stem, image, intrinsics, DRB_TO_ZUP @ c2w, meta["distortion"], depth, image.size)
     return builder.build()
 
 

@@ -9,7 +9,7 @@ import torch
 from model.scenes.errors import SceneError
 from model.scenes.formats.jsonfile import field, frames, number, opengl_pose, read_json
 from model.scenes.formats.points import read_ply_points
-from model.scenes.images import check_image_size, downscale_image, read_image
+from model.scenes.images import ImageFile, check_image_size, probe_image
 from model.scenes.paths import named_file, scene_file
 from model.scenes.source import SourceScene, SplitBuilder, check_intrinsics, rotate_source, scale_intrinsics, up_alignment
 
@@ -63,13 +63,13 @@ def load_nerfstudio(root: Path, downscale: int) -> SourceScene:
         image_path = named_file(root, file_path, path, f"file_path{where}")
         if not image_path.is_file():
             raise SceneError(image_path, f"image is missing (listed in {path.name}{where})")
-        image = read_image(image_path)
-        check_image_size(image_path, image, w, h)
-        small = downscale_image(image, downscale)
+        check_image_size(image_path, probe_image(image_path), w, h)
+        image = ImageFile(image_path, w, h, downscale)
         split = split_of(data, file_path, i)
         if split != "unlisted":
             builders.setdefault(split, SplitBuilder()).add(
-                Path(file_path).stem, small, scale_intrinsics(intrinsics, small, w, h), c2w, distortion
+                Path(file_path).stem, image, scale_intrinsics(intrinsics, image.size, w, h), c2w, distortion,
+                size=image.size,
             )
     if "train" not in builders:
         raise SceneError(path, "no training frames: 'frames' is empty or no frame is in the train split")
