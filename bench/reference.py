@@ -35,7 +35,7 @@ def vanilla_depth_maps(switch_run: Path) -> tuple[list[torch.Tensor], object]:
             # Rendered.depth is sum(w t): divided by the opacity it is the expected distance of the surface hit.
             surface = out.depth.double() / out.opacity.double().clamp(min=1e-6)
             depth.append(torch.where(out.opacity >= SURFACE_OPACITY, surface, torch.inf))
-        h, w = views.images[image].shape[:2]
+        h, w = int(views.cameras.height[image]), int(views.cameras.width[image])
         maps.append(torch.cat(depth).reshape(h, w))
     return maps, (scene, views)
 

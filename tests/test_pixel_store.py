@@ -47,7 +47,7 @@ def test_an_interrupted_build_is_never_used_and_resumes_where_it_stopped(tmp_pat
         return images[i]
 
     with pytest.raises(KeyboardInterrupt):
-        build_store(tmp_path / "s", "fp", SIZES, failing)
+        build_store(tmp_path / "s", "fp", SIZES, failing, sync_every=1)
     assert not (tmp_path / "s").exists() and (tmp_path / "s.partial").is_dir()
     with pytest.raises(StoreError, match="no readable manifest"):
         open_store(tmp_path / "s", "fp")
@@ -139,3 +139,48 @@ def test_an_unwritable_cache_is_named_with_the_setting_to_change(tmp_path):
     (tmp_path / "a-file").write_text("not a folder")
     with pytest.raises(StoreError, match=r"cache folder .*a-file cannot be written .*set LECO_PIXEL_CACHE"):
         ensure_store(tmp_path / "a-file", tmp_path, "train", 1, SIZES, lambda i: images_for(SIZES)[i])
+
+
+def test_an_image_corrupted_inside_is_found_when_the_store_decodes_it(tmp_path):
+    """Loading reads headers and the file's end only; a damaged body shows when its pixels are decoded, and the
+    build stops naming the file, leaving no store to be used."""
+    from model.scenes import load_scene
+    from model.scenes.errors import SceneError
+    from model.scenes.synthetic import generate
+    from workers.pixels import attach_pixel_stores
+
+    generate("tiny", 0, tmp_path / "scene")
+    victim = sorted((tmp_path / "scene" / "train" / "rgbs").iterdir())[3]
+    data = bytearray(victim.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 16] = bytes(16)  # header and IEND intact
+    victim.write_bytes(bytes(data))
+    scene = load_scene(tmp_path / "scene")
+    with pytest.raises(SceneError, match=rf"{victim.name}: image is unreadable"):
+        attach_pixel_stores(scene, ("train",))
+    cache = Path(os.environ["LECO_PIXEL_CACHE"])
+    assert not [p for p in cache.iterdir() if p.name.startswith("scene-") and p.is_dir()
+                and not p.name.endswith(".partial")]
+
+
+def resident_file_kb() -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("RssFile:"):
+            return int(line.split()[1])
+    pytest.skip("this kernel does not report RssFile in /proc/self/status")
+
+
+def test_reading_a_store_leaves_its_pages_out_of_the_process_resident_memory(tmp_path):
+    """Random batches touch every page of a large store; a rank's RSS must stay its batch plus its model (the
+    pages stay in the page cache, shared by the ranks of a node)."""
+    sizes = [(1024, 1024)] * 24  # 72 MiB
+    image = torch.randint(0, 256, (1024, 1024, 3), generator=torch.Generator().manual_seed(0), dtype=torch.uint8)
+    store = build_store(tmp_path / "big", "fp", sizes, lambda i: image)
+    before = resident_file_kb()
+    g = torch.Generator().manual_seed(1)
+    for _ in range(64):  # 64 x 4096 random pixels: nearly every one of the 18,432 pages
+        colours = store.gather(torch.randint(0, len(store), (4096,), generator=g))
+    assert colours.shape == (4096, 3)
+    assert torch.equal(store.image(5), image)
+    grown_mb = (resident_file_kb() - before) / 1024
+    assert grown_mb < 8, f"the store's pages stayed resident: {grown_mb:.0f} MiB"

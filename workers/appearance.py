@@ -39,7 +39,7 @@ def right_columns(views: Views, image: int) -> tuple[int, int]:
 
 def scored_truth(views: Views, image: int, columns: tuple[int, int] | None) -> torch.Tensor:
     """The ground truth of what is scored, as floats in [0, 1]: the whole image or its columns."""
-    truth = views.images[image].float() / 255
+    truth = views.image(image).float() / 255
     return truth if columns is None else truth[:, columns[0] : columns[1]]
 
 

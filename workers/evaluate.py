@@ -19,6 +19,7 @@ from model.scenes import load_scene
 from model.scenes.rays import PixelTable
 from workers.config import TrainConfig
 from workers.models import RunModels
+from workers.pixels import attach_pixel_stores
 from workers.appearance import prepare_validation_appearance, protocol, right_columns, scored_truth
 from workers.validation import render_image, save_triptych
 
@@ -35,6 +36,7 @@ def load_final(run_dir: Path, device: torch.device):
     run = json.loads((Path(run_dir) / "run.json").read_text())
     cfg = TrainConfig.model_validate(saved["config"])
     scene = load_scene(run["scene"], downscale=cfg.downscale)
+    attach_pixel_stores(scene, ("val",) if "val" in scene.splits else ("train",))  # what evaluation reads
     models = RunModels(cfg.method, cfg.resolved_profile(), scene.num_images, scene.bounds.aabb, cfg.seed).to(device)
     models.load_state_dict(saved["models"])
     models.load_grid_state(saved["grid"])
@@ -109,7 +111,7 @@ def evaluate_run(run_dir: str | Path, device: str | torch.device = "cpu") -> dic
         rgb, depth = render_image(models, cfg.method, "main", profile, predictor, table, image, scene.bounds.aabb,
                                   device, None if picture else scored)
         if picture:
-            save_triptych(run_dir / "renders" / f"final_{views.names[image]}.png", rgb, views.images[image], depth)
+            save_triptych(run_dir / "renders" / f"final_{views.names[image]}.png", rgb, views.image(image), depth)
             if scored is not None:
                 rgb = rgb[:, scored[0] : scored[1]]
         truth = scored_truth(views, image, scored)

@@ -24,12 +24,12 @@ from model.occupancy_phase import occupancy_step
 from model.schedules import phase_progress
 from model.warm_start import warm_start_main
 from model.scenes import RaySampler, load_scene
-from model.scenes.pixel_store import PixelStore, ensure_store
 from workers.config import TrainConfig
 from workers.distributed import any_rank, any_rank_each, average_gradients, grads_finite, is_distributed
 from workers.memory import SavedTensorBytes
 from workers.models import RunModels, build_optimizer
 from workers.periodic_eval import PeriodicEval
+from workers.pixels import attach_pixel_stores
 from workers.session import Session
 from workers.sinks import JsonlSink
 from workers.store import RunStore, StoreWriteError
@@ -61,26 +61,20 @@ def peak_memory_mb(device: torch.device) -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
 
 
-def training_pixels(scene) -> PixelStore:
-    """The training split's memory-mapped pixel store in the cache (LECO_PIXEL_CACHE, default
-    ~/.cache/leco/pixels; the service points it at its data folder), built on first use."""
-    cache = Path(os.environ.get("LECO_PIXEL_CACHE") or Path.home() / ".cache" / "leco" / "pixels")
-    views = scene.train
-    sizes = [(int(h), int(w)) for h, w in zip(views.cameras.height, views.cameras.width)]
-    log = lambda text: print(f"[leco] {text}", flush=True)
-    return ensure_store(cache, scene.root, "train", scene.downscale, sizes, lambda i: views.images[i], log)
-
-
 class RankRun:
     def __init__(self, cfg: TrainConfig, scene_dir: Path, run_dir: Path, session: Session, device: torch.device,
                  store: RunStore | None = None):
         self.cfg, self.run_dir, self.session, self.device = cfg, Path(run_dir), session, device
+        self.timeline = {"started_at": time.time()}  # wall-clock marks of this rank's start (workers/rank<r>.json)
         self.profile = cfg.resolved_profile()
         self.scene = load_scene(scene_dir, downscale=cfg.downscale)
+        self.timeline["scene_loaded_at"] = time.time()
+        attach_pixel_stores(self.scene)
+        self.timeline["pixels_ready_at"] = time.time()
         self.aabb = self.scene.bounds.aabb
         self.models = RunModels(cfg.method, self.profile, self.scene.num_images, self.aabb, cfg.seed).to(device)
         self.sampler = RaySampler(self.scene.train, self.aabb, cfg.global_batch, cfg.seed, session.rank,
-                                  session.world_size, store=training_pixels(self.scene))
+                                  session.world_size)
         # Per-rank seeds, on the device the samplers draw on (a CPU generator cannot fill CUDA tensors).
         self.generator = torch.Generator(device=device).manual_seed(cfg.seed * 7919 + session.rank)
         self.progress = {"phase": cfg.phases[0], "phase_step": 0, "step": 0, "elapsed": {}, "steps": {},
@@ -274,6 +268,7 @@ class RankRun:
                 optimizer.step()
             self.progress["phase_step"] += 1
             self.progress["step"] += 1
+            self.timeline.setdefault("first_step_at", time.time())
             self.progress["steps"][phase] = self.progress["steps"].get(phase, 0) + 1
             seconds = time.perf_counter() - t0  # compute only: checkpoints and renders are not training time
             before = sum(self.progress["elapsed"].values())
@@ -322,6 +317,8 @@ class RankRun:
             self.run_phase(phase)
         self.save_checkpoint({"step": self.progress["step"], "phase": "done"})
         self.check_store()
+        write_rank_record(self.run_dir, self.session.rank,
+                          {**self.timeline, "peak_memory_mb": peak_memory_mb(self.device), "device": self.device.type})
         if self.session.rank == 0:
             self.save_final()
 
@@ -333,6 +330,14 @@ class RankRun:
         if self.predictor is not None:
             self.predictor.save(final / "occupancy.pt")
         (final / "progress.json").write_text(json.dumps(self.progress, indent=1))
+
+
+def write_rank_record(run_dir: Path, rank: int, record: dict) -> None:
+    """workers/rank<r>.json: when this rank started, had its scene and pixels, and ended its first step (this
+    attempt's wall clock), and its peak memory (CPU: the process's peak RSS): per-rank numbers for benchmarks."""
+    workers = Path(run_dir) / "workers"
+    workers.mkdir(parents=True, exist_ok=True)
+    (workers / f"rank{rank}.json").write_text(json.dumps(record, indent=1))
 
 
 def write_pid(run_dir: Path, rank: int) -> None:

@@ -50,7 +50,7 @@ def render_image(models, method, phase, profile, predictor, table: PixelTable, i
         c, d = render_rays(models, method, phase, profile, predictor, chunk)
         rgb.append(c.cpu())
         depth.append(d.cpu())
-    h = table.views.images[image].shape[0]
+    h = int(table.views.cameras.height[image])
     return torch.cat(rgb).reshape(h, -1, 3), torch.cat(depth).reshape(h, -1)
 
 
@@ -78,5 +78,5 @@ def write_validation_renders(run, step: int) -> Path:
     rgb, depth = render_image(run.models, run.cfg.method, run.progress["phase"], run.profile, run.predictor,
                               table, 0, run.aabb, run.device)
     path = run.run_dir / "renders" / f"step{step:07d}_{views.names[0]}.png"
-    save_triptych(path, rgb, views.images[0], depth)
+    save_triptych(path, rgb, views.image(0), depth)
     return path

@@ -16,6 +16,7 @@ from __future__ import annotations
 import fcntl
 import hashlib
 import json
+import mmap
 import os
 import shutil
 import zlib
@@ -29,6 +30,7 @@ from torch import Tensor
 
 VERSION = 1
 CHUNK = 16 * 2**20  # bytes per checksum read: bounded memory whatever the image size
+SYNC_EVERY = 32  # images written between progress records (each one an fsync): a crash redoes at most these
 
 
 class StoreError(RuntimeError):
@@ -40,19 +42,31 @@ class PixelStore:
     folder: Path
     sizes: list[tuple[int, int]]  # (height, width) per image
     offsets: list[int]  # first pixel id of each image, then the total
-    pixels: np.memmap  # (num_pixels, 3) uint8, read-only
+    pixels: np.ndarray  # (num_pixels, 3) uint8, read-only, over `mapping`
+    mapping: mmap.mmap | None  # None for an empty store
 
     def __len__(self) -> int:
         return self.offsets[-1]
 
     def gather(self, pixel: Tensor) -> Tensor:
         """uint8 (B, 3) colours of flat pixel ids; reads only the pages those ids fall in."""
-        return torch.from_numpy(np.ascontiguousarray(self.pixels[pixel.cpu().numpy()]))
+        colours = torch.from_numpy(np.ascontiguousarray(self.pixels[pixel.cpu().numpy()]))
+        self.release()
+        return colours
 
     def image(self, index: int) -> Tensor:
         """One whole image, uint8 (H, W, 3), copied out of the map."""
         h, w = self.sizes[index]
-        return torch.from_numpy(np.array(self.pixels[self.offsets[index] : self.offsets[index + 1]])).reshape(h, w, 3)
+        image = torch.from_numpy(np.array(self.pixels[self.offsets[index] : self.offsets[index + 1]])).reshape(h, w, 3)
+        self.release()
+        return image
+
+    def release(self) -> None:
+        """Unmap the pages read so far from this process. They stay in the page cache, shared by every rank on
+        the node, but no longer count in this process's resident memory: random batches over a large store
+        would otherwise leave a rank's RSS growing towards the size of the whole store."""
+        if self.mapping is not None:
+            self.mapping.madvise(mmap.MADV_DONTNEED)
 
 
 def _crc(data: np.ndarray) -> int:
@@ -60,6 +74,30 @@ def _crc(data: np.ndarray) -> int:
     for start in range(0, len(flat), CHUNK):
         crc = zlib.crc32(memoryview(flat[start : start + CHUNK]), crc)
     return crc
+
+
+def _file_crcs(path: Path, offsets: list[int]) -> list[int]:
+    """The CRC-32 of each image's bytes, read through the file (not the map, whose pages would stay resident
+    in this process) in bounded chunks."""
+    crcs, buffer = [], bytearray(CHUNK)
+    with open(path, "rb", buffering=0) as f:
+        for start, end in zip(offsets[:-1], offsets[1:]):
+            crc, left = 0, 3 * (end - start)
+            while left:
+                got = f.readinto(memoryview(buffer)[: min(left, CHUNK)])
+                if not got:
+                    return crcs
+                crc, left = zlib.crc32(memoryview(buffer)[:got], crc), left - got
+            crcs.append(crc)
+    return crcs
+
+
+def _map(path: Path, num_pixels: int) -> tuple[np.ndarray, mmap.mmap | None]:
+    if num_pixels == 0:
+        return np.zeros((0, 3), np.uint8), None
+    with open(path, "rb") as f:
+        mapping = mmap.mmap(f.fileno(), 3 * num_pixels, access=mmap.ACCESS_READ)
+    return np.frombuffer(mapping, dtype=np.uint8).reshape(num_pixels, 3), mapping
 
 
 def _manifest(folder: Path) -> dict:
@@ -80,43 +118,44 @@ def open_store(folder: Path, fingerprint: str, verify: bool = True) -> PixelStor
     path = folder / "pixels.u8"
     if not path.is_file() or path.stat().st_size != 3 * offsets[-1]:
         raise StoreError(f"{folder}: pixels.u8 is missing or not {3 * offsets[-1]:,} bytes (truncated?)")
-    pixels = np.memmap(path, dtype=np.uint8, mode="r", shape=(offsets[-1], 3)) if offsets[-1] else \
-        np.zeros((0, 3), np.uint8)
     if verify:
-        for i, crc in enumerate(manifest["crc32"]):
-            if _crc(pixels[offsets[i] : offsets[i + 1]]) != crc:
+        for i, (crc, found) in enumerate(zip(manifest["crc32"], _file_crcs(path, offsets))):
+            if crc != found:
                 raise StoreError(f"{folder}: image {i} does not match its checksum (corrupted)")
-    return PixelStore(folder, sizes, offsets, pixels)
+    return PixelStore(folder, sizes, offsets, *_map(path, offsets[-1]))
 
 
 def build_store(folder: Path, fingerprint: str, sizes: list[tuple[int, int]], images: Callable[[int], Tensor],
-                progress: Callable[[int, int], None] | None = None) -> PixelStore:
+                progress: Callable[[int, int], None] | None = None, sync_every: int = SYNC_EVERY) -> PixelStore:
     """Writes image i = images(i) (uint8 (H, W, 3), decoded on demand) for every i into a new store at
-    `folder`, resuming a partial build of the same plan, and returns it opened."""
+    `folder`, resuming a partial build of the same plan, and returns it opened. Progress is recorded (after
+    an fsync) every `sync_every` images."""
     folder = Path(folder)
     partial = folder.with_name(folder.name + ".partial")
     plan = {"version": VERSION, "fingerprint": fingerprint, "sizes": [list(s) for s in sizes]}
     done, crcs = _resume(partial, plan)
     total = sum(h * w for h, w in sizes)
-    pixels = np.memmap(partial / "pixels.u8", dtype=np.uint8, mode="r+" if done else "w+", shape=(max(total, 1), 3))
     offset = sum(h * w for h, w in sizes[:done])
-    for i in range(done, len(sizes)):
-        image = images(i)
-        if tuple(image.shape) != (*sizes[i], 3) or image.dtype != torch.uint8:
-            raise StoreError(f"image {i} is {tuple(image.shape)} {image.dtype}; the plan says {sizes[i]} uint8")
-        block = image.reshape(-1, 3).numpy()
-        pixels[offset : offset + len(block)] = block
-        pixels.flush()  # on disk before progress says so: a crash never leaves a recorded image unwritten
-        crcs.append(_crc(block))
-        offset += len(block)
-        _write_json(partial / "progress.json", {**plan, "crc32": crcs})
-        if progress is not None:
-            progress(i + 1, len(sizes))
-    del pixels
-    if total == 0:
-        (partial / "pixels.u8").write_bytes(b"")
+    # Plain writes, not a map: written pages stay in the page cache, not in the builder's resident memory.
+    with open(partial / "pixels.u8", "r+b" if done else "w+b") as f:
+        f.truncate(3 * total)
+        for i in range(done, len(sizes)):
+            image = images(i)
+            if tuple(image.shape) != (*sizes[i], 3) or image.dtype != torch.uint8:
+                raise StoreError(f"image {i} is {tuple(image.shape)} {image.dtype}; the plan says {sizes[i]} uint8")
+            block = np.ascontiguousarray(image.reshape(-1, 3).numpy())
+            f.seek(3 * offset)
+            f.write(memoryview(block).cast("B"))
+            crcs.append(_crc(block))
+            offset += len(block)
+            if len(crcs) % sync_every == 0 or i + 1 == len(sizes):
+                f.flush()
+                os.fsync(f.fileno())  # on disk before progress says so: a crash never leaves a recorded image unwritten
+                _write_json(partial / "progress.json", {**plan, "crc32": crcs})
+            if progress is not None:
+                progress(i + 1, len(sizes))
     _write_json(partial / "manifest.json", {**plan, "crc32": crcs})
-    (partial / "progress.json").unlink()
+    (partial / "progress.json").unlink(missing_ok=True)
     if folder.exists():
         shutil.rmtree(folder)  # a stale or corrupt store this one replaces
     os.replace(partial, folder)  # the whole store appears at once, or not at all
