@@ -9,6 +9,7 @@ import os
 import shutil
 import time
 import zipfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -78,38 +79,66 @@ def save_npz(path: Path, **arrays: np.ndarray) -> None:
             zf.writestr(info, buf.getvalue())
 
 
+def crop_offsets(preset: CityPreset, seed: int, renders: int) -> np.ndarray:
+    """(renders, crops, 2) pixel offsets (x, y) of each view's crop in its render; zeros without a margin."""
+    out = np.zeros((renders, preset.crops_per_render, 2), dtype=np.int64)
+    spare_x = int(round(preset.width * preset.render_margin)) - preset.width
+    spare_y = int(round(preset.height * preset.render_margin)) - preset.height
+    if spare_x or spare_y:
+        rng = np.random.default_rng(seed + 104729)
+        out[..., 0] = rng.integers(0, spare_x + 1, out.shape[:2])
+        out[..., 1] = rng.integers(0, spare_y + 1, out.shape[:2])
+    return out
+
+
 def write_scene(tmp: Path, preset: CityPreset, seed: int) -> dict:
     geometry = build_city(preset, seed)
-    poses = flight_poses(preset, geometry.extent, seed)
-    intr = intrinsics(preset).float()
+    renders = -(-preset.views // preset.crops_per_render)
+    poses = flight_poses(replace(preset, views=renders), geometry.extent, seed)
+    # Every render is `render_margin` times the image and keeps the images' focal length; a view is a crop of it.
+    render_preset = replace(preset, width=int(round(preset.width * preset.render_margin)),
+                            height=int(round(preset.height * preset.render_margin)))
+    focal = float(intrinsics(preset)[0])
+    # float32 values, as the metadata files store them: the rays rendered are the rays a loader makes.
+    render_intr = torch.tensor([focal, focal, render_preset.width / 2, render_preset.height / 2]).float().double()
+    offsets = crop_offsets(preset, seed, renders)
     positions_drb = poses[:, :, 3] @ DRB_FROM_ENU.T
     origin_drb = positions_drb.mean(dim=0)
     scale = float((positions_drb - origin_drb).abs().max())
     save_pt({"origin_drb": origin_drb, "pose_scale_factor": scale}, tmp / "coordinates.pt")
 
     counts = {"train": 0, "val": 0}
-    for i, c2w in enumerate(poses):
-        split = "val" if i % preset.val_every == preset.val_every // 2 else "train"
-        counts[split] += 1
-        name = f"{i:06d}"
+    for r, c2w in enumerate(poses):
         stored = DRB_FROM_ENU @ c2w
         stored[:, 3] = (stored[:, 3] - origin_drb) / scale
         stored = stored.float()
         # Render from the pose as stored (float32) and read back the way a loader does, so the depth maps
         # are exact for the rays a loader makes, even those grazing the horizon or an edge.
-        image, depth = render_view(geometry, loaded_pose(stored, origin_drb, scale), intr.double(), preset)
-        for sub in ("rgbs", "metadata"):
-            (tmp / split / sub).mkdir(parents=True, exist_ok=True)
-        (tmp / "gt" / "depth" / split).mkdir(parents=True, exist_ok=True)
-        save_png(image, tmp / split / "rgbs" / f"{name}.png")
-        save_pt({"W": preset.width, "H": preset.height, "intrinsics": intr, "c2w": stored},
-                tmp / split / "metadata" / f"{name}.pt")
-        np.save(tmp / "gt" / "depth" / split / f"{name}.npy", depth.numpy())
+        full_image, full_depth = render_view(geometry, loaded_pose(stored, origin_drb, scale), render_intr,
+                                             render_preset)
+        for k, (dx, dy) in enumerate(offsets[r].tolist()):
+            i = r * preset.crops_per_render + k
+            if i >= preset.views:
+                break
+            split = "val" if i % preset.val_every == preset.val_every // 2 else "train"
+            counts[split] += 1
+            name = f"{i:06d}"
+            window = (slice(dy, dy + preset.height), slice(dx, dx + preset.width))
+            intr = (render_intr - torch.tensor([0.0, 0.0, dx, dy], dtype=torch.float64)).float()
+            for sub in ("rgbs", "metadata"):
+                (tmp / split / sub).mkdir(parents=True, exist_ok=True)
+            save_png(full_image[window].contiguous(), tmp / split / "rgbs" / f"{name}.png")
+            save_pt({"W": preset.width, "H": preset.height, "intrinsics": intr, "c2w": stored},
+                    tmp / split / "metadata" / f"{name}.pt")
+            if preset.depth_maps:
+                (tmp / "gt" / "depth" / split).mkdir(parents=True, exist_ok=True)
+                np.save(tmp / "gt" / "depth" / split / f"{name}.npy", full_depth[window].contiguous().numpy())
 
     occupied, grid_min, cell = occupancy_grid(geometry)
     world_from_grid = torch.eye(4, dtype=torch.float64)
     world_from_grid[:3, :3] = DRB_FROM_ENU * cell
     world_from_grid[:3, 3] = DRB_FROM_ENU @ grid_min
+    (tmp / "gt").mkdir(exist_ok=True)
     save_npz(tmp / "gt" / "occupancy.npz", occupied=occupied.numpy(), world_from_grid=world_from_grid.numpy())
     fraction = float(occupied.float().mean())
     info = {
@@ -124,7 +153,10 @@ def write_scene(tmp: Path, preset: CityPreset, seed: int) -> dict:
                      "and pose_scale_factor of coordinates.pt",
             "camera": "c2w columns: right, up, back (OpenGL; the camera looks along -back); the ray through pixel "
                       "(u, v) has camera direction normalise([(u + 0.5 - cx) / fx, -(v + 0.5 - cy) / fy, -1])",
-            "depth": "gt/depth/<split>/<name>.npy: float32 metres along the unit pixel-centre ray, inf for sky",
+            "depth": "gt/depth/<split>/<name>.npy: float32 metres along the unit pixel-centre ray, inf for sky"
+                     + ("" if preset.depth_maps else " (not written for this preset)"),
+            "crops": f"each render is {preset.render_margin}x the image size; views are crops of it, "
+                     f"{preset.crops_per_render} per render, their principal points shifted by the crop offset",
             "occupancy": "gt/occupancy.npz: occupied[i, j, k] (i east, j north, k up); world_from_grid maps grid "
                          "coordinates (cell i spans [i, i+1]) to DRB metres",
         },
