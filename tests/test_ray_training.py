@@ -5,6 +5,7 @@ import os
 import signal
 import threading
 import time
+from pathlib import Path
 
 import pytest
 import torch
@@ -31,14 +32,16 @@ def final_parameters(run_dir):
     return torch.load(run_dir / "final" / "models.pt", weights_only=False)["models"]
 
 
-def test_two_workers_on_halves_equal_one_worker_on_the_whole_batch(tiny_scene, tmp_path):
+def test_two_workers_on_halves_equal_one_worker_on_the_whole_batch(tiny_scene, tmp_path, monkeypatch):
     """Per-ray losses average exactly over equal shares. (Batch-statistic losses, the balance loss and
-    Eq. 1/2, are computed per rank on its share, as in Switch-NeRF's data parallel: off here.)"""
+    Eq. 1/2, are computed per rank on its share, as in Switch-NeRF's data parallel: off here.) The two-worker
+    run is given relative paths, as a user types them: Ray's workers run in folders of their own."""
     one = TrainConfig(method="switch", profile="smoke", overrides={**DETERMINISTIC, "rays_per_device": 128})
     two = TrainConfig(method="switch", profile="smoke", workers=2, overrides={**DETERMINISTIC, "rays_per_device": 64})
     assert one.global_batch == two.global_batch == 128
     run_training(one, tiny_scene.root, tmp_path / "one")
-    run_training(two, tiny_scene.root, tmp_path / "two")
+    monkeypatch.chdir(tmp_path)
+    run_training(two, Path(os.path.relpath(tiny_scene.root, tmp_path)), Path("two"))
     initial = TrainConfig(method="switch", profile="smoke", overrides={**DETERMINISTIC})
     from workers.models import RunModels
 

@@ -186,7 +186,7 @@ def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, b
     rank 0 also reports metrics, checkpoints and renders to it and stops when it asks (RunInterrupted).
     `resume_from`: a folder with a checkpoint's state.pt to start from while the run has none of its own."""
     started = time.perf_counter()
-    scene_dir, run_dir = Path(scene_dir), Path(run_dir)
+    scene_dir, run_dir = Path(scene_dir).resolve(), Path(run_dir).resolve()  # Ray's workers run elsewhere
     from model.scenes import load_scene
 
     load_scene(scene_dir, downscale=cfg.downscale)  # a broken scene fails here, before any worker starts
