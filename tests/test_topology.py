@@ -159,6 +159,14 @@ def test_a_smoke_job_runs_end_to_end_through_leco_submit(topology):
         assert job["attempts"] == 1 and [p["state"] for p in job["phases"]] == ["succeeded", "succeeded"]
         names = all_artifacts_intact(api, job["id"])
     assert {"summary.json", "final/models.pt", "final/occupancy.pt", "occupancy.ply"} <= names
+    # Both ranks, on the Ray worker node, read one pixel store per split from the data volume (what the
+    # dispatcher passes as LECO_PIXEL_CACHE), whole and finished: one build, shared.
+    stores = sorted(p.name for p in (topology.data / "pixel-cache").iterdir() if p.is_dir())
+    assert [name.rsplit("-", 2)[1:] for name in stores] == [["train", "x1"], ["val", "x1"]], stores
+    for name in stores:
+        manifest = json.loads((topology.data / "pixel-cache" / name / "manifest.json").read_text())
+        assert (topology.data / "pixel-cache" / name / "pixels.u8").stat().st_size == \
+            3 * sum(h * w for h, w in manifest["sizes"])
     # Ray's own CLI, in a process of its own with the cluster's token (Ray reads its auth mode once per process).
     # The job's row is final before its Ray driver process exits, so Ray may still say RUNNING for a moment.
     ray_job = f"leco-job-{job['id']}-attempt-1"
