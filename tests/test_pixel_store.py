@@ -141,7 +141,7 @@ def test_an_unwritable_cache_is_named_with_the_setting_to_change(tmp_path):
         ensure_store(tmp_path / "a-file", tmp_path, "train", 1, SIZES, lambda i: images_for(SIZES)[i])
 
 
-def test_an_image_corrupted_inside_is_found_when_the_store_decodes_it(tmp_path):
+def test_an_image_corrupted_inside_is_found_when_the_store_decodes_it(tmp_path, monkeypatch):
     """Loading reads headers and the file's end only; a damaged body shows when its pixels are decoded, and the
     build stops naming the file, leaving no store to be used."""
     from model.scenes import load_scene
@@ -149,6 +149,7 @@ def test_an_image_corrupted_inside_is_found_when_the_store_decodes_it(tmp_path):
     from model.scenes.synthetic import generate
     from workers.pixels import attach_pixel_stores
 
+    monkeypatch.setenv("LECO_PIXEL_CACHE", str(tmp_path / "cache"))
     generate("tiny", 0, tmp_path / "scene")
     victim = sorted((tmp_path / "scene" / "train" / "rgbs").iterdir())[3]
     data = bytearray(victim.read_bytes())
@@ -158,9 +159,7 @@ def test_an_image_corrupted_inside_is_found_when_the_store_decodes_it(tmp_path):
     scene = load_scene(tmp_path / "scene")
     with pytest.raises(SceneError, match=rf"{victim.name}: image is unreadable"):
         attach_pixel_stores(scene, ("train",))
-    cache = Path(os.environ["LECO_PIXEL_CACHE"])
-    assert not [p for p in cache.iterdir() if p.name.startswith("scene-") and p.is_dir()
-                and not p.name.endswith(".partial")]
+    assert not list((tmp_path / "cache").glob("*/manifest.json"))  # no finished store to be used
 
 
 def resident_file_kb() -> int:
