@@ -27,7 +27,8 @@ class SceneConflict(ValueError):
 
 # ----- the heavy parts: module-level functions of plain data, run in the scene pool's processes -----------
 def load_within_budget(path: Path, max_pixels: int):
-    """The scene at `path`, its images decoded within the per-scene pixel budget (LECO_MAX_SCENE_PIXELS)."""
+    """The scene at `path`, read from its image headers (nothing is decoded), its pixels counted against the
+    per-scene budget (LECO_MAX_SCENE_PIXELS): a registration is as fast for 2,000 photos as for 20."""
     from model.scenes import load_scene
     from model.scenes.limits import pixel_budget
 
