@@ -62,6 +62,9 @@ class GuidedConfig(Frozen):
     dilate: int = Field(0, ge=0, le=64)  # also keep bins up to this many bins before / after a kept bin
     fallback: bool = False  # a ray with no kept bin samples every coarse bin once instead of none
     warm_start: bool = False  # the main network starts from phase 1's experts, heads, background, embeddings
+    # After a warm start the main phase's lr rises linearly over this many steps (0: none). Adam's first steps
+    # move every weight by about lr whatever its gradient, which may undo what the warm start brought.
+    warm_start_ramp: int = Field(0, ge=0, le=10**6)
     empty_threshold: float | None = Field(None, gt=0, le=1)  # keep p(E_e) < this; None: O's top-1 (the paper)
     # nerfacc's early stop: a gradient-free pass drops samples the main field hides (T_i below this); None: off
     cull_transmittance: float | None = Field(None, gt=0, lt=1)

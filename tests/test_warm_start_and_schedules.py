@@ -113,3 +113,18 @@ def test_relu_on_every_layer_of_o_is_a_different_function_that_saves_and_loads(t
     assert loaded.network.relu_every_layer
     with torch.no_grad():
         assert torch.equal(loaded.network(xyz), hmoe.gate(xyz))
+
+
+def test_after_a_warm_start_the_main_lr_ramps_up_over_its_steps(tiny_scene, tmp_path):
+    """guided.warm_start_ramp: main-phase step k (0-based) trains at (k + 1) / ramp of its schedule's lr."""
+    ramp, main_steps = 8, 12
+    cfg = TrainConfig(method="leco", profile="smoke", metrics_every=1,
+                      overrides={"guided.warm_start": True, "guided.warm_start_ramp": ramp, "main_steps": main_steps})
+    run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")
+    profile = cfg.resolved_profile()
+    _, _, lr_at = build_optimizer(RunModels("leco", profile, tiny_scene.num_images, tiny_scene.bounds.aabb, 0),
+                                  "main", profile)
+    main = [r for r in read_metrics(tmp_path / "run" / "metrics.jsonl") if r["phase"] == "main"]
+    assert len(main) == main_steps
+    for k, row in enumerate(main):
+        assert row["lr"] == pytest.approx(lr_at(k / main_steps) * min(1.0, (k + 1) / ramp), rel=1e-6), k

@@ -164,6 +164,8 @@ class RankRun:
             if self.session.rank == 0:
                 print(f"[leco] main phase warm-started from phase 1: {', '.join(copied)}", flush=True)
         self.phase_objects = build_optimizer(self.models, phase, self.profile)
+        warm = phase == "main" and self.cfg.method == "leco" and self.profile.guided.warm_start
+        self.lr_ramp_steps = self.profile.guided.warm_start_ramp if warm else 0
         self.to_store("phase_started", phase)
         if phase == "main" and self.cfg.method == "leco":
             threshold = self.profile.guided.empty_threshold
@@ -241,8 +243,9 @@ class RankRun:
                 break
             t0 = time.perf_counter()
             progress = self.phase_progress(phase)
+            ramp = min(1.0, (self.progress["phase_step"] + 1) / self.lr_ramp_steps) if self.lr_ramp_steps else 1.0
             for group in optimizer.param_groups:
-                group["lr"] = lr_at(progress)
+                group["lr"] = lr_at(progress) * ramp
             measure_memory = (self.progress["step"] + 1) % self.cfg.metrics_every == 0
             with SavedTensorBytes() if measure_memory else contextlib.nullcontext() as saved:
                 loss, parts = self.step_once(phase, progress)
