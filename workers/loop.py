@@ -12,6 +12,7 @@ import json
 import os
 import resource
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -321,7 +322,8 @@ class RankRun:
         self.save_checkpoint({"step": self.progress["step"], "phase": "done"})
         self.check_store()
         write_rank_record(self.run_dir, self.session.rank,
-                          {**self.timeline, "peak_memory_mb": peak_memory_mb(self.device), "device": self.device.type})
+                          {**self.timeline, "peak_memory_mb": peak_memory_mb(self.device), "device": self.device.type,
+                           "thread": threading.current_thread().name})
         if self.session.rank == 0:
             self.save_final()
 

@@ -196,17 +196,23 @@ def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, b
     fit = fit_with_ray if backend == "ray" else fit_locally
     if backend == "ray":
         ensure_ray(max(2, cfg.workers))  # in the main thread: Ray installs signal handlers there
-    errors: list[BaseException] = []
-    worker = threading.Thread(target=lambda: _capture(errors, fit, cfg, scene_dir, run_dir, store, resume_from), daemon=True)
-    worker.start()
-    while worker.is_alive():
-        worker.join(poll_s)
-        if on_progress is not None:
-            rows = read_metrics(run_dir / "metrics.jsonl")
-            if rows:
-                on_progress(rows[-1])
-    if errors:
-        raise RunError(f"training failed: {errors[0]}") from errors[0]
+    # Training runs in this thread; a side thread reports progress. PyTorch's CPU kernels run 1.4-1.7x slower in
+    # a second thread once this one has used its OpenMP pool (load_scene above does): measured on the `cpu`
+    # profile, a LeCO main step 28 -> 47 ms, a vanilla one 88 -> 126 ms (docs/BENCHMARKS.md).
+    done = threading.Event()
+    watcher = threading.Thread(target=_watch, args=(run_dir, on_progress, poll_s, done), daemon=True)
+    if on_progress is not None:
+        watcher.start()
+    try:
+        fit(cfg, scene_dir, run_dir, store, resume_from)
+    except Exception as error:
+        raise RunError(f"training failed: {error}") from error
+    finally:
+        done.set()
+        if watcher.is_alive():
+            watcher.join()
+    if on_progress is not None:
+        _report_last(run_dir, on_progress)
     if (run_dir / "failure.json").exists():
         failure = json.loads((run_dir / "failure.json").read_text())
         raise (RunGaveUp if failure.get("retryable") else RunError)(failure["reason"])
@@ -218,8 +224,12 @@ def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, b
     return summary
 
 
-def _capture(errors: list, fn, *args) -> None:
-    try:
-        fn(*args)
-    except BaseException as error:  # re-raised in the caller's thread
-        errors.append(error)
+def _watch(run_dir: Path, on_progress: Callable[[dict], None], poll_s: float, done: threading.Event) -> None:
+    while not done.wait(poll_s):
+        _report_last(run_dir, on_progress)
+
+
+def _report_last(run_dir: Path, on_progress: Callable[[dict], None]) -> None:
+    rows = read_metrics(run_dir / "metrics.jsonl")
+    if rows:
+        on_progress(rows[-1])
