@@ -294,3 +294,20 @@ def test_symlinks_out_of_the_scene_are_refused_in_every_format(blender, meganerf
         path.unlink()
         shutil.move(outside, path)
         load_scene(root)  # and back inside, it loads
+
+
+def test_a_jpeg_with_a_camera_trailer_is_read_and_a_cut_one_fails_when_decoded(tmp_path):
+    """Cameras append data after a JPEG's end-of-image marker: the header check must not refuse it. A JPEG cut
+    short passes the header check and is refused, naming the file, when its pixels are decoded."""
+    from model.scenes.images import ImageFile, probe_image
+
+    noise = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    Image.fromarray(noise).save(tmp_path / "a.jpg", quality=95)  # noise: the data, not the header, fills the file
+    data = (tmp_path / "a.jpg").read_bytes()
+    (tmp_path / "trailer.jpg").write_bytes(data + b"SEFH" + bytes(4096))
+    assert probe_image(tmp_path / "trailer.jpg") == (64, 48)
+    assert ImageFile(tmp_path / "trailer.jpg", 64, 48)().shape == (48, 64, 3)
+    (tmp_path / "cut.jpg").write_bytes(data[: len(data) // 2])
+    assert probe_image(tmp_path / "cut.jpg") == (64, 48)
+    with pytest.raises(SceneError, match=r"cut\.jpg: image is unreadable"):
+        ImageFile(tmp_path / "cut.jpg", 64, 48)()

@@ -200,8 +200,9 @@ def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, b
     # a second thread once this one has used its OpenMP pool (load_scene above does): measured on the `cpu`
     # profile, a LeCO main step 28 -> 47 ms, a vanilla one 88 -> 126 ms (docs/BENCHMARKS.md).
     done = threading.Event()
-    watcher = threading.Thread(target=_watch, args=(run_dir, on_progress, poll_s, done), daemon=True)
+    watcher = None
     if on_progress is not None:
+        watcher = threading.Thread(target=_watch, args=(run_dir, on_progress, poll_s, done), daemon=True)
         watcher.start()
     try:
         fit(cfg, scene_dir, run_dir, store, resume_from)
@@ -209,7 +210,7 @@ def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, b
         raise RunError(f"training failed: {error}") from error
     finally:
         done.set()
-        if watcher.is_alive():
+        if watcher is not None:
             watcher.join()
     if on_progress is not None:
         _report_last(run_dir, on_progress)

@@ -1,7 +1,7 @@
 """Reading dataset images with validation and optional integer downscaling.
 
-Loading a scene reads image headers only (`probe_image`: size, pixel limits, a truncation check on the
-file's tail); pixels are decoded when an `ImageFile` is called, one image at a time, by whoever needs them
+Loading a scene reads image headers only (`probe_image`: size, pixel limits, a truncation check on a
+PNG's tail); pixels are decoded when an `ImageFile` is called, one image at a time, by whoever needs them
 (the pixel store's build, a test)."""
 
 from __future__ import annotations
@@ -47,20 +47,21 @@ def _bomb(path: Path, exc: Exception) -> SceneError:  # PIL's own guard fires fi
                             f"(a corrupt or hostile header?): {exc}")
 
 
-# A file cut short (an interrupted copy or upload) loses its end marker: PNG's IEND chunk, JPEG's EOI. Checking
-# the last bytes finds that without decoding; corruption inside the data shows when the pixels are decoded.
-PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
-JPEG_END = b"\xff\xd9"
+# A PNG cut short (an interrupted copy or upload) loses its IEND chunk, which the file's last bytes show without
+# decoding. JPEGs are not checked this way: cameras append trailers of any length after the end-of-image marker,
+# and refusing those would refuse real captures; a cut JPEG (or any file damaged inside) shows when the pixel
+# store decodes it, which then stops naming the file.
+PNG_END = b"IEND\xaeB`\x82"
 
 
 def _check_tail(path: Path, image_format: str | None) -> None:
+    if image_format != "PNG":
+        return
     with open(path, "rb") as f:
         f.seek(max(0, path.stat().st_size - 64))
         tail = f.read()
-    if image_format == "PNG" and not tail.endswith(PNG_END):
+    if PNG_END not in tail:
         raise SceneError(path, "image is unreadable (truncated: the PNG has no IEND chunk at its end)")
-    if image_format == "JPEG" and JPEG_END not in tail:
-        raise SceneError(path, "image is unreadable (truncated: the JPEG has no end-of-image marker)")
 
 
 def probe_image(path: Path) -> tuple[int, int]:
