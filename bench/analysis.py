@@ -5,6 +5,13 @@ from __future__ import annotations
 import math
 import statistics
 
+from model.methods import METHODS, with_role
+
+
+def roles() -> tuple[str | None, str | None]:
+    """(the method speed-ups are reported for, the unguided reference they are measured against)."""
+    return with_role("ours"), with_role("reference")
+
 
 def main_curve(run: dict) -> list[tuple[float, float]]:
     """(training seconds, validation PSNR) of the main network; LeCO's times include its occupancy phase."""
@@ -62,14 +69,14 @@ def equal_psnr(runs: list[dict]) -> list[dict]:
 def to_baseline_best(runs: list[dict], base: str) -> list[float | None]:
     """Per seed: the baseline's time to its own best validation PSNR over LeCO's time to that PSNR (None where
     LeCO never reached it). The issue's "vanilla's final PSNR in half its time" is this at >= 2."""
-    out = []
+    out, ours = [], roles()[0]
     main = [r for r in runs if not r["ablation"]]
     for seed in sorted({r["seed"] for r in main}):
         curves = {r["variant"]: main_curve(r) for r in main if r["seed"] == seed}
-        if not curves.get(base) or not curves.get("leco"):
+        if not curves.get(base) or not curves.get(ours):
             continue
         target = max(v for _, v in curves[base])
-        out.append(ratio(time_to_psnr(curves[base], target), time_to_psnr(curves["leco"], target)))
+        out.append(ratio(time_to_psnr(curves[base], target), time_to_psnr(curves[ours], target)))
     return out
 
 
@@ -80,31 +87,34 @@ def ratio(a: float | None, b: float | None) -> float | None:
 def speedups(runs: list[dict], equal: list[dict]) -> dict[str, dict]:
     """LeCO over each baseline: rays/s, time to equal PSNR (mean over seeds), samples per ray, memory."""
     names = list(dict.fromkeys(r["variant"] for r in runs if not r["ablation"]))
-    if "leco" not in names:
+    ours = roles()[0]
+    if ours not in names:
         return {}
     rays = per_variant(runs, "rays_per_s")
     spr = per_variant(runs, "samples_per_ray")
     act = per_variant(runs, "activation_memory_mb")
     peak = per_variant(runs, "peak_memory_mb")
     out = {}
-    for base in [n for n in names if n != "leco"]:
-        times = [ratio(e["time_s"].get(base), e["time_s"].get("leco")) for e in equal]
+    for base in [n for n in names if n != ours]:
+        times = [ratio(e["time_s"].get(base), e["time_s"].get(ours)) for e in equal]
         best = to_baseline_best(runs, base)
         out[base] = {
-            "rays_per_s": ratio(rays["leco"][0], rays[base][0]),
+            "rays_per_s": ratio(rays[ours][0], rays[base][0]),
             "time_to_equal_psnr": mean_std(times)[0],
             "time_to_its_best_psnr": None if None in best else mean_std(best)[0],
             "time_to_its_best_psnr_per_seed": best,
-            "samples_per_ray_fraction": ratio(spr["leco"][0], spr[base][0]),
-            "activation_memory_fraction": ratio(act["leco"][0], act[base][0]),
-            "peak_memory_fraction": ratio(peak["leco"][0], peak[base][0]),
+            "samples_per_ray_fraction": ratio(spr[ours][0], spr[base][0]),
+            "activation_memory_fraction": ratio(act[ours][0], act[base][0]),
+            "peak_memory_fraction": ratio(peak[ours][0], peak[base][0]),
         }
     return out
 
 
 def targets(runs: list[dict], speed: dict) -> list[dict]:
-    """The issue's targets, each with what was measured and whether it was met (None: not measurable here)."""
+    """The issue's targets, each with what was measured and whether it was met (None: not measurable here):
+    against the reference method, then against every baseline that learns an occupancy."""
     names = {r["variant"] for r in runs if not r["ablation"]}
+    ours, ref = roles()
     psnr = per_variant(runs, "val.psnr")
     f1 = per_variant(runs, "occupancy.f1")
     params = per_variant(runs, "occupancy.params")
@@ -115,8 +125,8 @@ def targets(runs: list[dict], speed: dict) -> list[dict]:
         rows.append({"target": text, "measured": measured, "met": met})
 
     fmt = lambda v, spec: "n/a" if v is None else format(v, spec)
-    if {"leco", "switch"} <= names:
-        s = speed["switch"]
+    if {ours, ref} <= names:
+        s = speed[ref]
         add("guided phase rays/s >= 2.5x vanilla Switch-NeRF", f"{fmt(s['rays_per_s'], '.2f')}x",
             None if s["rays_per_s"] is None else s["rays_per_s"] >= 2.5)
         best = s["time_to_its_best_psnr_per_seed"]
@@ -126,21 +136,25 @@ def targets(runs: list[dict], speed: dict) -> list[dict]:
         add("main-network samples per ray <= 25% of vanilla", f"{fmt(s['samples_per_ray_fraction'], '.1%')}",
             None if s["samples_per_ray_fraction"] is None else s["samples_per_ray_fraction"] <= 0.25)
         add("validation PSNR >= vanilla's at equal budget",
-            f"{fmt(psnr['leco'][0], '.2f')} vs {fmt(psnr['switch'][0], '.2f')} dB",
-            None if None in (psnr["leco"][0], psnr["switch"][0]) else psnr["leco"][0] >= psnr["switch"][0])
+            f"{fmt(psnr[ours][0], '.2f')} vs {fmt(psnr[ref][0], '.2f')} dB",
+            None if None in (psnr[ours][0], psnr[ref][0]) else psnr[ours][0] >= psnr[ref][0])
         memory = s["peak_memory_fraction"] if _on_gpu(runs) else s["activation_memory_fraction"]
         add("peak training memory <= half of vanilla's" + ("" if _on_gpu(runs) else " (autograd activations, CPU)"),
             f"{fmt(memory, '.1%')} of vanilla's", None if memory is None else memory <= 0.5)
-    if {"leco", "grid"} <= names:
-        add("validation PSNR >= the grid's at equal budget",
-            f"{fmt(psnr['leco'][0], '.2f')} vs {fmt(psnr['grid'][0], '.2f')} dB",
-            None if None in (psnr["leco"][0], psnr["grid"][0]) else psnr["leco"][0] >= psnr["grid"][0])
-        add("occupancy F1 above the grid's", f"{fmt(f1['leco'][0], '.3f')} vs {fmt(f1['grid'][0], '.3f')}",
-            None if None in (f1["leco"][0], f1["grid"][0]) else f1["leco"][0] > f1["grid"][0])
-        p = ratio(params["leco"][0], params["grid"][0])
-        add("occupancy parameters <= 10% of the grid's", f"{fmt(p, '.1%')}", None if p is None else p <= 0.10)
-    if "leco" in names:
-        r = occ_ratio["leco"][0]
+    others = [n for n in METHODS if n in names and n != ours and METHODS[n].has_occupancy]
+    for other in others if ours in names else []:
+        label = METHODS[other].label
+        add(f"validation PSNR >= {label}'s at equal budget",
+            f"{fmt(psnr[ours][0], '.2f')} vs {fmt(psnr[other][0], '.2f')} dB",
+            None if None in (psnr[ours][0], psnr[other][0]) else psnr[ours][0] >= psnr[other][0])
+        add(f"occupancy F1 above {label}'s", f"{fmt(f1[ours][0], '.3f')} vs {fmt(f1[other][0], '.3f')}",
+            None if None in (f1[ours][0], f1[other][0]) else f1[ours][0] > f1[other][0])
+        bound = METHODS[other].occupancy_size_target
+        if bound is not None:
+            p = ratio(params[ours][0], params[other][0])
+            add(f"occupancy parameters <= {bound:.0%} of {label}'s", f"{fmt(p, '.1%')}", None if p is None else p <= bound)
+    if ours in names:
+        r = occ_ratio[ours][0]
         add("LeCO occupancy ratio <= 20%", fmt(r, ".1%"), None if r is None else r <= 0.20)
     return rows
 

@@ -16,6 +16,7 @@ def bench_command(args: argparse.Namespace) -> int:
     from bench import analysis, plots, report
     from bench.runner import BenchError, Plan, config_for, run_variant
     from bench.variants import select
+    from model.methods import METHODS, with_role
     from model.scenes import load_scene
     from workers.config import TrainConfig, parse_overrides
 
@@ -26,7 +27,8 @@ def bench_command(args: argparse.Namespace) -> int:
         # The sweep's points are relative to the profile the runs train, --set included.
         swept = None
         if args.sweep:
-            swept = TrainConfig(method="leco", profile=args.profile, overrides=overrides).resolved_profile()
+            swept = TrainConfig(method=with_role("reference"), profile=args.profile,
+                                overrides=overrides).resolved_profile()
         variants = select([m.strip() for m in args.methods.split(",") if m.strip()], args.ablation, args.ladder,
                           swept)
     except (ValueError, ValidationError) as error:
@@ -60,8 +62,8 @@ def bench_command(args: argparse.Namespace) -> int:
         from bench.reference import score_against_vanilla
 
         for seed in seeds:
-            switch = [r for r in runs if r["variant"] == "switch" and r["seed"] == seed]
-            scored = [r for r in runs if r["method"] in ("leco", "grid") and r["seed"] == seed]
+            switch = [r for r in runs if r["variant"] == with_role("reference") and r["seed"] == seed]
+            scored = [r for r in runs if METHODS[r["method"]].has_occupancy and r["seed"] == seed]
             if switch and scored:
                 log(f"[bench] seed {seed}: occupancy against the trained vanilla model's depth (paper's protocol)")
                 metrics = score_against_vanilla(Path(switch[0]["run_dir"]), [Path(r["run_dir"]) for r in scored])
@@ -118,14 +120,18 @@ def command_line(args: argparse.Namespace) -> str:
 
 
 def add_commands(commands) -> None:
-    bench = commands.add_parser("bench", help="LeCO vs Switch-NeRF vs occupancy grid on one scene: report, plots")
+    from model.methods import METHODS
+
+    bench = commands.add_parser("bench", help="every registered method on one scene (LeCO, vanilla Switch-NeRF, "
+                                              "the occupancy grid, proposal networks): report, plots")
     bench.add_argument("--scene", required=True, help="scene folder (any supported format)")
     bench.add_argument("--profile", default="cpu", help="smoke | cpu | paper (default: cpu)")
     bench.add_argument("--out", required=True, help="output folder; finished runs in it are reused")
     bench.add_argument("--budget-min", type=float, default=None,
                        help="wall-clock training budget per method in minutes (LeCO's includes its occupancy "
                             "phase); without it every method runs the profile's step counts")
-    bench.add_argument("--methods", default="leco,switch,grid", help="comma-separated: leco, switch, grid")
+    bench.add_argument("--methods", default=",".join(METHODS),
+                       help=f"comma-separated, from: {', '.join(METHODS)} (default: all of them)")
     bench.add_argument("--ladder", action="store_true",
                        help="also train the ablation ladder: LeCO from the paper's formulation to the profile's "
                             "defaults, one change at a time (bench/variants.py RUNGS)")

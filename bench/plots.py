@@ -15,9 +15,11 @@ import numpy as np  # noqa: E402
 from PIL import Image  # noqa: E402
 
 from bench.analysis import main_curve, per_variant  # noqa: E402
+from model.methods import METHODS  # noqa: E402
 
-COLOURS = {"leco": "#d62728", "switch": "#1f77b4", "grid": "#2ca02c", "leco-homogeneous": "#9467bd",
-           "leco-no-density-loss": "#ff7f0e"}
+# Each method's colour is its own (Method.colour); the ablations' are these; anything else: matplotlib's cycle.
+COLOURS = {"leco-homogeneous": "#9467bd", "leco-no-density-loss": "#ff7f0e",
+           **{name: m.colour for name, m in METHODS.items() if m.colour}}
 
 
 def _save(fig, path: Path) -> str:
@@ -45,7 +47,7 @@ def psnr_vs_time(runs: list[dict], path: Path) -> str:
 
 
 def occupancy_phase(runs: list[dict], path: Path) -> str | None:
-    leco = [r for r in runs if r["method"] == "leco"]
+    leco = [r for r in runs if len(METHODS[r["method"]].phases) > 1]  # runs with an occupancy phase
     if not leco:
         return None
     fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.6))
@@ -90,7 +92,7 @@ def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def occupancy_clouds(runs: list[dict], path: Path) -> str | None:
     """Top-down and oblique views of each method's occupied points (coloured by the main network)."""
-    chosen = [r for r in runs if r["method"] in ("leco", "grid") and not r["ablation"]
+    chosen = [r for r in runs if METHODS[r["method"]].has_occupancy and not r["ablation"]
               and (Path(r["run_dir"]) / "occupancy.ply").exists() and r["seed"] == runs[0]["seed"]]
     if not chosen:
         return None

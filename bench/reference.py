@@ -8,10 +8,9 @@ from pathlib import Path
 
 import torch
 
-from model.main_phase import render_vanilla
 from model.occupancy_eval import evaluate_occupancy
 from model.scenes.rays import PixelTable, RayBatch
-from workers.evaluate import load_final, occupied_fn
+from workers.evaluate import load_final
 
 CHUNK = 4096
 SURFACE_OPACITY = 0.5  # a pixel whose foreground opacity stays below this saw no surface (background)
@@ -21,17 +20,17 @@ RESOLUTION = 64
 @torch.no_grad()
 def vanilla_depth_maps(switch_run: Path) -> tuple[list[torch.Tensor], object]:
     """Per validation view: the vanilla model's surface distance along each unit pixel ray (inf: none)."""
-    cfg, scene, models, _ = load_final(switch_run, torch.device("cpu"))
+    _, scene, method, models = load_final(switch_run, torch.device("cpu"))
     models.eval()
     views = scene.splits.get("val", scene.train)
-    table, profile, aabb = PixelTable(views), cfg.resolved_profile(), scene.bounds.aabb
+    table, aabb = PixelTable(views), scene.bounds.aabb
     maps = []
     for image in range(len(views)):
         rays = table.image_rays(image, aabb)
         depth = []
         for s in range(0, len(rays), CHUNK):
             chunk = RayBatch(*(getattr(rays, f)[s : s + CHUNK] for f in RayBatch.__dataclass_fields__))
-            out = render_vanilla(models.field, models.background, chunk, profile, None).rendered
+            out = method.render(models, "main", chunk)
             # Rendered.depth is sum(w t): divided by the opacity it is the expected distance of the surface hit.
             surface = out.depth.double() / out.opacity.double().clamp(min=1e-6)
             depth.append(torch.where(out.opacity >= SURFACE_OPACITY, surface, torch.inf))
@@ -45,8 +44,8 @@ def score_against_vanilla(switch_run: Path, runs: list[Path]) -> dict[str, dict]
     maps, (scene, views) = vanilla_depth_maps(switch_run)
     results = {}
     for run_dir in runs:
-        cfg, _, models, predictor = load_final(run_dir, torch.device("cpu"))
-        occupied = occupied_fn(cfg, models, predictor)
+        _, _, method, models = load_final(run_dir, torch.device("cpu"))
+        occupied = method.final_occupancy(models)
         metrics = evaluate_occupancy(occupied, views, scene.bounds.aabb.float(), RESOLUTION, depth=maps)
         metrics["reference"] = f"depth of the trained vanilla Switch-NeRF ({Path(switch_run).name})"
         results[str(run_dir)] = metrics

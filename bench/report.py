@@ -9,8 +9,8 @@ from pathlib import Path
 
 import torch
 
-from bench.variants import RUNGS
-from bench.analysis import get, main_curve, mean_std, per_variant, time_to_psnr
+from bench.variants import ABLATIONS, RUNGS
+from bench.analysis import get, main_curve, mean_std, per_variant, roles, time_to_psnr
 
 PAPER_NOTE = ("Paper (Mega-NeRF scenes, 8 GPUs): LeCO ~2.5x faster than Switch-NeRF at equal or better PSNR, "
               "occupancy network 0.15M parameters vs a 2.1M-cell grid, occupancy ratio below the grid's.")
@@ -56,28 +56,31 @@ def occupancy_table(runs: list[dict], names: list[str], labels: dict) -> str:
 
 
 def quality_table(runs: list[dict], names: list[str], labels: dict) -> str:
-    s = {k: per_variant(runs, k) for k in ("val.psnr", "val.ssim", "val.lpips", "wall_time_s.total",
+    s = {k: per_variant(runs, k) for k in ("val.psnr", "val.ssim", "val.lpips_vgg", "val.lpips_alex",
+                                           "wall_time_s.total",
                                            "peak_memory_mb", "activation_memory_mb", "rays_per_s",
                                            "samples_per_ray", "steps.total")}
     minutes = {n: (None if m is None else m / 60, None if sd is None else sd / 60)
                for n, (m, sd) in s["wall_time_s.total"].items()}
-    rows = [[labels[n], cell(s["val.psnr"][n], ".2f"), cell(s["val.ssim"][n], ".3f"), cell(s["val.lpips"][n], ".3f"),
-             cell(minutes[n], ".2f"), cell(s["peak_memory_mb"][n], ",.0f"), cell(s["activation_memory_mb"][n], ".1f"),
+    rows = [[labels[n], cell(s["val.psnr"][n], ".2f"), cell(s["val.ssim"][n], ".3f"),
+             cell(s["val.lpips_vgg"][n], ".3f"), cell(s["val.lpips_alex"][n], ".3f"), cell(minutes[n], ".2f"),
+             cell(s["peak_memory_mb"][n], ",.0f"), cell(s["activation_memory_mb"][n], ".1f"),
              cell(s["rays_per_s"][n], ",.0f"), cell(s["samples_per_ray"][n], ".1f"), cell(s["steps.total"][n], ",.0f")]
             for n in names]
-    return table(["method", "PSNR", "SSIM", "LPIPS", "time (min)", "peak memory (MB)", "activations (MB/step)",
-                  "rays/s (main)", "samples/ray", "steps"], rows)
+    return table(["method", "PSNR", "SSIM", "LPIPS (VGG)", "LPIPS (Alex)", "time (min)", "peak memory (MB)",
+                  "activations (MB/step)", "rays/s (main)", "samples/ray", "steps"], rows)
 
 
 def ladder_table(runs: list[dict]) -> str:
     """Each rung's PSNR, when it reached vanilla's best tracked PSNR, and what its occupancy and sampler did."""
     names = [n for n in dict.fromkeys(r["variant"] for r in runs if r.get("ladder"))]
-    names += ["leco"] if any(r["variant"] == "leco" for r in runs) else []
+    ours, ref = roles()
+    names += [ours] if any(r["variant"] == ours for r in runs) else []
     labels = {r["variant"]: r["label"] for r in runs}
-    labels["leco"] = RUNGS[-1][1]
+    labels[ours] = RUNGS[-1][1]
     reach = {n: [] for n in names}
     for r in runs:
-        vanilla = [v for v in runs if v["variant"] == "switch" and v["seed"] == r["seed"]]
+        vanilla = [v for v in runs if v["variant"] == ref and v["seed"] == r["seed"]]
         if r["variant"] in reach and vanilla and main_curve(vanilla[0]):
             target = max(p for _, p in main_curve(vanilla[0]))
             reach[r["variant"]].append(time_to_psnr(main_curve(r), target))
@@ -109,7 +112,7 @@ def sweep_table(runs: list[dict]) -> str:
 
 def ablation_table(runs: list[dict]) -> str:
     names = [n for n in dict.fromkeys(r["variant"] for r in runs if not r.get("ladder") and not r.get("sweep"))
-             if n.startswith("leco")]
+             if n in ABLATIONS or n == roles()[0]]
     labels = {r["variant"]: r["label"] for r in runs}
     hmoe = {}
     for n in names:  # the HMoE's own rendering at the end of phase 1 (what Table 4 scores)
@@ -120,13 +123,14 @@ def ablation_table(runs: list[dict]) -> str:
                 ends.append(points[-1]["val_psnr"])
         hmoe[n] = mean_std(ends)
     s = {k: per_variant(runs, k) for k in ("occupancy.empty_fraction", "occupancy.f1", "occupancy.recall",
-                                           "occupancy.precision", "val.psnr", "val.ssim", "val.lpips")}
+                                           "occupancy.precision", "val.psnr", "val.ssim", "val.lpips_vgg",
+                                           "val.lpips_alex")}
     rows = [[labels[n], cell(hmoe[n], ".2f"), cell(s["occupancy.empty_fraction"][n], ".1%"),
              cell(s["occupancy.f1"][n], ".3f"), cell(s["occupancy.recall"][n], ".3f"),
              cell(s["occupancy.precision"][n], ".3f"), cell(s["val.psnr"][n], ".2f"), cell(s["val.ssim"][n], ".3f"),
-             cell(s["val.lpips"][n], ".3f")] for n in names]
+             cell(s["val.lpips_vgg"][n], ".3f"), cell(s["val.lpips_alex"][n], ".3f")] for n in names]
     return table(["variant", "phase-1 HMoE PSNR", "points to E_e", "occupancy F1", "recall", "precision",
-                  "guided PSNR", "SSIM", "LPIPS"], rows)
+                  "guided PSNR", "SSIM", "LPIPS (VGG)", "LPIPS (Alex)"], rows)
 
 
 def write_results(results: dict, out: Path) -> None:
@@ -212,7 +216,7 @@ def write_report(results: dict, out: Path) -> None:
 
 
 def summary_line(results: dict) -> str:
-    speed = results["speedups"].get("switch")
+    speed = results["speedups"].get(roles()[1])
     psnr = {n: m for n, (m, _) in per_variant(results["runs"], "val.psnr").items()}
     text = ", ".join(f"{n} {v:.2f} dB" for n, v in psnr.items() if v is not None)
     if speed and speed["rays_per_s"] is not None:

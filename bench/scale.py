@@ -86,12 +86,14 @@ def format_row(r: dict) -> str:
 
 
 def add_commands(commands) -> None:
+    from model.methods import METHODS
+
     scale = commands.add_parser("bench-scale", help="time to first step, per-rank peak RSS and rays/s on large "
                                                     "scenes (issue 18); the first scene is started twice")
     scale.add_argument("--scene", action="append", required=True,
                        help="scene folder; repeat to compare (the first is started twice)")
     scale.add_argument("--out", required=True, help="folder for the runs and scale.json")
-    scale.add_argument("--method", default="switch", choices=["leco", "switch", "grid"])
+    scale.add_argument("--method", default="switch", choices=list(METHODS))
     scale.add_argument("--profile", default="cpu")
     scale.add_argument("--workers", type=int, default=2)
     scale.add_argument("--steps", type=int, default=40, help="main-phase steps per run (and phase-1 steps)")

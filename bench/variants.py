@@ -1,4 +1,4 @@
-"""What a benchmark trains: the three methods, and the ablations of the paper's Tables 4 and 5. Every variant
+"""What a benchmark trains: the registered methods (model/methods), and the ablations of the paper's Tables 4 and 5. Every variant
 is a TrainConfig method plus profile overrides, so the main network, background, batch, optimiser and schedule
 are the profile's for all of them and only the sampling (and, for ablations, the occupancy phase) differs."""
 
@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from model.methods import METHODS as REGISTRY, get_method, with_role
 from model.profiles import Profile
 
 
@@ -20,11 +21,9 @@ class Variant:
     sweep: bool = False  # another sampling budget of `method` (`--sweep`); like an ablation, not a compared method
 
 
-METHODS = {
-    "leco": Variant("leco", "leco", "S+Ours (LeCO)"),
-    "switch": Variant("switch", "switch", "S-NeRF* (vanilla)"),
-    "grid": Variant("grid", "grid", "S+Grid"),
-}
+def method_variants() -> dict[str, Variant]:
+    """Every registered method as a benchmark variant of its own name and label."""
+    return {name: Variant(name, name, m.label) for name, m in REGISTRY.items()}
 
 # Table 4 trains without the density loss (both MoEs); Table 5 compares LeCO with and without it.
 ABLATIONS = {
@@ -74,42 +73,32 @@ def ladder() -> list[Variant]:
 
 
 def sweep(methods: list[str], profile: Profile) -> list[Variant]:
-    """`--sweep` (issue 16, item 6): each method at a leaner and a richer sampling budget than the profile's,
-    whose own run is the middle point, so PSNR can be read against samples per ray and rays/s. LeCO also
-    gets the transmittance-culling point (it changes cost, not the samples O keeps)."""
-    g, v, grid = profile.guided, profile.vanilla, profile.grid
-    lean_leco = ((f"dilation {g.dilate - 1}", {"guided.dilate": g.dilate - 1}) if g.dilate > 0
-                 else (f"split {max(g.split // 2, 1)}", {"guided.split": max(g.split // 2, 1)}))
-    points = {
-        "leco": [("lean", *lean_leco),
-                 ("rich", f"{2 * g.coarse_samples} coarse bins", {"guided.coarse_samples": 2 * g.coarse_samples}),
-                 ("cull", "culling T < 1e-3", {"guided.cull_transmittance": 1e-3})],
-        "switch": [(tag, f"{c} + {f} samples", {"vanilla.coarse_samples": c, "vanilla.fine_samples": f})
-                   for tag, c, f in (("lean", max(v.coarse_samples // 2, 2), v.fine_samples // 2),
-                                     ("rich", 2 * v.coarse_samples, 2 * v.fine_samples))],
-        "grid": [(tag, f"{n} march steps", {"grid.march_steps": n})
-                 for tag, n in (("lean", max(grid.march_steps // 2, 8)), ("rich", 2 * grid.march_steps))],
-    }
-    return [Variant(f"{m}-sweep-{tag}", m, f"{METHODS[m].label}, {text}", overrides, ablation=True, sweep=True)
-            for m in methods for tag, text, overrides in points[m]]
+    """`--sweep` (issue 16, item 6): each method at the sampling budgets its own file names (Method.sweep),
+    around the profile's, whose own run is the middle point, so PSNR can be read against samples per ray and
+    rays/s."""
+    return [Variant(f"{m}-sweep-{p.tag}", m, f"{get_method(m).label}, {p.text}", p.overrides, ablation=True,
+                    sweep=True)
+            for m in methods for p in get_method(m)(profile).sweep()]
 
 
 def select(methods: list[str], ablation: bool, with_ladder: bool = False,
            sweep_profile: Profile | None = None) -> list[Variant]:
-    unknown = [m for m in methods if m not in METHODS]
+    known = method_variants()
+    unknown = [m for m in methods if m not in known]
     if unknown:
-        raise ValueError(f"--methods: unknown method(s) {', '.join(unknown)}: choose from {', '.join(METHODS)}")
+        raise ValueError(f"--methods: unknown method(s) {', '.join(unknown)}: choose from {', '.join(known)}")
     if not methods and not ablation:
         raise ValueError("--methods is empty and --ablation is off: nothing to benchmark")
-    chosen = [METHODS[m] for m in dict.fromkeys(methods)]
+    chosen = [known[m] for m in dict.fromkeys(methods)]
+    ours = with_role("ours")
     if ablation:
         chosen += list(ABLATIONS.values())
-        if "leco" not in methods:
-            chosen.append(METHODS["leco"])  # the full method (HMoE + L_d) is the ablations' reference row
+        if ours not in methods:
+            chosen.append(known[ours])  # the full method (HMoE + L_d) is the ablations' reference row
     if with_ladder:
         chosen += ladder()
-        if "leco" not in [v.name for v in chosen]:
-            chosen.append(METHODS["leco"])  # the last rung: the profile's defaults
+        if ours not in [v.name for v in chosen]:
+            chosen.append(known[ours])  # the last rung: the profile's defaults
     if sweep_profile is not None:
         chosen += sweep([m for m in dict.fromkeys(methods)], sweep_profile)
     return chosen

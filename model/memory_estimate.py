@@ -9,9 +9,8 @@ peak. Against measured peak RSS on the city (`cpu`, docs/BENCHMARKS.md): vanilla
 
 from __future__ import annotations
 
-import torch
-
-from model.model_info import background, count, hmoe, switch_nerf
+from model.methods import get_method
+from model.methods.base import PhaseMemory
 from model.profiles import Profile
 
 BYTES_PER_PARAMETER = 16  # fp32 weights, gradients and Adam's two moments
@@ -33,45 +32,36 @@ def live_bytes_per_sample(width: int) -> int:
 
 def main_samples_bound(method: str, profile: Profile) -> int:
     """The most main-network samples with gradient one ray can have."""
-    if method == "switch":
-        return profile.vanilla.coarse_samples + profile.vanilla.fine_samples + 1
-    if method == "grid":
-        return profile.grid.march_steps
-    return profile.guided.coarse_samples * profile.guided.split
+    return get_method(method)(profile).main_samples_bound()
 
 
 def estimate_peak_bytes(method: str, profile: Profile, num_images: int) -> dict:
-    """Per-rank peak bytes and its parts (each naming the settings that drive it)."""
+    """Per-rank peak bytes and its parts (each naming the settings that drive it): the worst phase of the
+    method's (model/methods/base.py PhaseMemory) for each part."""
     n, b = profile.network, profile.background
-    with torch.device("meta"):
-        behind_params = count(background(profile, num_images))
-        main = count(switch_nerf(profile, num_images)) + behind_params
-        phase1 = occupancy = 0
-        if method == "leco":
-            occ = hmoe(profile, num_images)
-            phase1, occupancy = count(occ) + behind_params, count(occ.gate)
+    phases: dict[str, PhaseMemory] = get_method(method)(profile).memory(num_images)
     per_sample = saved_bytes_per_sample(n.width, n.expert_layers)
     behind = profile.rays_per_device * b.samples * 4 * (2 * b.layers * b.width + 100)
-    main_act = profile.rays_per_device * main_samples_bound(method, profile) * per_sample + behind
-    phase1_act = profile.rays_per_device * profile.occupancy.samples_per_ray * per_sample + behind if phase1 else 0
-    render = EVAL_CHUNK * max(main_samples_bound(method, profile), profile.occupancy.samples_per_ray if phase1
-                              else 0) * live_bytes_per_sample(n.width)
+    rays = profile.rays_per_device
+    training = {k: rays * (p.samples_per_ray * per_sample + p.extra_bytes_per_ray) + behind for k, p in phases.items()}
+    render = max(EVAL_CHUNK * (p.render_samples_per_ray or p.samples_per_ray) * live_bytes_per_sample(n.width)
+                 for p in phases.values())
     parts = {
-        "parameters": max(main * BYTES_PER_PARAMETER + occupancy * FROZEN_BYTES_PER_PARAMETER,
-                          phase1 * BYTES_PER_PARAMETER),
-        "activations": max(main_act, phase1_act, render),
-        "grid": 5 * profile.grid.resolution**3 if method == "grid" else 0,  # float values + occupied bits
+        "parameters": max(p.trained * BYTES_PER_PARAMETER + p.frozen * FROZEN_BYTES_PER_PARAMETER
+                          for p in phases.values()),
+        "activations": max(max(training.values()), render),
+        "estimator": max(p.extra_bytes for p in phases.values()),  # e.g. an occupancy grid's cells
         "runtime": RUNTIME_BYTES,
     }
-    return {"parts": parts, "total": sum(parts.values()), "parameters": max(main, phase1),
-            "training_activations": max(main_act, phase1_act)}
+    return {"parts": parts, "total": sum(parts.values()), "parameters": max(p.trained for p in phases.values()),
+            "training_activations": max(training.values())}
 
 
 DRIVERS = {
     "parameters": "network.width, network.num_experts, network.expert_layers, network.appearance_dim",
     "activations": "rays_per_device (or a validation render's 4,096 rays) x samples per ray (vanilla.*_samples, guided.coarse_samples x guided.split, "
                    "grid.march_steps, occupancy.samples_per_ray) x network.width x network.expert_layers",
-    "grid": "grid.resolution",
+    "estimator": "grid.resolution (the occupancy grid's cells)",
 }
 
 

@@ -3,7 +3,7 @@ later stages (training config, API, benchmark) embed rather than copy. See docs/
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 MAX_STEPS = 10_000_000  # per phase; `leco bench --budget-min` uses this as "until the clock stops"
 # Far past any rate that trains (Adam's steps are ~lr), low enough to stay finite in every product of the loop;
@@ -94,6 +94,29 @@ class GridConfig(Frozen):
     march_steps: int = Field(1024, ge=8, le=16384)  # samples across the box diagonal: sets the marching step size
 
 
+class ProposalConfig(Frozen):
+    """S+Prop (model/methods/prop.py): proposal networks in place of Switch-NeRF's coarse/fine sampling."""
+
+    samples: tuple[int, ...] = Field((256, 96), min_length=1, max_length=4)  # per proposal level (nerfacto's)
+    # Main-network samples per ray, set to LeCO's at the same profile (docs/PROFILES.md says how).
+    main_samples: int = Field(148, ge=1, le=4096)
+    width: int | None = Field(None, ge=4, le=2048)  # None: sized so all levels total LeCO's O (model/methods/prop.py)
+    layers: int = Field(2, ge=1, le=8)
+    anneal_slope: float = Field(10.0, gt=0, le=1e3)  # nerfstudio's proposal_weights_anneal_slope
+    anneal_steps: int = Field(1000, ge=0, le=MAX_STEPS)  # ... and proposal_weights_anneal_max_num_iters
+    update_every: int = Field(5, ge=1, le=1000)  # nerfacc's get_proposal_requires_grad_fn(target=5, num_steps=1000)
+    update_warmup: int = Field(1000, ge=0, le=MAX_STEPS)
+    histogram_padding: float = Field(0.01, ge=0, le=1)  # nerfstudio's PDFSampler default
+    loss_weight: float = Field(1.0, ge=0, le=1e4)  # nerfstudio's interlevel_loss_mult
+
+    @field_validator("samples")
+    @classmethod
+    def positive(cls, samples: tuple[int, ...]) -> tuple[int, ...]:
+        if any(not 2 <= n <= 4096 for n in samples):
+            raise ValueError("every proposal level needs 2 to 4096 samples")
+        return samples
+
+
 class Profile(Frozen):
     name: str
     network: NetworkConfig = NetworkConfig()
@@ -102,6 +125,7 @@ class Profile(Frozen):
     guided: GuidedConfig = GuidedConfig()
     vanilla: VanillaConfig = VanillaConfig()
     grid: GridConfig = GridConfig()
+    prop: ProposalConfig = ProposalConfig()
     rays_per_device: int = Field(1024, ge=1, le=65536)
     main_steps: int = Field(500_000, ge=1, le=MAX_STEPS)  # Switch-NeRF (guided or not) steps after any occupancy phase
     balance_weight: float = Field(5e-4, ge=0, le=1e4)  # Switch-NeRF's balance loss
@@ -123,6 +147,8 @@ PROFILES: dict[str, Profile] = {
                             empty_threshold=0.9, online=True),
         vanilla=VanillaConfig(coarse_samples=32, fine_samples=64),
         grid=GridConfig(resolution=128, march_steps=256),
+        # LeCO's main samples per ray on the city at this profile: 21.2 (8-minute benchmark, docs/BENCHMARKS.md).
+        prop=ProposalConfig(samples=(64, 32), main_samples=21),
         rays_per_device=256,
         main_steps=1500,
         lr=2e-3,
@@ -137,6 +163,7 @@ PROFILES: dict[str, Profile] = {
         guided=GuidedConfig(coarse_samples=8, split=4),
         vanilla=VanillaConfig(coarse_samples=8, fine_samples=16),
         grid=GridConfig(resolution=32, warmup_steps=4, update_every=4, march_steps=64),
+        prop=ProposalConfig(samples=(16, 8), main_samples=8, anneal_steps=10, update_warmup=10),
         rays_per_device=64,
         main_steps=20,
         lr=5e-3,

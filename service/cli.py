@@ -37,6 +37,8 @@ def model_info_command(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from model.methods import METHODS  # read when the parser is built, so a method registered before counts
+
     parser = argparse.ArgumentParser(prog="leco", description="LeCO-NeRF service: scenes, training, benchmarks.")
     commands = parser.add_subparsers(dest="command", required=True)
 
@@ -56,7 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     model = commands.add_parser("model", help="inspect model sizes").add_subparsers(dest="action", required=True)
     minfo = model.add_parser("info", help="parameter count of every component of a method under a profile")
-    minfo.add_argument("--method", default="leco", help="leco | switch | grid")
+    minfo.add_argument("--method", default="leco", choices=list(METHODS))
     minfo.add_argument("--profile", default="paper", help="paper | cpu | smoke")
     minfo.add_argument("--images", type=int, default=100, help="images in the scene (appearance embeddings)")
     minfo.add_argument("--json", action="store_true")

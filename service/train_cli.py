@@ -75,9 +75,11 @@ def eval_command(args: argparse.Namespace) -> int:
 
 
 def add_commands(commands) -> None:
-    train = commands.add_parser("train", help="train a scene with leco | switch | grid (Ray Train workers)")
+    from model.methods import METHODS
+
+    train = commands.add_parser("train", help=f"train a scene with {' | '.join(METHODS)} (Ray Train workers)")
     train.add_argument("--scene", required=True, help="scene folder (any supported format)")
-    train.add_argument("--method", required=True, choices=["leco", "switch", "grid"])
+    train.add_argument("--method", required=True, choices=list(METHODS))
     train.add_argument("--profile", default="cpu", help="smoke | cpu | paper (default: cpu)")
     train.add_argument("--out", required=True, help="run folder; an unfinished run there resumes")
     train.add_argument("--workers", type=int, default=1, help="data-parallel workers (1-8)")
@@ -95,6 +97,6 @@ def add_commands(commands) -> None:
                        help="ray (default): Ray Train workers; local: one process without Ray")
     train.set_defaults(func=train_command)
 
-    evaluate = commands.add_parser("eval", help="evaluate a finished run again (PSNR, SSIM, LPIPS, occupancy)")
+    evaluate = commands.add_parser("eval", help="evaluate a finished run again (PSNR, SSIM, LPIPS VGG/Alex, occupancy)")
     evaluate.add_argument("--run", required=True, help="run folder written by leco train")
     evaluate.set_defaults(func=eval_command)

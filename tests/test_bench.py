@@ -111,20 +111,22 @@ def test_bench_smoke_on_the_tiny_city(tiny_scene, tmp_path, capsys):
     assert bench("--scene", str(tiny_scene.root), "--out", str(out), "--ablation") == 0
     results = json.loads((out / "results.json").read_text())
     runs = {r["variant"]: r for r in results["runs"]}
-    assert set(runs) == {"leco", "switch", "grid", "leco-homogeneous", "leco-no-density-loss"}
+    assert set(runs) == {"leco", "switch", "grid", "prop", "leco-homogeneous", "leco-no-density-loss"}
     assert results["occupancy_reference"].startswith("exact ground truth")
     leco = runs["leco"]
     phases = [p["phase"] for p in leco["curve"] if "val_psnr" in p]
     assert "occupancy" in phases and phases[-1] == "main"  # validation at each phase's end at least
     assert all("occupancy_f1" in p for p in leco["curve"] if p["phase"] == "occupancy" and "val_psnr" in p)
-    for name in ("leco", "grid"):
+    for name in ("leco", "grid", "prop"):
         occupancy = runs[name]["summary"]["occupancy"]
         assert 0.0 <= occupancy["f1"] <= 1.0 and occupancy["params"] > 0
     assert runs["grid"]["summary"]["occupancy"]["params"] == 32**3
+    assert runs["prop"]["summary"]["samples_per_ray"] == 8  # the smoke profile's prop.main_samples
     assert leco["summary"]["samples_per_ray"] < runs["switch"]["summary"]["samples_per_ray"] == 8 + 8 + 16
     assert leco["summary"]["activation_memory_mb"] < runs["switch"]["summary"]["activation_memory_mb"]
     assert results["speedups"]["switch"]["rays_per_s"] > 0 and results["equal_psnr"][0]["target_psnr"] > 10
-    assert {t["target"] for t in results["targets"]} >= {"occupancy parameters <= 10% of the grid's"}
+    assert {t["target"] for t in results["targets"]} >= {"occupancy parameters <= 10% of S+Grid's",
+                                                         "occupancy F1 above S+Prop's"}
     for figure in results["figures"].values():
         with Image.open(out / figure) as image:
             assert image.format == "PNG" and image.width > 300
@@ -150,14 +152,16 @@ def test_bench_smoke_on_the_tiny_city(tiny_scene, tmp_path, capsys):
 
     capsys.readouterr()
     assert bench("--scene", str(tiny_scene.root), "--out", str(out), "--sweep") == 0
-    assert capsys.readouterr().err.count("finished earlier, reusing") == 3  # the defaults are the middle points
+    assert capsys.readouterr().err.count("finished earlier, reusing") == 4  # the defaults are the middle points
     results = json.loads((out / "results.json").read_text())
     swept = {r["variant"]: r["summary"] for r in results["runs"] if r.get("sweep")}
-    assert len(swept) == 7 and list(results["speedups"]) == ["switch", "grid"]  # sweep points are not compared
+    # sweep points are not compared methods
+    assert len(swept) == 9 and list(results["speedups"]) == ["switch", "grid", "prop"]
     spr = lambda name: (swept.get(name) or runs[name]["summary"])["samples_per_ray"]
     assert spr("switch-sweep-lean") < spr("switch") < spr("switch-sweep-rich")
     assert spr("grid-sweep-lean") < spr("grid") < spr("grid-sweep-rich")
     assert spr("leco-sweep-lean") < spr("leco") < spr("leco-sweep-rich")
+    assert spr("prop-sweep-lean") < spr("prop") < spr("prop-sweep-rich")
     assert {"speed_vs_error", "sweep_psnr_vs_time"} <= set(results["figures"])
     report = (out / "report.md").read_text()
     assert "## Speed against error" in report and "| S-NeRF* (vanilla) (default) |" in report
@@ -171,6 +175,8 @@ def test_sweep_points_are_leaner_and_richer_than_the_profile():
     assert cpu["leco-sweep-lean"] == {"guided.dilate": 1} and cpu["leco-sweep-rich"] == {"guided.coarse_samples": 32}
     assert cpu["switch-sweep-lean"] == {"vanilla.coarse_samples": 16, "vanilla.fine_samples": 32}
     assert cpu["grid-sweep-rich"] == {"grid.march_steps": 512}
+    cpu = {v.name: v.overrides for v in sweep(["prop"], get_profile("cpu"))}
+    assert cpu == {"prop-sweep-lean": {"prop.main_samples": 10}, "prop-sweep-rich": {"prop.main_samples": 42}}
     paper = {v.name: v.overrides for v in sweep(["leco"], get_profile("paper"))}
     assert paper["leco-sweep-lean"] == {"guided.split": 4}  # no dilation to take away at the paper's sampler
 

@@ -1,6 +1,7 @@
 """The deployment files, checked without a Docker engine: docker-compose.yml's topology (services, dependencies,
-health checks, the shared volume, shm, Ray auth, secrets from .env) and that every command it runs exists in
-the project; the Dockerfiles' pins and sources; the KubeRay manifests' GPU workers and shared storage."""
+health checks, the shared volume, the read-only LPIPS weights, shm, Ray auth, secrets from .env) and that every
+command it runs exists in the project; the Dockerfiles' pins and sources; the KubeRay manifests' GPU workers,
+shared storage and LPIPS weights."""
 
 import re
 import shlex
@@ -60,7 +61,7 @@ def test_compose_shares_one_volume_auth_and_secrets(compose):
     assert set(compose["volumes"]) == {"leco-data", "postgres-data"}
     for name in LECO_SERVICES:
         service = services[name]
-        assert service["volumes"] == ["leco-data:/data"], name  # the same path everywhere
+        assert service["volumes"][0] == "leco-data:/data", name  # the same path everywhere
         env = service["environment"]
         assert env["LECO_DATA_DIR"] == "/data" and env["LECO_ARTIFACT_ROOT"].startswith("/data/")
         assert env["RAY_AUTH_MODE"] == "token" and env["RAY_AUTH_TOKEN"] == env_example()["RAY_AUTH_TOKEN"]
@@ -73,6 +74,17 @@ def test_compose_shares_one_volume_auth_and_secrets(compose):
     for secret in ("POSTGRES_PASSWORD", "RAY_AUTH_TOKEN"):
         assert f"${{{secret}:?" in raw
     assert ".env" in (ROOT / ".gitignore").read_text().splitlines()
+
+
+def test_compose_mounts_the_lpips_weights_read_only(compose):
+    """Every LeCO container sees the staged LPIPS weights at LECO_LPIPS_DIR, read-only (evaluation runs on the Ray
+    nodes and wherever `leco eval` is called); the host folder is ignored by git."""
+    for name in LECO_SERVICES:
+        service = compose["services"][name]
+        assert service["environment"]["LECO_LPIPS_DIR"] == "/lpips", name
+        assert f"{env_example()['LECO_LPIPS_HOST_DIR']}:/lpips:ro" in service["volumes"], name
+    assert "${LECO_LPIPS_HOST_DIR:-./lpips-weights}:/lpips:ro" in (ROOT / "docker-compose.yml").read_text()
+    assert "/lpips-weights/" in (ROOT / ".gitignore").read_text().splitlines()
 
 
 def commands(compose):
@@ -144,6 +156,14 @@ def test_kuberay_manifests_give_8_gpu_workers_shared_storage_and_auth():
         container = spec["containers"][0]
         assert {"name": "leco-data", "mountPath": "/data"} in container["volumeMounts"]
         assert {"name": "dshm", "mountPath": "/dev/shm"} in container["volumeMounts"]
+    # The LPIPS weights: staged once in lpips-weights/ on the shared volume, read-only at LECO_LPIPS_DIR on every
+    # pod that evaluates (the Ray nodes) or may (the API and the dispatcher).
+    assert config["data"]["LECO_LPIPS_DIR"] == "/lpips"
+    lpips_mount = {"name": "leco-data", "mountPath": "/lpips", "subPath": "lpips-weights", "readOnly": True}
+    deployments = [d["spec"]["template"]["spec"] for d in documents if d["kind"] == "Deployment"]
+    for spec in [head, worker] + deployments:
+        assert lpips_mount in spec["containers"][0]["volumeMounts"]
+        assert "leco-data" in {v["name"] for v in spec["volumes"]}
     (dispatcher,) = [d for d in documents if d["metadata"]["name"] == "leco-dispatcher"]
     assert dispatcher["spec"]["template"]["spec"]["terminationGracePeriodSeconds"] > 20
     claim = yaml.safe_load((ROOT / "deploy" / "kuberay" / "pvc.yaml").read_text())

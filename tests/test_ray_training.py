@@ -43,9 +43,9 @@ def test_two_workers_on_halves_equal_one_worker_on_the_whole_batch(tiny_scene, t
     monkeypatch.chdir(tmp_path)
     run_training(two, Path(os.path.relpath(tiny_scene.root, tmp_path)), Path("two"))
     initial = TrainConfig(method="switch", profile="smoke", overrides={**DETERMINISTIC})
-    from workers.models import RunModels
+    from workers.models import build_models
 
-    start = RunModels("switch", initial.resolved_profile(), tiny_scene.num_images, tiny_scene.bounds.aabb, 0).state_dict()
+    start = build_models(initial.method_for_run(), tiny_scene.num_images, tiny_scene.bounds.aabb, 0).state_dict()
     a, b = final_parameters(tmp_path / "one"), final_parameters(tmp_path / "two")
     moved = 0
     for name in a:

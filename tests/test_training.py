@@ -61,7 +61,7 @@ def test_jsonl_sink_replayed_steps_overwrite(tmp_path):
     assert len((tmp_path / "m.jsonl").read_text().splitlines()) == 4
 
 
-@pytest.mark.parametrize("method", ["leco", "switch", "grid"])
+@pytest.mark.parametrize("method", ["leco", "switch", "grid", "prop"])
 def test_smoke_run_writes_a_valid_summary(method, tiny_scene, tmp_path):
     cfg = TrainConfig(method=method, profile="smoke", checkpoint_every=10, metrics_every=5, val_every=10)
     seen = []
@@ -85,6 +85,10 @@ def test_smoke_run_writes_a_valid_summary(method, tiny_scene, tmp_path):
     assert list((tmp_path / "run" / "renders").glob("step*.png")) and list((tmp_path / "run" / "renders").glob("final_*.png"))
     if method == "switch":
         assert summary["occupancy"] is None and summary["samples_per_ray"] == 8 + 8 + 16  # coarse twice + fine
+    elif method == "prop":  # its occupancy is scored, but it keeps no coarse bins to count a ratio over
+        assert summary["samples_per_ray"] == 8 and 0 <= summary["occupancy"]["recall"] <= 1
+        assert summary["occupancy"]["params"] == model_info("prop", cfg.resolved_profile())["components"][
+            "proposal_networks"] == 1168
     else:
         occ = summary["occupancy"]
         assert 0 <= occ["recall"] <= 1 and 0 < occ["occupancy_ratio"] <= 1

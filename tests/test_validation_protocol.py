@@ -11,44 +11,45 @@ from model.scenes.rays import PixelTable
 from workers.appearance import phase_embeddings, prepare_validation_appearance, protocol, right_columns
 from workers.config import TrainConfig
 from workers.evaluate import evaluate_run
-from workers.models import RunModels
+from workers.models import build_models
 from workers.run import run_training
 
 
 def models_for(scene, method="switch"):
-    profile = TrainConfig(method=method, profile="smoke").resolved_profile()
-    return RunModels(method, profile, scene.num_images, scene.bounds.aabb, seed=0), profile
+    cfg = TrainConfig(method=method, profile="smoke")
+    run_method = cfg.method_for_run()
+    return run_method, build_models(run_method, scene.num_images, scene.bounds.aabb, seed=0)
 
 
-def poison_validation_rows(models, phase, views):
+def poison_validation_rows(run_method, models, phase, views):
     with torch.no_grad():
-        for e in phase_embeddings(models, phase):
+        for e in phase_embeddings(run_method, models, phase):
             e.weight[views.appearance] = 1e3
 
 
 @pytest.mark.parametrize("method,phase", [("switch", "main"), ("leco", "occupancy"), ("grid", "main")])
 def test_mean_policy_replaces_untrained_validation_embeddings(tiny_scene, method, phase):
-    models, profile = models_for(tiny_scene, method)
+    run_method, models = models_for(tiny_scene, method)
     val, train = tiny_scene.splits["val"], tiny_scene.train
-    poison_validation_rows(models, phase, val)
-    before = {id(e): e.weight.detach().clone() for e in phase_embeddings(models, phase)}
+    poison_validation_rows(run_method, models, phase, val)
+    before = {id(e): e.weight.detach().clone() for e in phase_embeddings(run_method, models, phase)}
     assert len(before) == 2  # the field's and the background's
-    prepare_validation_appearance(models, method, phase, profile, None, val, train, list(range(len(val))),
+    prepare_validation_appearance(run_method, models, phase, val, train, list(range(len(val))),
                                   tiny_scene.bounds.aabb, torch.device("cpu"), steps=0)
-    for e in phase_embeddings(models, phase):
+    for e in phase_embeddings(run_method, models, phase):
         w = e.weight.detach()
         assert torch.allclose(w[val.appearance], before[id(e)][train.appearance].mean(0).expand(len(val), -1))
         assert torch.equal(w[train.appearance], before[id(e)][train.appearance])  # training rows untouched
 
 
 def test_fitting_on_left_halves_lowers_their_error_and_moves_only_validation_rows(tiny_scene):
-    models, profile = models_for(tiny_scene)
+    run_method, models = models_for(tiny_scene)
     val, train = tiny_scene.splits["val"], tiny_scene.train
-    before = [e.weight.detach().clone() for e in phase_embeddings(models, "main")]
-    result = prepare_validation_appearance(models, "switch", "main", profile, None, val, train, [0],
+    before = [e.weight.detach().clone() for e in phase_embeddings(run_method, models, "main")]
+    result = prepare_validation_appearance(run_method, models, "main", val, train, [0],
                                            tiny_scene.bounds.aabb, torch.device("cpu"), steps=20)
     assert result.loss_after < 0.95 * result.loss_before
-    for old, e in zip(before, phase_embeddings(models, "main")):
+    for old, e in zip(before, phase_embeddings(run_method, models, "main")):
         moved = (e.weight.detach() != old).any(dim=1)
         assert moved.nonzero().squeeze(1).tolist() == [int(val.appearance[0])]
     assert all(p.requires_grad for p in models.parameters())  # the networks are trainable again afterwards

@@ -6,7 +6,8 @@ import torch
 from model.schedules import log_linear, phase_progress
 from model.warm_start import warm_start_main
 from workers.config import TrainConfig
-from workers.models import RunModels, build_optimizer
+from model.methods import get_method
+from workers.models import build_models, build_optimizer
 from workers.run import run_training
 from workers.sinks import read_metrics
 
@@ -25,10 +26,10 @@ def test_schedules_reach_their_final_value_at_the_end_of_steps_or_time():
 def test_optimizer_lr_follows_the_profile(tiny_scene):
     cfg = TrainConfig(method="leco", profile="smoke", overrides={"occupancy.lr_final": 5e-5})
     profile = cfg.resolved_profile()
-    models = RunModels("leco", profile, tiny_scene.num_images, tiny_scene.bounds.aabb, 0)
-    _, _, lr_at = build_optimizer(models, "occupancy", profile)
+    models = build_models(get_method("leco")(profile), tiny_scene.num_images, tiny_scene.bounds.aabb, 0)
+    _, _, lr_at = build_optimizer(get_method("leco")(profile), models, "occupancy")
     assert lr_at(0.0) == profile.occupancy.lr and lr_at(1.0) == pytest.approx(5e-5)
-    _, _, lr_at = build_optimizer(models, "main", profile)
+    _, _, lr_at = build_optimizer(get_method("leco")(profile), models, "main")
     assert lr_at(1.0) == pytest.approx(profile.lr_final)
 
 
@@ -45,7 +46,7 @@ def test_budgeted_run_ends_its_main_phase_at_lr_final(tiny_scene, tmp_path):
 
 def test_warm_start_copies_phase_one_into_the_main_network(tiny_scene):
     profile = TrainConfig(method="leco", profile="smoke").resolved_profile()
-    models = RunModels("leco", profile, tiny_scene.num_images, tiny_scene.bounds.aabb, 0)
+    models = build_models(get_method("leco")(profile), tiny_scene.num_images, tiny_scene.bounds.aabb, 0)
     hmoe, field = models.hmoe, models.field
     copied = warm_start_main(field, models.background, hmoe, models.occupancy_background)
     assert set(copied) >= {"input_layer", "head", "appearance", "background", "gate.proj", "experts.0", "experts.1"}
@@ -65,11 +66,11 @@ def test_a_wider_occupancy_network_saves_loads_and_warm_starts_what_still_fits(t
     from model.occupancy import OccupancyPredictor
 
     profile = TrainConfig(method="leco", profile="smoke", overrides={"occupancy.gate_width": 32}).resolved_profile()
-    models = RunModels("leco", profile, tiny_scene.num_images, tiny_scene.bounds.aabb, 0)
+    models = build_models(get_method("leco")(profile), tiny_scene.num_images, tiny_scene.bounds.aabb, 0)
     gate = models.hmoe.gate
     assert gate.input_layer.out_features == 16 and gate.inner[0].weight.shape == (32, 16)  # experts stay 16 wide
     own = lambda w: (16 * w + w) + (w * w + w) + 2 * w + (w * 3 + 3)  # inner, LayerNorm, 2 experts + E_e logits
-    narrow = RunModels("leco", TrainConfig(method="leco", profile="smoke").resolved_profile(), tiny_scene.num_images,
+    narrow = build_models(get_method("leco")(TrainConfig(method="leco", profile="smoke").resolved_profile()), tiny_scene.num_images,
                        tiny_scene.bounds.aabb, 0).hmoe.gate
     count = lambda m: sum(p.numel() for p in m.parameters())
     assert count(gate) - count(narrow) == own(32) - own(16)
@@ -100,8 +101,8 @@ def test_relu_on_every_layer_of_o_is_a_different_function_that_saves_and_loads(t
 
     overrides = {"occupancy.gate_relu_every_layer": True}
     profile = TrainConfig(method="leco", profile="smoke", overrides=overrides).resolved_profile()
-    hmoe = RunModels("leco", profile, tiny_scene.num_images, tiny_scene.bounds.aabb, 0).hmoe
-    plain = RunModels("leco", TrainConfig(method="leco", profile="smoke").resolved_profile(), tiny_scene.num_images,
+    hmoe = build_models(get_method("leco")(profile), tiny_scene.num_images, tiny_scene.bounds.aabb, 0).hmoe
+    plain = build_models(get_method("leco")(TrainConfig(method="leco", profile="smoke").resolved_profile()), tiny_scene.num_images,
                       tiny_scene.bounds.aabb, 0).hmoe
     plain.gate.load_state_dict(hmoe.gate.state_dict())  # same keys and weights: only the activations differ
     xyz = torch.rand(500, 3) * 2 - 1
@@ -122,8 +123,8 @@ def test_after_a_warm_start_the_main_lr_ramps_up_over_its_steps(tiny_scene, tmp_
                       overrides={"guided.warm_start": True, "guided.warm_start_ramp": ramp, "main_steps": main_steps})
     run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")
     profile = cfg.resolved_profile()
-    _, _, lr_at = build_optimizer(RunModels("leco", profile, tiny_scene.num_images, tiny_scene.bounds.aabb, 0),
-                                  "main", profile)
+    method = get_method("leco")(profile)
+    _, _, lr_at = build_optimizer(method, build_models(method, tiny_scene.num_images, tiny_scene.bounds.aabb, 0), "main")
     main = [r for r in read_metrics(tmp_path / "run" / "metrics.jsonl") if r["phase"] == "main"]
     assert len(main) == main_steps
     for k, row in enumerate(main):

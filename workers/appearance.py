@@ -13,9 +13,9 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from model.methods import Method
 from model.scenes.rays import PixelTable, RayBatch
 from model.scenes.scene import Views
-from workers.validation import render_rays_with_grad
 
 FIT_RAYS_PER_VIEW = 256  # left-half pixels per view the embeddings are fitted on (one fixed, seeded set)
 FIT_LR = 0.05  # Adam on 48-d embeddings initialised N(0, 1): a few dozen steps move them where they belong
@@ -43,8 +43,9 @@ def scored_truth(views: Views, image: int, columns: tuple[int, int] | None) -> t
     return truth if columns is None else truth[:, columns[0] : columns[1]]
 
 
-def phase_embeddings(models, phase: str) -> list[nn.Embedding]:
-    return [m for module in models.phase_modules(phase) for m in module.modules() if isinstance(m, nn.Embedding)]
+def phase_embeddings(method: Method, models, phase: str) -> list[nn.Embedding]:
+    return [m for module in method.trained_modules(models, phase) for m in module.modules()
+            if isinstance(m, nn.Embedding)]
 
 
 @contextlib.contextmanager
@@ -80,12 +81,11 @@ def fit_rays(views: Views, images: list[int], aabb: torch.Tensor, seed: int = 0)
     return table.rays(torch.cat(ids), aabb)
 
 
-def prepare_validation_appearance(run_models, method: str, phase: str, profile, predictor, views: Views,
-                                  train_views: Views, images: list[int], aabb: torch.Tensor,
-                                  device: torch.device, steps: int) -> FitResult:
+def prepare_validation_appearance(method: Method, run_models, phase: str, views: Views, train_views: Views,
+                                  images: list[int], aabb: torch.Tensor, device: torch.device, steps: int) -> FitResult:
     """Give `images` of `views` the appearance embeddings the protocol prescribes, in place. Training never
     reads these rows (validation indices come after the training ones), so setting them is harmless to it."""
-    embeddings = phase_embeddings(run_models, phase)
+    embeddings = phase_embeddings(method, run_models, phase)
     rows = views.appearance[images].to(device)
     train_rows = train_views.appearance.to(device)
     with torch.no_grad():
@@ -101,7 +101,7 @@ def prepare_validation_appearance(run_models, method: str, phase: str, profile, 
     losses = []
     with only_trainable(run_models, weights), torch.enable_grad():
         for _ in range(steps + 1):
-            rendered = render_rays_with_grad(run_models, method, phase, profile, predictor, rays)
+            rendered = method.render(run_models, phase, rays)
             loss = ((rendered.rgb.float() - rays.rgb) ** 2).mean()
             losses.append(float(loss.detach()))
             if len(losses) > steps:

@@ -14,7 +14,14 @@ def is_distributed() -> bool:
 
 
 def average_gradients(params: list[nn.Parameter]) -> None:
+    """A parameter no rank has a gradient for keeps none, so Adam leaves it alone as on one rank (S+Prop's
+    proposals between their updates); one that some rank lacks counts as zero there."""
     if not is_distributed():
+        return
+    present = torch.tensor([p.grad is not None for p in params], dtype=torch.uint8, device=params[0].device)
+    dist.all_reduce(present, op=dist.ReduceOp.MAX)
+    params = [p for p, seen in zip(params, present.tolist()) if seen]
+    if not params:
         return
     grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in params]
     flat = torch.cat([g.reshape(-1) for g in grads])

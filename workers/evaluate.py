@@ -1,5 +1,5 @@
-"""Final evaluation of a finished run (also `leco eval --run RUN_DIR`): PSNR / SSIM / LPIPS on the
-validation views, the paper's occupancy metrics when the scene has depth maps, validation renders, and an
+"""Final evaluation of a finished run (also `leco eval --run RUN_DIR`): PSNR / SSIM / LPIPS (VGG and AlexNet)
+on the validation views, the paper's occupancy metrics when the scene has depth maps, validation renders, and an
 occupancy point cloud (PLY coloured by predicted colour and alpha, like the paper's Fig. 6/7)."""
 
 from __future__ import annotations
@@ -11,14 +11,14 @@ import numpy as np
 import torch
 
 from model.metrics import psnr, ssim
-from model.lpips import load_lpips
-from model.occupancy import OccupancyPredictor
+from model.lpips import LPIPSScores
 from model.occupancy_eval import evaluate_occupancy, evaluate_occupancy_exact
 from model.samplers import stratified_edges
 from model.scenes import load_scene
 from model.scenes.rays import PixelTable
 from workers.config import TrainConfig
-from workers.models import RunModels
+from model.methods.base import method_state
+from workers.models import build_models
 from workers.pixels import attach_pixel_stores
 from workers.appearance import prepare_validation_appearance, protocol, right_columns, scored_truth
 from workers.validation import render_image, save_triptych
@@ -37,22 +37,13 @@ def load_final(run_dir: Path, device: torch.device):
     cfg = TrainConfig.model_validate(saved["config"])
     scene = load_scene(run["scene"], downscale=cfg.downscale)
     attach_pixel_stores(scene, ("val",) if "val" in scene.splits else ("train",))  # what evaluation reads
-    models = RunModels(cfg.method, cfg.resolved_profile(), scene.num_images, scene.bounds.aabb, cfg.seed).to(device)
+    method = cfg.method_for_run()
+    models = build_models(method, scene.num_images, scene.bounds.aabb, cfg.seed).to(device)
+    method.to(device)
     models.load_state_dict(saved["models"])
-    models.load_grid_state(saved["grid"])
-    predictor = None
-    if (final / "occupancy.pt").is_file():
-        predictor = OccupancyPredictor.load(final / "occupancy.pt", cfg.resolved_profile().guided.empty_threshold)
-        predictor.network.to(device)
-    return cfg, scene, models, predictor
-
-
-def occupied_fn(cfg: TrainConfig, models: RunModels, predictor):
-    if cfg.method == "leco":
-        return predictor.occupied
-    if cfg.method == "grid":
-        return models.grid.occupied
-    return None
+    method.load_state_dict(method_state(saved))
+    method.load_final(models, final, device)
+    return cfg, scene, method, models
 
 
 def write_ply(path: Path, points: np.ndarray, rgba: np.ndarray) -> None:
@@ -70,7 +61,7 @@ def write_ply(path: Path, points: np.ndarray, rgba: np.ndarray) -> None:
 
 
 @torch.no_grad()
-def export_point_cloud(path: Path, cfg, models, occupied, views, aabb, device, num_coarse: int) -> int:
+def export_point_cloud(path: Path, models, occupied, views, aabb, device, num_coarse: int) -> int:
     """Coarse samples of a seeded subset of validation rays that the occupancy keeps (all of them for the
     vanilla method), coloured by the main network; alpha = 1 - exp(-sigma * delta)."""
     table = PixelTable(views)
@@ -95,21 +86,20 @@ def export_point_cloud(path: Path, cfg, models, occupied, views, aabb, device, n
 
 def evaluate_run(run_dir: str | Path, device: str | torch.device = "cpu") -> dict:
     run_dir, device = Path(run_dir), torch.device(device)
-    cfg, scene, models, predictor = load_final(run_dir, device)
-    profile = cfg.resolved_profile()
+    cfg, scene, method, models = load_final(run_dir, device)
     views = scene.splits.get("val", scene.train)
     table = PixelTable(views)
     has_val = "val" in scene.splits
     if has_val:  # the validation protocol: embeddings from the left halves, right halves scored
-        prepare_validation_appearance(models, cfg.method, "main", profile, predictor, views, scene.train,
-                                      list(range(len(views))), scene.bounds.aabb, device, cfg.val_appearance_steps)
-    lpips_model, lpips_reason = load_lpips()
-    scores = {"psnr": [], "ssim": [], "lpips": []}
+        prepare_validation_appearance(method, models, "main", views, scene.train, list(range(len(views))),
+                                      scene.bounds.aabb, device, cfg.val_appearance_steps)
+    lpips = LPIPSScores(device=device)  # VGG (what the papers report) and AlexNet; null with the reason if absent
+    scores = {"psnr": [], "ssim": []}
     for image in range(len(views)):
         scored = right_columns(views, image) if has_val else None
         picture = image < MAX_RENDERS
-        rgb, depth = render_image(models, cfg.method, "main", profile, predictor, table, image, scene.bounds.aabb,
-                                  device, None if picture else scored)
+        rgb, depth = render_image(method, models, "main", table, image, scene.bounds.aabb, device,
+                                  None if picture else scored)
         if picture:
             save_triptych(run_dir / "renders" / f"final_{views.names[image]}.png", rgb, views.image(image), depth)
             if scored is not None:
@@ -117,15 +107,13 @@ def evaluate_run(run_dir: str | Path, device: str | torch.device = "cpu") -> dic
         truth = scored_truth(views, image, scored)
         scores["psnr"].append(psnr(rgb, truth))
         scores["ssim"].append(ssim(rgb, truth))
-        if lpips_model is not None:
-            scores["lpips"].append(lpips_model(rgb, truth))
+        lpips.add(rgb, truth)
     val = {"psnr": float(np.mean(scores["psnr"])), "ssim": float(np.mean(scores["ssim"])),
-           "lpips": float(np.mean(scores["lpips"])) if scores["lpips"] else None,
-           "lpips_note": lpips_reason or None, "views": len(views),
+           **lpips.report(), "views": len(views),
            "split": "val" if has_val else "train",
            "protocol": protocol(cfg.val_appearance_steps) if has_val else "whole training views scored (no val split)"}
 
-    occupied = occupied_fn(cfg, models, predictor)
+    occupied = method.final_occupancy(models)
     occupancy = {}
     if occupied is not None and scene.occupancy is not None and views.depth is not None:
         occupancy = evaluate_occupancy_exact(occupied, scene.occupancy, views, OCCUPANCY_RESOLUTION)
@@ -133,9 +121,8 @@ def evaluate_run(run_dir: str | Path, device: str | torch.device = "cpu") -> dic
     elif occupied is not None and views.depth is not None:
         occupancy = evaluate_occupancy(occupied, views, scene.bounds.aabb.float(), OCCUPANCY_RESOLUTION)
         occupancy["reference"] = "depth maps of the validation views"
-    num_coarse = profile.guided.coarse_samples if cfg.method != "grid" else profile.vanilla.coarse_samples
-    points = export_point_cloud(run_dir / "occupancy.ply", cfg, models, occupied, views, scene.bounds.aabb,
-                                device, num_coarse)
+    points = export_point_cloud(run_dir / "occupancy.ply", models, occupied, views, scene.bounds.aabb, device,
+                                method.point_cloud_samples())
     result = {"val": val, "occupancy": occupancy, "point_cloud": {"file": "occupancy.ply", "points": points}}
     (run_dir / "eval.json").write_text(json.dumps(result, indent=1))
     return result

@@ -18,25 +18,19 @@ from pathlib import Path
 
 import torch
 
-from model.main_phase import grid_step_size, main_loss, render_grid, render_guided, render_vanilla
-from model.occupancy import OccupancyPredictor
-from model.online_occupancy import OnlineOccupancy
-from model.occupancy_phase import occupancy_step
 from model.schedules import phase_progress
-from model.warm_start import warm_start_main
 from model.scenes import RaySampler, load_scene
+from model.methods.base import method_state
 from workers.config import TrainConfig
 from workers.distributed import any_rank, any_rank_each, average_gradients, grads_finite, is_distributed
 from workers.memory import SavedTensorBytes
-from workers.models import RunModels, build_optimizer
+from workers.models import build_models, build_optimizer
 from workers.periodic_eval import PeriodicEval
 from workers.pixels import attach_pixel_stores
 from workers.session import Session
 from workers.sinks import JsonlSink
 from workers.store import RunStore, StoreWriteError
 from workers.validation import write_validation_renders
-
-OCCUPANCY_BUDGET_SHARE = 0.25  # with a wall-clock budget, LeCO's phase 1 stops at this share of it
 
 
 class NonFiniteRun(RuntimeError):
@@ -73,7 +67,9 @@ class RankRun:
         attach_pixel_stores(self.scene)
         self.timeline["pixels_ready_at"] = time.time()
         self.aabb = self.scene.bounds.aabb
-        self.models = RunModels(cfg.method, self.profile, self.scene.num_images, self.aabb, cfg.seed).to(device)
+        self.method = cfg.method_for_run()
+        self.models = build_models(self.method, self.scene.num_images, self.aabb, cfg.seed).to(device)
+        self.method.to(device)
         self.sampler = RaySampler(self.scene.train, self.aabb, cfg.global_batch, cfg.seed, session.rank,
                                   session.world_size)
         # Per-rank seeds, on the device the samplers draw on (a CPU generator cannot fill CUDA tensors).
@@ -82,8 +78,6 @@ class RankRun:
                          "nonfinite": 0}
         self.phase_objects = None
         self.activation_mb: float | None = None
-        self.predictor: OccupancyPredictor | None = None
-        self.online: OnlineOccupancy | None = None
         self.sink = JsonlSink(self.run_dir / "metrics.jsonl") if session.rank == 0 else None
         self.store = store if session.rank == 0 else None
         self.store_error: str | None = None  # rank 0's first StoreWriteError; ends the run on every rank
@@ -108,7 +102,7 @@ class RankRun:
             return
         _, optimizer, _ = self.phase_objects
         state = {
-            "progress": self.progress, "models": self.models.state_dict(), "grid": self.models.grid_state(),
+            "progress": self.progress, "models": self.models.state_dict(), "method": self.method.state_dict(),
             "optimizer": optimizer.state_dict(),
             "sampler": self.sampler.state_dict(), "generators": generator_states,
             "torch_rng": torch.get_rng_state(), "config": self.cfg.model_dump(),
@@ -145,7 +139,7 @@ class RankRun:
             state = torch.load(Path(path) / "state.pt", map_location="cpu", weights_only=False)
         self.progress = state["progress"]
         self.models.load_state_dict(state["models"])
-        self.models.load_grid_state(state["grid"])
+        self.method.load_state_dict(method_state(state))
         self.models.to(self.device)
         self.start_phase(self.progress["phase"])
         _, optimizer, _ = self.phase_objects
@@ -159,77 +153,46 @@ class RankRun:
     # ----- phases ------------------------------------------------------------------------------------
     def start_phase(self, phase: str, fresh: bool = False) -> None:
         """Optimizer and frozen parts of a phase; `fresh` when the phase begins now (not on a resume)."""
-        if fresh and phase == "main" and self.cfg.method == "leco" and self.profile.guided.warm_start:
-            m = self.models
-            copied = warm_start_main(m.field, m.background, m.hmoe, m.occupancy_background)
-            if self.session.rank == 0:
-                print(f"[leco] main phase warm-started from phase 1: {', '.join(copied)}", flush=True)
-        self.phase_objects = build_optimizer(self.models, phase, self.profile)
-        warm = phase == "main" and self.cfg.method == "leco" and self.profile.guided.warm_start
-        self.lr_ramp_steps = self.profile.guided.warm_start_ramp if warm else 0
+        log = lambda text: print(f"[{self.cfg.method}] {text}", flush=True) if self.session.rank == 0 else None
+        # Before the optimizer: the method may copy weights into the phase's networks or freeze some of them.
+        self.method.start_phase(self.models, phase, fresh, self.device, log)
+        self.phase_objects = build_optimizer(self.method, self.models, phase)
+        self.lr_ramp_steps = self.method.lr_ramp_steps(phase)
         self.to_store("phase_started", phase)
-        if phase == "main" and self.cfg.method == "leco":
-            threshold = self.profile.guided.empty_threshold
-            self.models.hmoe.requires_grad_(False)
-            if self.profile.guided.online:  # O keeps learning, so the predictor shares the live network
-                gate = self.models.hmoe.gate.requires_grad_(True)
-                self.online = OnlineOccupancy(gate, threshold, self.profile.guided.online_surface)
-                self.predictor = OccupancyPredictor(gate, empty_threshold=threshold, frozen=False)
-            else:
-                self.predictor = OccupancyPredictor.from_hmoe(self.models.hmoe, threshold)  # frozen O (section 3.4)
-                self.predictor.network.to(self.device)
 
     def budget_left(self, phase: str) -> bool:
         if self.cfg.budget_min is None:
             return True
         budget = self.cfg.budget_min * 60
         spent = sum(self.progress["elapsed"].values())
-        if phase == "occupancy":
-            return self.progress["elapsed"].get("occupancy", 0.0) < OCCUPANCY_BUDGET_SHARE * budget
+        share = self.method.budget_share.get(phase)
+        if share is not None:
+            return self.progress["elapsed"].get(phase, 0.0) < share * budget
         return spent < budget
 
     def phase_progress(self, phase: str) -> float:
-        """Fraction of the phase done: of its steps, or under a budget of its training-time allotment (phase 1:
-        its share of the budget; the main phase: whatever phase 1 left), whichever is larger."""
+        """Fraction of the phase done: of its steps, or under a budget of its training-time allotment (a phase
+        with a share: that share of the budget; the others: whatever the phases before them left), whichever
+        is larger."""
         elapsed = self.progress["elapsed"]
         allotted = None
         if self.cfg.budget_min is not None:
             budget = self.cfg.budget_min * 60
-            allotted = (OCCUPANCY_BUDGET_SHARE * budget if phase == "occupancy"
-                        else budget - elapsed.get("occupancy", 0.0))
-        return phase_progress(self.progress["phase_step"], self.cfg.phase_steps(phase), elapsed.get(phase, 0.0),
+            share = self.method.budget_share.get(phase)
+            before = self.method.phases[: self.method.phases.index(phase)]
+            allotted = share * budget if share is not None else budget - sum(elapsed.get(p, 0.0) for p in before)
+        return phase_progress(self.progress["phase_step"], self.method.phase_steps(phase), elapsed.get(phase, 0.0),
                               allotted)
 
     def step_once(self, phase: str, progress: float) -> tuple[torch.Tensor, dict]:
         rays = self.sampler.next().to(self.device)
         generator = self.generator if self.profile.perturb else None
-        m = self.models
-        if phase == "occupancy":
-            return occupancy_step(m.hmoe, m.occupancy_background, rays, self.profile.occupancy,
-                                  self.profile.background.samples, generator, progress)
-        if self.cfg.method == "leco":
-            # O learns once the main network has had `online_warmup` steps to fit what its weights will teach
-            online = self.online if self.profile.guided.online_learns(self.progress["phase_step"]) else None
-            occupied = online.occupied if online else self.predictor.occupied
-            render = render_guided(m.field, m.background, rays, self.profile, occupied, generator, online)
-        elif self.cfg.method == "grid":
-            g = self.profile.grid
-            step = self.progress["phase_step"]
-            density = lambda x: m.field(x, torch.zeros_like(x), torch.zeros(len(x), dtype=torch.long, device=x.device)).sigma
-            was_training = m.field.training
-            m.field.eval()
-            # Same generator on every rank, so the replicated grids stay identical.
-            m.grid.update(step, density, grid_step_size(m.grid, g.march_steps), g.threshold, g.decay,
-                          g.warmup_steps, g.update_every, torch.Generator().manual_seed(self.cfg.seed * 100_003 + step))
-            m.field.train(was_training)
-            render = render_grid(m.field, m.background, rays, self.profile, m.grid, generator)
-        else:
-            render = render_vanilla(m.field, m.background, rays, self.profile, generator)
-        return main_loss(render, rays, self.profile.balance_weight)
+        return self.method.step(self.models, phase, rays, generator, progress, self.progress["phase_step"],
+                                self.cfg.seed)
 
     def run_phase(self, phase: str) -> None:
         params, optimizer, lr_at = self.phase_objects
-        total = self.cfg.phase_steps(phase)
+        total = self.method.phase_steps(phase)
         window_seconds, window_steps, samples_in_window = 0.0, 0, 0.0
         while self.progress["phase_step"] < total:
             reason = self.store.stop_reason() if self.store is not None else None
@@ -283,7 +246,7 @@ class RankRun:
                           if self.periodic and self.periodic.due(before, before + seconds, ending) else None)
             window_seconds += seconds
             window_steps += 1
-            samples_in_window += parts.get("samples_per_ray", self.profile.occupancy.samples_per_ray)
+            samples_in_window += parts.get("samples_per_ray", 0.0)
             step = self.progress["step"]
             if self.sink is not None and (step % self.cfg.metrics_every == 0 or ending or evaluation):
                 rays = self.cfg.global_batch * window_steps / window_seconds
@@ -313,7 +276,7 @@ class RankRun:
         self.to_store("resume", self.progress["step"])
         if not resumed:
             self.start_phase(self.progress["phase"], fresh=True)
-        phases = self.cfg.phases
+        phases = self.method.phases
         for phase in phases[phases.index(self.progress["phase"]):]:
             if phase != self.progress["phase"]:
                 self.progress.update(phase=phase, phase_step=0)
@@ -330,10 +293,9 @@ class RankRun:
     def save_final(self) -> None:
         final = self.run_dir / "final"
         final.mkdir(parents=True, exist_ok=True)
-        torch.save({"models": self.models.state_dict(), "grid": self.models.grid_state(),
+        torch.save({"models": self.models.state_dict(), "method": self.method.state_dict(),
                     "progress": self.progress, "config": self.cfg.model_dump()}, final / "models.pt")
-        if self.predictor is not None:
-            self.predictor.save(final / "occupancy.pt")
+        self.method.save_final(final)
         (final / "progress.json").write_text(json.dumps(self.progress, indent=1))
 
 

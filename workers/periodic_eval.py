@@ -9,7 +9,6 @@ from __future__ import annotations
 import time
 
 from model.metrics import psnr, ssim
-from model.occupancy import OccupancyPredictor
 from model.occupancy_eval import evaluate_occupancy, evaluate_occupancy_exact
 from model.scenes.rays import PixelTable
 from workers.appearance import prepare_validation_appearance, right_columns, scored_truth
@@ -31,32 +30,21 @@ class PeriodicEval:
             return False
         return ending or int(after_s // self.every) > int(before_s // self.every)
 
-    def occupied_fn(self, run, phase: str):
-        if phase == "occupancy":
-            # A frozen copy of O as it is now, deciding as the main phase will (final eval does the same).
-            predictor = OccupancyPredictor.from_hmoe(run.models.hmoe, run.profile.guided.empty_threshold)
-            predictor.network.to(run.device)
-            return predictor.occupied
-        if run.cfg.method == "grid":
-            return run.models.grid.occupied
-        return None  # LeCO's main phase: O is frozen, its metrics are those at the end of phase 1
-
     def measure(self, run, phase: str) -> dict:
         started = time.perf_counter()
         scores = {"val_psnr": 0.0, "val_ssim": 0.0}
         images = list(range(self.count))
         columns = lambda image: None
         if "val" in run.scene.splits:  # the protocol; a scene without a val split is scored on training views
-            prepare_validation_appearance(run.models, run.cfg.method, phase, run.profile, run.predictor, self.views,
-                                          run.scene.train, images, run.aabb, run.device, run.cfg.val_appearance_steps)
+            prepare_validation_appearance(run.method, run.models, phase, self.views, run.scene.train, images, run.aabb, run.device, run.cfg.val_appearance_steps)
             columns = lambda image: right_columns(self.views, image)
         for image in images:
-            rgb, _ = render_image(run.models, run.cfg.method, phase, run.profile, run.predictor, self.table, image,
-                                  run.aabb, run.device, columns(image))
+            rgb, _ = render_image(run.method, run.models, phase, self.table, image, run.aabb, run.device,
+                                  columns(image))
             truth = scored_truth(self.views, image, columns(image))
             scores["val_psnr"] += psnr(rgb, truth) / self.count
             scores["val_ssim"] += ssim(rgb, truth) / self.count
-        occupied = self.occupied_fn(run, phase)
+        occupied = run.method.occupancy(run.models, phase)
         occupancy = None
         if occupied is not None and run.scene.occupancy is not None:
             occupancy = evaluate_occupancy_exact(occupied, run.scene.occupancy, self.views, OCCUPANCY_RESOLUTION)

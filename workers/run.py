@@ -149,18 +149,10 @@ def summarise(cfg: TrainConfig, run_dir: Path, evaluation: dict, attempt_s: floa
     progress = json.loads((run_dir / "final" / "progress.json").read_text())
     elapsed = progress["elapsed"]
     main = [m for m in metrics if m.get("phase") == "main"]
-    first_phase = [m for m in metrics if m.get("phase") == "occupancy"]
+    first_phase = [m for m in metrics if m.get("phase") not in (None, "main")]
     mean = lambda rows, key: float(np.mean([r[key] for r in rows if r.get(key) is not None])) if rows else None
     occupancy = dict(evaluation.get("occupancy") or {})
-    if cfg.method == "leco":
-        occupancy["params"] = sum(p.numel() for p in torch.load(run_dir / "final" / "occupancy.pt",
-                                                                weights_only=True)["state_dict"].values())
-        last = first_phase[-1] if first_phase else {}
-        occupancy.update(empty_fraction=last.get("fraction_empty"), density_ratio=last.get("density_ratio"))
-        occupancy["occupancy_ratio"] = mean(main, "occupancy_ratio")
-    elif cfg.method == "grid":
-        occupancy["params"] = cfg.resolved_profile().grid.resolution ** 3  # one value per cell
-        occupancy["occupancy_ratio"] = mean(main, "occupancy_ratio")
+    occupancy.update(cfg.method_for_run().summary_occupancy(run_dir / "final", main, first_phase))
     device = (torch.cuda.get_device_name(0) if cfg.use_gpu and torch.cuda.is_available()
               else f"CPU ({platform.processor() or platform.machine()}, {os.cpu_count()} cores)")
     return {

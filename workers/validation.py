@@ -9,45 +9,32 @@ import numpy as np
 import torch
 from PIL import Image
 
-from model.main_phase import render_grid, render_guided, render_vanilla
-from model.occupancy_phase import render_hmoe
+from model.methods import Method
 from model.scenes.rays import PixelTable, RayBatch
 
 CHUNK = 4096  # rays per forward pass while rendering an image
 
 
-def render_rays_with_grad(models, method: str, phase: str, profile, predictor, rays: RayBatch):
-    """The `Rendered` of `phase`'s networks as they are (train or eval mode), keeping the autograd graph."""
-    if phase == "occupancy":
-        return render_hmoe(models.hmoe, models.occupancy_background, rays, profile.occupancy.samples_per_ray,
-                           profile.background.samples, None)[0]
-    if method == "leco":
-        return render_guided(models.field, models.background, rays, profile, predictor.occupied, None).rendered
-    if method == "grid":
-        return render_grid(models.field, models.background, rays, profile, models.grid, None).rendered
-    return render_vanilla(models.field, models.background, rays, profile, None).rendered
-
-
 @torch.no_grad()
-def render_rays(models, method: str, phase: str, profile, predictor, rays: RayBatch) -> tuple[torch.Tensor, torch.Tensor]:
+def render_rays(method: Method, models, phase: str, rays: RayBatch) -> tuple[torch.Tensor, torch.Tensor]:
     """(rgb (R, 3), depth (R,)) with the networks of `phase` in eval mode."""
     was = models.training
     models.eval()
     try:
-        rendered = render_rays_with_grad(models, method, phase, profile, predictor, rays)
+        rendered = method.render(models, phase, rays)
     finally:
         models.train(was)
     return rendered.rgb.float().clamp(0, 1), rendered.depth.float()
 
 
-def render_image(models, method, phase, profile, predictor, table: PixelTable, image: int, aabb,
+def render_image(method: Method, models, phase: str, table: PixelTable, image: int, aabb,
                  device, columns: tuple[int, int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """A whole validation image, or its columns u0 <= u < u1: (rgb (H, W', 3), depth (H, W'))."""
     rays = table.image_rays(image, aabb, columns)
     rgb, depth = [], []
     for s in range(0, len(rays), CHUNK):
         chunk = RayBatch(*(getattr(rays, f)[s : s + CHUNK] for f in RayBatch.__dataclass_fields__)).to(device)
-        c, d = render_rays(models, method, phase, profile, predictor, chunk)
+        c, d = render_rays(method, models, phase, chunk)
         rgb.append(c.cpu())
         depth.append(d.cpu())
     h = int(table.views.cameras.height[image])
@@ -75,8 +62,7 @@ def write_validation_renders(run, step: int) -> Path:
     """During training: the first validation view (or training view when the scene has no val split)."""
     views = run.scene.splits.get("val", run.scene.train)
     table = PixelTable(views)
-    rgb, depth = render_image(run.models, run.cfg.method, run.progress["phase"], run.profile, run.predictor,
-                              table, 0, run.aabb, run.device)
+    rgb, depth = render_image(run.method, run.models, run.progress["phase"], table, 0, run.aabb, run.device)
     path = run.run_dir / "renders" / f"step{step:07d}_{views.names[0]}.png"
     save_triptych(path, rgb, views.image(0), depth)
     return path

@@ -12,7 +12,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from sqlalchemy.exc import InterfaceError, OperationalError
 
-from service.api import artifacts, dashboard, health, jobs, scenes
+from service.api import artifacts, dashboard, health, jobs, methods, scenes
 from service.api.gate import Gatekeeper
 from service.api.headers import SecurityHeaders
 from service.api.poll_cache import PollCache
@@ -68,7 +68,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.scene_pool = WorkPool(settings.scene_workers, settings.scene_queue, "scene registrations")
 
     v1 = APIRouter(prefix="/v1")  # the token is checked by Gatekeeper, before the body is read
-    for module in (scenes, jobs, artifacts):
+    for module in (scenes, jobs, artifacts, methods):
         v1.include_router(module.router)
     app.include_router(v1)
     app.include_router(health.router)

@@ -16,6 +16,7 @@ from sqlalchemy.exc import IntegrityError
 from model.memory_estimate import RUNTIME_BYTES, describe, estimate_peak_bytes
 from model.scenes.formats.llff import folder_factor
 from service import queue
+from service.api.methods import check_method_filter
 from service.api.deps import MAX_INT, RowId, not_found, poll_cache_of
 from service.api.links import cancelled_job_links, deleted_job_links, job_links, links, submitted_job_links
 from service.api.scenes import find_scene
@@ -193,9 +194,10 @@ def begin_idempotent(settings: Settings, key: str, digest: str) -> JSONResponse 
 
 @router.get("", response_model=JobList, operation_id="listJobs", responses=links(200, job_links("/items/0")))
 async def list_jobs(request: Request, state: str | None = Query(None, pattern="^(" + "|".join(JOB_STATES) + ")$"),
-                    scene: str | None = None, method: str | None = Query(None, pattern="^(leco|switch|grid)$"),
+                    scene: str | None = None, method: str | None = Query(None, max_length=64),
                     limit: int = Query(50, ge=1, le=200), offset: int = Query(0, ge=0, le=MAX_INT)) -> Response:
     # The dashboard's jobs page polls this: served from the poll cache, at most LECO_POLL_CACHE_S old.
+    check_method_filter(method)
     settings = request.app.state.settings
     body = await poll_cache_of(request).job_list(
         (state, scene, method, limit, offset), lambda: job_list_json(settings, state, scene, method, limit, offset))

@@ -23,6 +23,10 @@ async function api(path, options = {}) {
   return response;
 }
 const getJson = async path => (await api(path)).json();
+// The method registry (GET /v1/methods): names, labels, roles and phases; fetched once, never typed out here.
+let methodsPromise = null;
+const methods = () => (methodsPromise ??= getJson("/v1/methods").then(m => Object.fromEntries(m.items.map(i => [i.name, i]))));
+const hasOccupancyPhase = (registry, job) => (registry[job.method]?.phases || []).includes("occupancy");
 
 let tokenWaiters = [];
 function askToken(message) {
@@ -112,8 +116,8 @@ function latestOf(phase, name) {
   return s && s.points.length ? s.points[s.points.length - 1].value : null;
 }
 
-function occupancyStats(job) {
-  if (job.method !== "leco") return "";
+function occupancyStats(job, registry) {
+  if (!hasOccupancyPhase(registry, job)) return "";
   const m = job.latest_metrics.occupancy || {};
   const experts = Object.keys(m).filter(k => /^fraction_expert_\d+$/.test(k)).sort()
     .map(k => `<dt>to scene expert ${k.split("_").pop()}</dt><dd>${fmt(100 * m[k], 1)}%</dd>`).join("");
@@ -190,8 +194,9 @@ async function showJob(id) {
   const charts = document.getElementById("charts");
   charts.replaceChildren(chartCard("Loss", ["loss"], phases), chartCard("PSNR (training batch)", ["psnr"], phases),
     chartCard("Throughput (rays/s)", ["rays_per_s"], phases), chartCard("Main-network samples per ray", ["samples_per_ray"], ["main"]));
-  if (job.method === "leco") charts.appendChild(chartCard("Fraction of points to the empty expert", ["fraction_empty"], ["occupancy"]));
-  document.getElementById("stats").innerHTML = occupancyStats(job) + `<div class="card" id="throughput"><h3>Throughput</h3><dl class="stats">
+  const registry = await methods();
+  if (hasOccupancyPhase(registry, job)) charts.appendChild(chartCard("Fraction of points to the empty expert", ["fraction_empty"], ["occupancy"]));
+  document.getElementById("stats").innerHTML = occupancyStats(job, registry) + `<div class="card" id="throughput"><h3>Throughput</h3><dl class="stats">
     <dt>rays/s (${esc(job.phase || "–")})</dt><dd>${fmt(job.rays_per_s, 0)}</dd>
     <dt>main-network samples per ray</dt><dd>${fmt(latestOf("main", "samples_per_ray"), 1)}</dd>
     <dt>occupancy ratio</dt><dd>${fmt(latestOf("main", "occupancy_ratio"), 3)}</dd>
@@ -275,12 +280,14 @@ async function showCompare(sceneId) {
   // Equal PSNR: the best smoothed PSNR that every run reached; each run's first training time at or above it.
   const target = runs.length ? Math.min(...runs.map(r => Math.max(...r.points.map(p => p.value)))) : null;
   const reach = r => (r.points.find(p => p.value >= target) || {}).wall_time_s ?? null;
-  const leco = runs.find(r => r.job.method === "leco");
+  const registry = await methods();
+  const ours = Object.values(registry).find(m => m.role === "ours");
+  const leco = ours && runs.find(r => r.job.method === ours.name);
   const rows = runs.map(r => {
     const t = reach(r), speedup = leco && t && reach(leco) ? t / reach(leco) : null;
     return `<tr data-job="${r.job.id}"><td><a href="#/jobs/${r.job.id}">${r.job.id}</a></td><td>${esc(r.job.method)}</td>
       <td>${stateBadge(r.job.state)}</td><td>${fmt(r.points[r.points.length - 1].value)}</td><td>${fmt(t, 1)}</td>
-      <td class="speedup">${r.job.method === "leco" || speedup === null ? "–" : `${fmt(speedup, 2)}x`}</td></tr>`;
+      <td class="speedup">${r === leco || speedup === null ? "–" : `${fmt(speedup, 2)}x`}</td></tr>`;
   }).join("");
   const view = document.getElementById("view");
   view.innerHTML = `<h1>Compare jobs on ${esc(scene.name)}</h1>

@@ -1,0 +1,200 @@
+"""What a method is: the one place that knows how a run of it builds its networks, what each phase trains and
+samples, and what it exports. The training loop, evaluation, benchmark, API and dashboard talk to this interface
+and never compare method names (issue 19).
+
+A method object is made from the resolved profile (`method = get_method(name)(profile)`); that alone is cheap
+and answers the static questions (phases, parameter counts, memory needs, benchmark sweep). `build` makes the
+networks of one run; the object then also holds that run's non-network state (an occupancy grid, a frozen
+predictor), which it checkpoints through `state_dict` / `load_state_dict`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, ClassVar
+
+import torch
+from torch import Tensor, nn
+
+from model.fields.background import BackgroundField
+from model.fields.switch_nerf import SwitchNeRF
+from model.main_phase import MainRender, main_loss
+from model.profiles import Profile
+from model.rendering import Rendered
+from model.scenes.rays import RayBatch
+
+Occupied = Callable[[Tensor], Tensor]  # world points (N, 3) -> bool (N,): the estimator interface
+
+
+def count(*modules: nn.Module) -> int:
+    return sum(p.numel() for m in modules for p in m.parameters())
+
+
+def switch_nerf(profile: Profile, num_images: int) -> SwitchNeRF:
+    n = profile.network
+    return SwitchNeRF(num_images, n.width, n.num_experts, n.expert_layers, n.xyz_frequencies, n.dir_frequencies,
+                      n.appearance_dim, n.capacity_factor, n.density_noise)
+
+
+def background(profile: Profile, num_images: int) -> BackgroundField:
+    b, n = profile.background, profile.network
+    return BackgroundField(num_images, b.width, b.layers, dir_frequencies=n.dir_frequencies,
+                           appearance_dim=n.appearance_dim, density_noise=n.density_noise)
+
+
+@dataclass(frozen=True)
+class PhaseMemory:
+    """What one phase of a method keeps per rank, for the memory estimate (model/memory_estimate.py)."""
+
+    trained: int  # parameters with gradients and Adam state
+    frozen: int = 0  # parameters only read
+    samples_per_ray: int = 0  # the most main-size network samples with gradient one ray can have
+    render_samples_per_ray: int = 0  # ... in a validation render (no gradient); 0: samples_per_ray
+    extra_bytes: int = 0  # state that is neither parameters nor activations (a grid's cells)
+    extra_bytes_per_ray: int = 0  # activations of the method's own small networks (proposal MLPs)
+
+
+@dataclass(frozen=True)
+class SweepPoint:
+    """One sampling budget of a method for `leco bench --sweep` (speed against error)."""
+
+    tag: str
+    text: str
+    overrides: dict = field(default_factory=dict)
+
+
+class Networks(nn.Module):
+    """A run's trainable networks, named by the method that built them (checkpoints keep these names)."""
+
+
+class Method:
+    name: ClassVar[str]
+    label: ClassVar[str]  # the benchmark's row label
+    # "ours": the method the benchmark reports speed-ups for; "reference": the unguided method its equal-PSNR
+    # target and time ratios are measured against; "baseline": every other method.
+    role: ClassVar[str] = "baseline"
+    phases: ClassVar[tuple[str, ...]] = ("main",)
+    # A share of a wall-clock budget a phase stops at (the last phase gets whatever is left).
+    budget_share: ClassVar[dict[str, float]] = {}
+    # Whether the method has an occupancy to score (the paper's Table 1 and the point cloud's filter).
+    has_occupancy: ClassVar[bool] = False
+    colour: ClassVar[str | None] = None  # in the benchmark's figures
+    # The benchmark's target for the proposed method's occupancy size against this one's (a fraction), if any.
+    occupancy_size_target: ClassVar[float | None] = None
+
+    def __init__(self, profile: Profile):
+        self.profile = profile
+
+    # ----- what a run of it costs, before it runs ---------------------------------------------------------
+    def build(self, num_images: int, aabb: Tensor) -> Networks:
+        """The networks every method shares: the main Switch-NeRF (`field`) and the background."""
+        models = Networks()
+        models.field = switch_nerf(self.profile, num_images)
+        models.background = background(self.profile, num_images)
+        return models
+
+    def components(self, num_images: int) -> dict[str, int]:
+        """Parameter count of every component a run trains (model_info); built on the meta device."""
+        with torch.device("meta"):
+            main, behind = switch_nerf(self.profile, num_images), background(self.profile, num_images)
+        return {"main.input_layer": count(main.input_layer), "main.gate": count(main.gate),
+                "main.experts": count(main.experts), "main.heads": count(main.head),
+                "main.appearance": count(main.appearance), "background": count(behind)}
+
+    def main_samples_bound(self) -> int:
+        """The most main-network samples with gradient one ray can have in the main phase."""
+        raise NotImplementedError
+
+    def memory(self, num_images: int) -> dict[str, PhaseMemory]:
+        with torch.device("meta"):
+            main = count(switch_nerf(self.profile, num_images), background(self.profile, num_images))
+        return {"main": PhaseMemory(trained=main, samples_per_ray=self.main_samples_bound())}
+
+    def sweep(self) -> list[SweepPoint]:
+        """Sampling budgets around the profile's own for `leco bench --sweep` (none: not swept)."""
+        return []
+
+    # ----- a run --------------------------------------------------------------------------------------
+    def to(self, device: torch.device) -> "Method":
+        """Moves non-network state (a grid, a predictor) to the run's device."""
+        return self
+
+    def phase_steps(self, phase: str) -> int:
+        return self.profile.main_steps
+
+    def phase_lr(self, phase: str) -> tuple[float, float | None]:
+        """(start, final) learning rate of the phase; the schedule decays log-linearly between them."""
+        return self.profile.lr, self.profile.lr_final
+
+    def trained_modules(self, models: Networks, phase: str) -> list[nn.Module]:
+        """The networks the phase trains and renders with (their appearance embeddings are the ones the
+        validation protocol fits)."""
+        return [models.field, models.background]
+
+    def extra_parameters(self, models: Networks, phase: str) -> list[nn.Parameter]:
+        """Parameters the phase's optimizer also steps, outside `trained_modules`."""
+        return []
+
+    def start_phase(self, models: Networks, phase: str, fresh: bool, device: torch.device,
+                    log: Callable[[str], None]) -> None:
+        """Sets up the phase (frozen parts, estimators); `fresh` when it begins now rather than on a resume."""
+
+    def lr_ramp_steps(self, phase: str) -> int:
+        return 0
+
+    def step(self, models: Networks, phase: str, rays: RayBatch, generator: torch.Generator | None,
+             progress: float, phase_step: int, seed: int) -> tuple[Tensor, dict]:
+        """One training step's loss and its parts (floats). `seed`: the run's, for any draw that must be the
+        same on every rank (a replicated estimator's update)."""
+        return main_loss(self.render_main(models, rays, generator, phase_step), rays, self.profile.balance_weight)
+
+    def render_main(self, models: Networks, rays: RayBatch, generator: torch.Generator | None,
+                    phase_step: int | None) -> MainRender:
+        """The main phase's render; `phase_step` is None outside training (validation, evaluation)."""
+        raise NotImplementedError
+
+    def render(self, models: Networks, phase: str, rays: RayBatch) -> Rendered:
+        """A deterministic render of `phase`'s networks as they are (train or eval mode), keeping autograd."""
+        return self.render_main(models, rays, None, None).rendered
+
+    def occupancy(self, models: Networks, phase: str) -> Occupied | None:
+        """The occupancy to score while training (periodic evaluation); None: nothing is being learned."""
+        return None
+
+    def final_occupancy(self, models: Networks) -> Occupied | None:
+        """The occupancy a finished run scores and exports (Table 1, the point cloud's filter)."""
+        return None
+
+    def point_cloud_samples(self) -> int:
+        """Coarse samples per ray of the exported point cloud."""
+        return self.profile.vanilla.coarse_samples
+
+    def state_dict(self) -> dict | None:
+        """Non-network state that checkpoints keep (networks are in `Networks.state_dict`)."""
+        return None
+
+    def load_state_dict(self, state: dict | None) -> None:
+        pass
+
+    def save_final(self, final: Path) -> None:
+        """Extra files of a finished run (LeCO's occupancy network on its own)."""
+
+    def load_final(self, models: Networks, final: Path, device: torch.device) -> None:
+        pass
+
+    def summary_occupancy(self, final: Path, main: list[dict], first: list[dict]) -> dict:
+        """The occupancy row of a run's summary: its size and how much it keeps (`main`/`first`: the metrics
+        rows of the main phase and of any phase before it)."""
+        return {}
+
+
+def mean_of(rows: list[dict], key: str) -> float | None:
+    values = [r[key] for r in rows if r.get(key) is not None]
+    return sum(values) / len(values) if values else None
+
+
+def method_state(saved: dict) -> dict | None:
+    """A checkpoint's non-network method state (Method.state_dict). Checkpoints written before the methods
+    had a home (issue 19) kept the only such state, the grid's, under "grid"; they still load."""
+    return saved["method"] if "method" in saved else saved.get("grid")

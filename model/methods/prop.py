@@ -1,0 +1,169 @@
+"""S+Prop: Switch-NeRF's foreground sampled by proposal networks (mip-NeRF 360 / nerfacto / nerfacc's
+PropNetEstimator) instead of its coarse + fine passes: the strongest learned sampler, as a baseline.
+
+Sizes: the proposal levels together have as many parameters as LeCO's occupancy network O at the same profile
+(13,888 against O's 13,897 at `cpu`, 153,760 against 153,865 at `paper`), and the main network takes
+`prop.main_samples` per ray, LeCO's own count, so the two learned samplers are compared at equal size and equal
+main-network work. Every proposal forward and backward runs inside the training step, so it is charged to
+training time. Its occupancy, for the paper's Table 1, is the last proposal level's density thresholded by the
+occupancy grid's own rule (one full update of a grid at `grid.resolution`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+from model.fields.proposal import ProposalDensity
+from model.main_phase import MainRender, grid_step_size, main_loss, render_batched
+from model.methods.base import Method, Networks, Occupied, PhaseMemory, SweepPoint, count
+from model.methods.leco import hmoe
+from model.occupancy_grid import OccupancyGrid
+from model.occupancy_phase import render_background
+from model.profiles import Profile
+from model.proposal_sampling import UpdateSchedule, anneal_power, interlevel_loss, pdf_edges
+from model.rendering import batched_weights
+from model.samplers import stratified_edges
+from model.scenes.rays import RayBatch
+
+
+def occupancy_network_parameters(profile: Profile) -> int:
+    """LeCO's O at this profile: the size S+Prop's proposals are matched to."""
+    with torch.device("meta"):
+        return count(hmoe(profile, 1).gate)
+
+
+def proposal_width(profile: Profile) -> int:
+    """`prop.width`, or the widest proposal MLP whose levels together do not exceed O's parameter count."""
+    p = profile.prop
+    if p.width is not None:
+        return p.width
+    target, levels, f = occupancy_network_parameters(profile), len(p.samples), profile.network.xyz_frequencies
+    width = 4
+    while levels * ProposalDensity.num_parameters(width + 1, p.layers, f) <= target:
+        width += 1
+    return width
+
+
+class ProposalMethod(Method):
+    name = "prop"
+    label = "S+Prop"
+    colour = "#8c564b"
+    has_occupancy = True
+
+    def __init__(self, profile: Profile):
+        super().__init__(profile)
+        self.schedule = UpdateSchedule(profile.prop.update_every, profile.prop.update_warmup)
+        self.aabb: Tensor | None = None
+
+    def build(self, num_images: int, aabb: Tensor) -> Networks:
+        models = super().build(num_images, aabb)
+        p, width = self.profile.prop, proposal_width(self.profile)
+        models.proposals = nn.ModuleList(ProposalDensity(width, p.layers, self.profile.network.xyz_frequencies)
+                                         for _ in p.samples)
+        self.aabb = aabb.float()
+        return models
+
+    def components(self, num_images: int) -> dict[str, int]:
+        p, width = self.profile.prop, proposal_width(self.profile)
+        one = ProposalDensity.num_parameters(width, p.layers, self.profile.network.xyz_frequencies)
+        return {"proposal_networks": one * len(p.samples), **super().components(num_images)}
+
+    def main_samples_bound(self) -> int:
+        return self.profile.prop.main_samples
+
+    def memory(self, num_images: int) -> dict[str, PhaseMemory]:
+        main = super().memory(num_images)["main"]
+        p, width = self.profile.prop, proposal_width(self.profile)
+        proposals = self.components(num_images)["proposal_networks"]
+        # What backward keeps per proposal sample: each layer's input and ReLU mask, and the encoding.
+        per_ray = sum(p.samples) * 4 * (2 * p.layers * width + 100)
+        return {"main": PhaseMemory(trained=main.trained + proposals, samples_per_ray=main.samples_per_ray,
+                                    extra_bytes_per_ray=per_ray)}
+
+    def sweep(self) -> list[SweepPoint]:
+        p = self.profile.prop
+        return [SweepPoint(tag, f"{n} main samples", {"prop.main_samples": n})
+                for tag, n in (("lean", max(p.main_samples // 2, 1)), ("rich", 2 * p.main_samples))]
+
+    # ----- a run --------------------------------------------------------------------------------------
+    def trained_modules(self, models: Networks, phase: str) -> list[nn.Module]:
+        return [models.field, models.background, models.proposals]
+
+    def to(self, device: torch.device) -> "ProposalMethod":
+        self.aabb = self.aabb.to(device)
+        return self
+
+    def step(self, models: Networks, phase: str, rays: RayBatch, generator: torch.Generator | None,
+             progress: float, phase_step: int, seed: int) -> tuple[Tensor, dict]:
+        learn = self.schedule.due(phase_step)
+        with torch.set_grad_enabled(learn):
+            levels, edges = self.propose(models, rays, generator, phase_step)
+        render = self.render_on(models, rays, edges, generator)
+        loss, parts = main_loss(render, rays, self.profile.balance_weight)
+        parts["proposal_samples_per_ray"] = float(sum(self.profile.prop.samples))
+        if learn:  # only the proposals get this gradient: the main weights are detached inside
+            l_prop = interlevel_loss(edges, render.rendered.weights, levels)
+            loss = loss + self.profile.prop.loss_weight * l_prop
+            parts["interlevel_loss"] = float(l_prop.detach())
+            parts["loss"] = float(loss.detach())
+        return loss, parts
+
+    def propose(self, models: Networks, rays: RayBatch, generator: torch.Generator | None,
+                phase_step: int | None) -> tuple[list[tuple[Tensor, Tensor]], Tensor]:
+        """Each proposal level's (edges, weights) and the main network's edges (R, main_samples + 1)."""
+        p = self.profile.prop
+        anneal = anneal_power(phase_step, p.anneal_steps, p.anneal_slope)
+        edges = stratified_edges(rays.near, rays.far, p.samples[0], generator)
+        levels = []
+        for i, network in enumerate(models.proposals):
+            mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
+            xyz = rays.origins[:, None] + rays.directions[:, None] * mids[..., None]
+            sigma = network(xyz.reshape(-1, 3)).reshape(mids.shape)
+            weights = batched_weights(sigma, deltas)[0]
+            levels.append((edges, weights))
+            n = p.samples[i + 1] if i + 1 < len(p.samples) else p.main_samples
+            edges = pdf_edges(edges, weights, n, generator, anneal, p.histogram_padding)
+        return levels, edges.detach()
+
+    def render_on(self, models: Networks, rays: RayBatch, edges: Tensor,
+                  generator: torch.Generator | None) -> MainRender:
+        behind = render_background(models.background, rays, self.profile.background.samples, generator).rgb
+        rendered, out = render_batched(models.field, rays, edges, behind)
+        return MainRender(rendered, out, float(edges.shape[1] - 1), None)
+
+    def render_main(self, models: Networks, rays: RayBatch, generator: torch.Generator | None,
+                    phase_step: int | None) -> MainRender:
+        with torch.no_grad():
+            _, edges = self.propose(models, rays, generator, phase_step)
+        return self.render_on(models, rays, edges, generator)
+
+    def proposal_grid(self, models: Networks) -> OccupancyGrid:
+        """The last proposal level's density through one full update of an occupancy grid: the grid's rule."""
+        g, network = self.profile.grid, models.proposals[-1]
+        grid = OccupancyGrid(self.aabb, g.resolution)
+        was = network.training
+        network.eval()
+        grid.update(0, network, grid_step_size(grid, g.march_steps), g.threshold, g.decay, warmup_steps=1, every=1,
+                    generator=torch.Generator().manual_seed(0))
+        network.train(was)
+        return grid
+
+    def occupancy(self, models: Networks, phase: str) -> Occupied | None:
+        return self.proposal_grid(models).occupied
+
+    def final_occupancy(self, models: Networks) -> Occupied | None:
+        return self.proposal_grid(models).occupied
+
+    def state_dict(self) -> dict | None:
+        return {"since_update": self.schedule.since_update}
+
+    def load_state_dict(self, state: dict | None) -> None:
+        if state is not None:
+            self.schedule.since_update = state["since_update"]
+
+    def summary_occupancy(self, final: Path, main: list[dict], first: list[dict]) -> dict:
+        p = self.profile.prop
+        return {"params": len(p.samples) * ProposalDensity.num_parameters(
+            proposal_width(self.profile), p.layers, self.profile.network.xyz_frequencies)}

@@ -1,0 +1,94 @@
+"""S+Prop (issue 19): proposal networks sized to LeCO's O, inverse-CDF resampling level by level, the
+interlevel loss against the main network's detached weights, the anneal and the update schedule."""
+
+import pytest
+import torch
+
+from model.fields.proposal import ProposalDensity
+from model.methods import get_method
+from model.methods.prop import occupancy_network_parameters, proposal_width
+from model.model_info import model_info
+from model.profiles import get_profile
+from model.proposal_sampling import UpdateSchedule, anneal_power, interlevel_loss, outer_weights, pdf_edges
+from model.scenes.rays import RayBatch
+
+
+@pytest.mark.parametrize("profile,expected,o", [("cpu", 13_888, 13_897), ("paper", 153_760, 153_865)])
+def test_proposals_total_the_parameters_of_lecos_occupancy_network(profile, expected, o):
+    p = get_profile(profile)
+    assert occupancy_network_parameters(p) == o
+    assert model_info("prop", p)["components"]["proposal_networks"] == expected
+    width = proposal_width(p)
+    built = ProposalDensity(width, p.prop.layers, p.network.xyz_frequencies)
+    assert sum(x.numel() for x in built.parameters()) * len(p.prop.samples) == expected
+    assert len(p.prop.samples) * ProposalDensity.num_parameters(width + 1, p.prop.layers, 12) > o  # the widest fit
+
+
+def test_pdf_edges_follow_the_histogram_and_stay_sorted_inside_it():
+    edges = torch.linspace(0.0, 4.0, 5).expand(3, 5).contiguous()  # bins [0,1) [1,2) [2,3) [3,4)
+    weights = torch.tensor([[0.0, 1.0, 0.0, 0.0]]).expand(3, 4)
+    out = pdf_edges(edges, weights, 64, torch.Generator().manual_seed(0), padding=0.0)
+    assert out.shape == (3, 65) and (out[:, 1:] >= out[:, :-1]).all()
+    assert ((out >= 1.0) & (out <= 2.0)).all()  # every new interval inside the only bin with weight
+    uniform = pdf_edges(edges, weights, 64, None, anneal=0.0, padding=0.0)  # weights^0: the anneal's start
+    assert torch.allclose(uniform[0], torch.linspace(0.0, 4.0, 65), atol=1e-5)
+    padded = pdf_edges(edges, weights, 64, None, padding=1.0)  # weights + 1 = (1, 2, 1, 1): a fifth in [0, 1)
+    assert int((padded[0] < 1.0).sum()) == 13  # the edge at 0 and 64 / 5 more
+
+
+def test_outer_weights_bound_the_histogram_and_the_loss_vanishes_when_it_does():
+    g = torch.Generator().manual_seed(1)
+    source = torch.sort(torch.rand(4, 9, generator=g) * 10, -1).values
+    source[:, 0], source[:, -1] = 0.0, 10.0
+    source_w = torch.rand(4, 8, generator=g)
+    target = torch.sort(torch.rand(4, 17, generator=g) * 8 + 1, -1).values
+    outer = outer_weights(target, source, source_w)
+    # Brute force: every source interval overlapping the target interval counts.
+    for r in range(4):
+        for j in range(16):
+            overlap = (source[r, :-1] < target[r, j + 1]) & (source[r, 1:] > target[r, j])
+            assert outer[r, j] == pytest.approx(float(source_w[r][overlap].sum()), abs=1e-5)
+    main_w = torch.rand(4, 16, generator=g) * 0.1
+    assert float(interlevel_loss(target, main_w, [(target, main_w * 1.5)])) == 0.0  # already an upper bound
+    assert float(interlevel_loss(target, main_w, [(target, main_w * 0.5)])) > 0.0
+
+
+def test_interlevel_loss_trains_the_proposals_and_never_the_main_weights():
+    main_w = torch.full((2, 4), 0.2, requires_grad=True)
+    proposal_w = torch.full((2, 4), 0.05, requires_grad=True)
+    edges = torch.linspace(0, 1, 5).expand(2, 5)
+    interlevel_loss(edges, main_w, [(edges, proposal_w)]).backward()
+    assert main_w.grad is None and (proposal_w.grad < 0).all()  # raise the proposal's histogram
+
+
+def test_anneal_and_update_schedule_follow_nerfstudio_and_nerfacc():
+    assert anneal_power(0, 1000, 10.0) == 0.0 and anneal_power(1000, 1000, 10.0) == 1.0
+    assert anneal_power(100, 1000, 10.0) == pytest.approx(10 * 0.1 / (9 * 0.1 + 1))
+    assert anneal_power(None, 1000, 10.0) == 1.0
+    schedule = UpdateSchedule(every=5, warmup=100)
+    due = [step for step in range(300) if schedule.due(step)]
+    assert due[:3] == [0, 1, 2]  # every step at first
+    late = [s for s in due if s >= 150]
+    assert all(b - a == 5 for a, b in zip(late, late[1:]))  # then every 5th
+
+
+def test_a_prop_step_samples_main_samples_per_ray_and_learns_only_when_due(tiny_scene):
+    profile = get_profile("smoke")
+    method = get_method("prop")(profile)
+    torch.manual_seed(0)
+    models = method.build(tiny_scene.num_images, tiny_scene.bounds.aabb)
+    from model.scenes import RaySampler
+
+    rays: RayBatch = RaySampler(tiny_scene.train, tiny_scene.bounds.aabb, 64, 0, 0, 1).next()
+    g = torch.Generator().manual_seed(0)
+    loss, parts = method.step(models, "main", rays, g, 0.0, 0, seed=0)
+    loss.backward()
+    assert parts["samples_per_ray"] == profile.prop.main_samples and parts["interlevel_loss"] >= 0
+    assert all(p.grad is not None for p in models.proposals.parameters())
+    models.zero_grad(set_to_none=True)
+    method.schedule.since_update = -10  # not due on the next step
+    loss, parts = method.step(models, "main", rays, g, 0.0, 11, seed=0)
+    loss.backward()
+    assert "interlevel_loss" not in parts and all(p.grad is None for p in models.proposals.parameters())
+    occupied = method.final_occupancy(models)(torch.rand(100, 3) * 2 - 1)
+    assert occupied.dtype == torch.bool and occupied.shape == (100,)
