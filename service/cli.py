@@ -58,7 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     model = commands.add_parser("model", help="inspect model sizes").add_subparsers(dest="action", required=True)
     minfo = model.add_parser("info", help="parameter count of every component of a method under a profile")
-    minfo.add_argument("--method", default="leco", choices=list(METHODS))
+    minfo.add_argument("--method", default="leco", help=" | ".join(METHODS))
     minfo.add_argument("--profile", default="paper", help="paper | cpu | smoke")
     minfo.add_argument("--images", type=int, default=100, help="images in the scene (appearance embeddings)")
     minfo.add_argument("--json", action="store_true")
