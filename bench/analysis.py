@@ -152,7 +152,8 @@ def targets(runs: list[dict], speed: dict) -> list[dict]:
         bound = METHODS[other].occupancy_size_target
         if bound is not None:
             p = ratio(params[ours][0], params[other][0])
-            add(f"occupancy parameters <= {bound:.0%} of {label}'s", f"{fmt(p, '.1%')}", None if p is None else p <= bound)
+            add(f"occupancy parameters <= {bound:.0%} of {label}'s", f"{fmt(p, '.1%')}",
+                None if p is None else p <= bound)
     if ours in names:
         r = occ_ratio[ours][0]
         add("LeCO occupancy ratio <= 20%", fmt(r, ".1%"), None if r is None else r <= 0.20)

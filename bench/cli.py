@@ -32,7 +32,7 @@ def bench_command(args: argparse.Namespace) -> int:
         variants = select([m.strip() for m in args.methods.split(",") if m.strip()], args.ablation, args.ladder,
                           swept)
     except (ValueError, ValidationError) as error:
-        raise SystemExit(f"leco bench: {error}")
+        raise SystemExit(f"leco bench: {error}") from None
     scene_dir, out = Path(args.scene), Path(args.out)
     scene = load_scene(scene_dir, downscale=args.downscale)  # a broken scene fails here, naming what is wrong
     every = args.eval_every_s or (args.budget_min * 60 / 15 if args.budget_min else 30.0)
@@ -45,13 +45,13 @@ def bench_command(args: argparse.Namespace) -> int:
     except ValidationError as error:
         problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'config'}: {e['msg'].removeprefix('Value error, ')}"
                              for e in error.errors())
-        raise SystemExit(f"leco bench: {problems}")
+        raise SystemExit(f"leco bench: {problems}") from None
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     try:
         runs = [run_variant(v, plan, seed, log) for seed in seeds for v in variants]
     except BenchError as error:
-        raise SystemExit(f"leco bench: {error}")
+        raise SystemExit(f"leco bench: {error}") from None
 
     reference = "none (the scene has no ground truth or depth maps, and no vanilla run to take depth from)"
     if scene.occupancy is not None:
@@ -149,6 +149,7 @@ def add_commands(commands) -> None:
     bench.add_argument("--workers", type=int, default=1, help="data-parallel workers (ray backend)")
     bench.add_argument("--gpu", action="store_true", help="train on GPUs")
     bench.add_argument("--downscale", type=int, default=None,
-                       help="integer factor for images and intrinsics, in training and evaluation alike (default: the scene's own scale; the paper uses 4 on Mega-NeRF scenes)")
+                       help="integer factor for images and intrinsics, in training and evaluation alike "
+                            "(default: the scene's own scale; the paper uses 4 on Mega-NeRF scenes)")
     bench.add_argument("--set", action="append", metavar="KEY=VALUE", help="profile override for every method")
     bench.set_defaults(func=bench_command)

@@ -150,7 +150,8 @@ async def poller(url: str, token: str, job: int, start: float, until: float, int
     while due < until:
         await asyncio.sleep(max(0.0, due - time.monotonic()))
         for route in ("job", "metrics"):
-            target = f"/v1/jobs/{job}" if route == "job" else f"/v1/jobs/{job}/metrics?after_step={after}&max_points=500"
+            target = (f"/v1/jobs/{job}" if route == "job"
+                      else f"/v1/jobs/{job}/metrics?after_step={after}&max_points=500")
             started, body = time.perf_counter(), b""
             try:
                 status, body = await asyncio.wait_for(connection.get(target), 30)
@@ -240,12 +241,9 @@ def throwaway_database(admin_url: str):
     never land in a database someone uses."""
     from sqlalchemy import create_engine, text
     from sqlalchemy.engine import make_url
-
-    from service.db import normalise_url
-
     from sqlalchemy.exc import SQLAlchemyError
 
-    from service.db import first_line, redact
+    from service.db import first_line, normalise_url, redact
 
     admin = create_engine(normalise_url(admin_url), isolation_level="AUTOCOMMIT")
     name = f"leco_loadtest_{os.getpid()}_{secrets.token_hex(4)}"
@@ -279,7 +277,8 @@ def refuse_used_database(url: str) -> None:
     finally:
         engine.dispose()
     if tables:
-        raise SystemExit(f"leco loadtest: the database {redact(url)} is not empty (tables: {', '.join(sorted(tables)[:5])}"
+        raise SystemExit(f"leco loadtest: the database {redact(url)} is not empty "
+                         f"(tables: {', '.join(sorted(tables)[:5])}"
                          f"{', ...' if len(tables) > 5 else ''}): give an empty one, or --postgres ADMIN_URL to make "
                          "and drop a throwaway database on that server")
 

@@ -181,7 +181,7 @@ def sweep_curves(runs: list[dict], path: Path) -> str | None:
     if not points:
         return None
     fig, axes = plt.subplots(1, len(points), figsize=(4.6 * len(points), 3.8), squeeze=False)
-    for ax, (method, rs) in zip(axes[0], points.items()):
+    for ax, rs in zip(axes[0], points.values()):
         for r in rs:
             curve = main_curve(r)
             if curve:

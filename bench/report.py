@@ -9,8 +9,8 @@ from pathlib import Path
 
 import torch
 
-from bench.variants import ABLATIONS, RUNGS
 from bench.analysis import get, main_curve, mean_std, per_variant, roles, time_to_psnr
+from bench.variants import ABLATIONS, RUNGS, TABLE_REFERENCES
 
 PAPER_NOTE = ("Paper (Mega-NeRF scenes, 8 GPUs): LeCO ~2.5x faster than Switch-NeRF at equal or better PSNR, "
               "occupancy network 0.15M parameters vs a 2.1M-cell grid, occupancy ratio below the grid's.")
@@ -100,7 +100,7 @@ def sweep_table(runs: list[dict]) -> str:
     from bench.plots import sweep_points
 
     rows = []
-    for method, rs in sweep_points(runs).items():
+    for rs in sweep_points(runs).values():
         for r in rs:
             s = r["summary"]
             label = r["label"] if r.get("sweep") else f"{r['label']} (default)"
@@ -110,9 +110,44 @@ def sweep_table(runs: list[dict]) -> str:
     return table(["method, sampling budget", "samples/ray", "rays/s (main)", "val PSNR", "SSIM", "steps"], rows)
 
 
+def table_rows(runs: list[dict], table_name: str) -> list[str]:
+    """The variants of one of the paper's ablation tables that ran, with its reference rows first."""
+    refs = [roles()[0] if n == "ours" else n for n in TABLE_REFERENCES[table_name]]
+    ran = set(r["variant"] for r in runs)
+    return [n for n in refs if n in ran] + [n for n, v in ABLATIONS.items() if v.table == table_name and n in ran]
+
+
+def grid_resolution_table(runs: list[dict]) -> str:
+    """Table 7: the grid at 128^3 and 256^3 against LeCO: quality, training time and memory."""
+    names = table_rows(runs, "7")
+    labels = {r["variant"]: r["label"] for r in runs}
+    s = {k: per_variant(runs, k) for k in ("val.psnr", "val.ssim", "val.lpips_vgg", "wall_time_s.total",
+                                           "steps.total", "rays_per_s", "peak_memory_mb", "occupancy.params")}
+    rows = [[labels[n], cell(s["val.psnr"][n], ".2f"), cell(s["val.ssim"][n], ".3f"),
+             cell(s["val.lpips_vgg"][n], ".3f"), cell(s["wall_time_s.total"][n], ",.0f"),
+             cell(s["steps.total"][n], ",.0f"), cell(s["rays_per_s"][n], ",.0f"),
+             cell(s["peak_memory_mb"][n], ",.0f"), cell(s["occupancy.params"][n], ",.0f")] for n in names]
+    return table(["method", "PSNR", "SSIM", "LPIPS (VGG)", "time (s)", "steps", "rays/s (main)", "peak memory (MB)",
+                  "occupancy parameters / cells"], rows)
+
+
+def empty_expert_table(runs: list[dict]) -> str:
+    """Table 9: the empty-space expert as an identity layer (LeCO's), a 4-layer MLP, or a scene expert's size."""
+    names = table_rows(runs, "9")
+    labels = {r["variant"]: r["label"] for r in runs}
+    labels[roles()[0]] = "E_e: identity (LeCO)"
+    s = {k: per_variant(runs, k) for k in ("val.psnr", "val.ssim", "val.lpips_vgg", "val.lpips_alex",
+                                           "occupancy.f1", "occupancy.recall", "occupancy.empty_fraction")}
+    rows = [[labels[n], cell(s["val.psnr"][n], ".2f"), cell(s["val.ssim"][n], ".3f"),
+             cell(s["val.lpips_vgg"][n], ".3f"), cell(s["val.lpips_alex"][n], ".3f"),
+             cell(s["occupancy.f1"][n], ".3f"), cell(s["occupancy.recall"][n], ".3f"),
+             cell(s["occupancy.empty_fraction"][n], ".1%")] for n in names]
+    return table(["empty-space expert", "PSNR", "SSIM", "LPIPS (VGG)", "LPIPS (Alex)", "occupancy F1", "recall",
+                  "points to E_e"], rows)
+
+
 def ablation_table(runs: list[dict]) -> str:
-    names = [n for n in dict.fromkeys(r["variant"] for r in runs if not r.get("ladder") and not r.get("sweep"))
-             if n in ABLATIONS or n == roles()[0]]
+    names = table_rows(runs, "4/5")
     labels = {r["variant"]: r["label"] for r in runs}
     hmoe = {}
     for n in names:  # the HMoE's own rendering at the end of phase 1 (what Table 4 scores)
@@ -177,7 +212,8 @@ def write_report(results: dict, out: Path) -> None:
     if speed:
         parts += ["## Speed-up of LeCO", ""]
         rows = [[labels.get(base, base), cell(v["rays_per_s"], ".2f") + "x", cell(v["time_to_equal_psnr"], ".2f") + "x",
-                 cell(v["time_to_its_best_psnr"], ".2f") + "x", cell(v["samples_per_ray_fraction"], ".1%"), cell(v["activation_memory_fraction"], ".1%"),
+                 cell(v["time_to_its_best_psnr"], ".2f") + "x", cell(v["samples_per_ray_fraction"], ".1%"),
+                 cell(v["activation_memory_fraction"], ".1%"),
                  cell(v["peak_memory_fraction"], ".1%")] for base, v in speed.items()]
         parts += [table(["over", "rays/s", "time to equal PSNR", "time to its best PSNR", "samples per ray (LeCO / it)",
                          "activations (LeCO / it)", "peak memory (LeCO / it)"], rows), ""]
@@ -203,10 +239,18 @@ def write_report(results: dict, out: Path) -> None:
                   "Each method's own run is its middle point; samples per ray count every main-network "
                   "evaluation (vanilla's coarse pass and LeCO's culling pass included). Figures: "
                   "`speed_vs_error.png` (PSNR against samples per ray and rays/s), `sweep_psnr_vs_time.png`.", ""]
-    if any(r["ablation"] and not r.get("ladder") and not r.get("sweep") for r in runs):
+    tables = {ABLATIONS[r["variant"]].table for r in runs if r["variant"] in ABLATIONS}
+    if "4/5" in tables:
         parts += ["## Ablation (the paper's Tables 4 and 5)", "", ablation_table(runs), "",
                   "Phase-1 HMoE PSNR is the occupancy network's own rendering at the end of phase 1 (Table 4 "
                   "scores this); guided PSNR is the Switch-NeRF it then guides (Table 5).", ""]
+    if "7" in tables:
+        parts += ["## Grid resolution (the paper's Table 7)", "", grid_resolution_table(runs), "",
+                  "Time is training compute; under a budget every row trains for the same time, so the cost of a "
+                  "finer grid shows as fewer steps and lower PSNR instead of a longer run.", ""]
+    if "9" in tables:
+        parts += ["## The empty-space expert (the paper's Table 9)", "", empty_expert_table(runs), "",
+                  "PSNR is the guided Switch-NeRF's; F1 and recall score O at the end of phase 1.", ""]
     if results["figures"]:
         parts += ["## Figures", ""] + [f"![{k}]({v})" for k, v in results["figures"].items()] + [""]
     parts += [PAPER_NOTE, ""]

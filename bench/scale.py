@@ -80,7 +80,8 @@ def scale_command(args: argparse.Namespace) -> int:
 
 
 def format_row(r: dict) -> str:
-    return (f"{Path(r['scene']).name:>12} {r['start']:<30} {r['images']:>6,} images {r['train_pixels'] / 1e6:7.1f} M px  "
+    return (f"{Path(r['scene']).name:>12} {r['start']:<30} {r['images']:>6,} images "
+            f"{r['train_pixels'] / 1e6:7.1f} M px  "
             f"pixels ready {r['pixels_ready_s']:6.1f} s  first step {r['first_step_s']:6.1f} s  "
             f"peak RSS {'/'.join(map(str, r['peak_rss_mb']))} MB  {r['rays_per_s']:7.0f} rays/s")
 

@@ -1,12 +1,14 @@
-"""What a benchmark trains: the registered methods (model/methods), and the ablations of the paper's Tables 4 and 5. Every variant
-is a TrainConfig method plus profile overrides, so the main network, background, batch, optimiser and schedule
-are the profile's for all of them and only the sampling (and, for ablations, the occupancy phase) differs."""
+"""What a benchmark trains: the registered methods (model/methods), and the ablations of the paper's Tables 4 and 5.
+Every variant is a TrainConfig method plus profile overrides, so the main network, background, batch, optimiser
+and schedule are the profile's for all of them and only the sampling (and, for ablations, the occupancy phase)
+differs."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from model.methods import METHODS as REGISTRY, get_method, with_role
+from model.methods import METHODS as REGISTRY
+from model.methods import get_method, with_role
 from model.profiles import Profile
 
 
@@ -19,19 +21,28 @@ class Variant:
     ablation: bool = False
     ladder: bool = False  # a rung of the ablation ladder (issue 16); like an ablation, not a compared method
     sweep: bool = False  # another sampling budget of `method` (`--sweep`); like an ablation, not a compared method
+    table: str = ""  # the paper's ablation table this variant is a row of
 
 
 def method_variants() -> dict[str, Variant]:
     """Every registered method as a benchmark variant of its own name and label."""
     return {name: Variant(name, name, m.label) for name, m in REGISTRY.items()}
 
-# Table 4 trains without the density loss (both MoEs); Table 5 compares LeCO with and without it.
+# Table 4 trains without the density loss (both MoEs); Table 5 compares LeCO with and without it. Table 7 puts a
+# 256^3 grid beside the 128^3 one and LeCO; Table 9 sizes the empty-space expert (identity is LeCO's own).
 ABLATIONS = {
     "leco-homogeneous": Variant("leco-homogeneous", "leco", "Homo. MoE, no L_d",
-                                {"occupancy.homogeneous": True, "occupancy.w_d": 0.0}, ablation=True),
+                                {"occupancy.homogeneous": True, "occupancy.w_d": 0.0}, ablation=True, table="4/5"),
     "leco-no-density-loss": Variant("leco-no-density-loss", "leco", "Heter. (HMoE), no L_d",
-                                    {"occupancy.w_d": 0.0}, ablation=True),
+                                    {"occupancy.w_d": 0.0}, ablation=True, table="4/5"),
+    "grid-256": Variant("grid-256", "grid", "Grid-256", {"grid.resolution": 256}, ablation=True, table="7"),
+    "leco-empty-4-layer": Variant("leco-empty-4-layer", "leco", "E_e: 4-layer MLP",
+                                  {"occupancy.empty_expert_layers": 4}, ablation=True, table="9"),
+    "leco-empty-homogeneous": Variant("leco-empty-homogeneous", "leco", "E_e: homogeneous (a scene expert)",
+                                      {"occupancy.homogeneous": True}, ablation=True, table="9"),
 }
+# The rows each ablation table compares against: besides its variants, these methods' own runs.
+TABLE_REFERENCES = {"4/5": ("ours",), "7": ("grid", "ours"), "9": ("ours",)}
 
 
 # The paper's formulation at the profile's sizes: every setting issue 16 added, back at the paper's value.
@@ -93,8 +104,10 @@ def select(methods: list[str], ablation: bool, with_ladder: bool = False,
     ours = with_role("ours")
     if ablation:
         chosen += list(ABLATIONS.values())
-        if ours not in methods:
-            chosen.append(known[ours])  # the full method (HMoE + L_d) is the ablations' reference row
+        for name in dict.fromkeys(n for refs in TABLE_REFERENCES.values() for n in refs):
+            name = ours if name == "ours" else name
+            if name not in [v.name for v in chosen]:
+                chosen.append(known[name])  # a table's reference row (the full method: HMoE + L_d)
     if with_ladder:
         chosen += ladder()
         if ours not in [v.name for v in chosen]:

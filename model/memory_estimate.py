@@ -59,7 +59,8 @@ def estimate_peak_bytes(method: str, profile: Profile, num_images: int) -> dict:
 
 DRIVERS = {
     "parameters": "network.width, network.num_experts, network.expert_layers, network.appearance_dim",
-    "activations": "rays_per_device (or a validation render's 4,096 rays) x samples per ray (vanilla.*_samples, guided.coarse_samples x guided.split, "
+    "activations": "rays_per_device (or a validation render's 4,096 rays) x samples per ray "
+                   "(vanilla.*_samples, guided.coarse_samples x guided.split, "
                    "grid.march_steps, occupancy.samples_per_ray) x network.width x network.expert_layers",
     "estimator": "grid.resolution (the occupancy grid's cells)",
 }

@@ -1,4 +1,5 @@
-"""Image and occupancy metrics: PSNR, SSIM (11x11 Gaussian, sigma 1.5; smaller on smaller images), occupancy accuracy/precision/recall/F1."""
+"""Image and occupancy metrics: PSNR, SSIM (11x11 Gaussian, sigma 1.5; smaller on smaller images),
+occupancy accuracy/precision/recall/F1."""
 
 from __future__ import annotations
 

@@ -70,7 +70,8 @@ class OccupancyGrid:
         value = torch.cat([density_fn(points[s : s + 65536]).float().reshape(-1) for s in range(0, len(points), 65536)])
         self.queries += len(points)
         # Duplicate cells in one update: the largest value wins, as with nerfacc's scatter of maxima.
-        fresh = torch.zeros(n, device=device).scatter_reduce_(0, cells, value * step_size, reduce="amax", include_self=False)
+        fresh = torch.zeros(n, device=device).scatter_reduce_(0, cells, value * step_size, reduce="amax",
+                                                              include_self=False)
         touched = torch.zeros(n, dtype=torch.bool, device=device)
         touched[cells] = True
         self.values = torch.where(touched, torch.maximum(self.values * decay, fresh), self.values)

@@ -13,8 +13,8 @@ from model.losses import density_loss, gate_statistics, imbalanced_gate_loss, re
 from model.profiles import OccupancyPhaseConfig
 from model.rendering import Rendered, composite_batched
 from model.samplers import stratified_edges
-from model.schedules import log_linear
 from model.scenes.rays import RayBatch
+from model.schedules import log_linear
 
 
 def render_background(background: BackgroundField, rays: RayBatch, samples: int,
@@ -37,12 +37,14 @@ def field_on_edges(field, rays: RayBatch, edges: Tensor) -> tuple[FieldOutput, T
 
 
 def render_hmoe(model: HMoE, background: BackgroundField, rays: RayBatch, samples: int,
-                background_samples_per_ray: int, generator: torch.Generator | None) -> tuple[Rendered, FieldOutput, Tensor]:
+                background_samples_per_ray: int,
+                generator: torch.Generator | None) -> tuple[Rendered, FieldOutput, Tensor]:
     """The HMoE's image of a batch of rays (stratified samples), its field output and the sample deltas."""
     r = len(rays)
     out, mids, deltas = field_on_edges(model, rays, stratified_edges(rays.near, rays.far, samples, generator))
     behind = render_background(background, rays, background_samples_per_ray, generator)
-    rendered = composite_batched(out.sigma.reshape(r, samples), out.rgb.reshape(r, samples, 3), mids, deltas, behind.rgb)
+    rendered = composite_batched(out.sigma.reshape(r, samples), out.rgb.reshape(r, samples, 3), mids, deltas,
+                                 behind.rgb)
     return rendered, out, deltas
 
 

@@ -40,13 +40,18 @@ class OccupancyPhaseConfig(Frozen):
     samples_per_ray: int = Field(512, ge=2, le=4096)
     steps: int = Field(40_000, ge=1, le=MAX_STEPS)
     lr: float = Field(5e-4, gt=0, le=LR_MAX)
-    lr_final: float | None = Field(None, gt=0, le=LR_MAX)  # decay to this by the phase's end; None: constant (the paper)
+    lr_final: float | None = Field(None, gt=0, le=LR_MAX)  # decay to this by the phase's end;
+                                                           # None: constant (the paper)
     w_r: float = Field(1.0, ge=0, le=1e4)
     w_g: float = Field(5e-4, ge=0, le=1e4)
-    w_g_final: float | None = Field(None, ge=0, le=1e4)  # w_g decays log-linearly to this by the phase's end; None: constant
+    w_g_final: float | None = Field(None, ge=0, le=1e4)  # w_g decays log-linearly to this by the phase's end;
+                                                         # None: constant
     w_d: float = Field(0.1, ge=0, le=1e4)
     v: float = Field(80.0, gt=0, le=1e6)
     homogeneous: bool = False
+    # E_e's size (the paper's Table 9): 0 is an identity layer (the paper's choice), N an N-layer MLP; homogeneous
+    # makes it a scene expert's size instead.
+    empty_expert_layers: int = Field(0, ge=0, le=16)
     # Not in the paper (issue 16, docs/BENCHMARKS.md "ablation ladder"); 0 / True keep the paper's formulation.
     w_v: float = Field(0.0, ge=0, le=1e4)  # visibility loss: visible samples (detached render weights) away from E_e
     empty_gate_grad: bool = True  # False: the rendering loss cannot raise E_e's gate (its value is detached)

@@ -47,7 +47,8 @@ def outer_weights(target: Tensor, source: Tensor, source_weights: Tensor) -> Ten
     (R, M + 1), weights (R, M)) that overlaps it: the histogram's upper envelope on the target's intervals."""
     cumulative = torch.cat([torch.zeros_like(source_weights[:, :1]), source_weights.cumsum(-1)], -1)
     m = source_weights.shape[-1]
-    first = (torch.searchsorted(source[:, :-1].contiguous(), target[:, :-1].contiguous(), right=True) - 1).clamp(0, m - 1)
+    first = (torch.searchsorted(source[:, :-1].contiguous(), target[:, :-1].contiguous(),
+                                right=True) - 1).clamp(0, m - 1)
     last = torch.searchsorted(source[:, 1:].contiguous(), target[:, 1:].contiguous(), right=True).clamp(0, m - 1)
     return cumulative[:, 1:].gather(-1, last) - cumulative[:, :-1].gather(-1, first)
 

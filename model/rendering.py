@@ -24,7 +24,8 @@ class Rendered:
     transmittance: Tensor  # (R,) left after the foreground: the background's share
 
 
-def packed_optical_depth(sigma: Tensor, deltas: Tensor, ray_index: Tensor, num_rays: int) -> tuple[Tensor, Tensor, Tensor]:
+def packed_optical_depth(sigma: Tensor, deltas: Tensor, ray_index: Tensor,
+                         num_rays: int) -> tuple[Tensor, Tensor, Tensor]:
     """Per-sample tau_i, the optical depth before each sample (sum_{j<i} tau_j on its ray) and per ray."""
     tau = (sigma.double() * deltas.double()).clamp(0.0, TAU_MAX)
     total = torch.zeros(num_rays, dtype=torch.float64, device=tau.device).index_add_(0, ray_index, tau)
@@ -64,7 +65,8 @@ def composite_packed(
 ) -> Rendered:
     """background_rgb (R, 3) (or broadcastable) is what the remaining transmittance sees."""
     weights, remaining = packed_weights(sigma, deltas, ray_index, num_rays)
-    colour = torch.zeros(num_rays, 3, dtype=rgb.dtype, device=rgb.device).index_add_(0, ray_index, weights[:, None] * rgb)
+    colour = torch.zeros(num_rays, 3, dtype=rgb.dtype, device=rgb.device).index_add_(0, ray_index,
+                                                                                     weights[:, None] * rgb)
     depth = torch.zeros(num_rays, dtype=t_mid.dtype, device=t_mid.device).index_add_(0, ray_index, weights * t_mid)
     opacity = torch.zeros(num_rays, dtype=weights.dtype, device=weights.device).index_add_(0, ray_index, weights)
     return Rendered(colour + remaining[:, None] * background_rgb, depth, opacity, weights, remaining)

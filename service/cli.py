@@ -64,11 +64,11 @@ def build_parser() -> argparse.ArgumentParser:
     minfo.add_argument("--json", action="store_true")
     minfo.set_defaults(func=model_info_command)
 
-    from service.serve_cli import add_commands as add_service_commands
-    from service.train_cli import add_commands
     from bench.cli import add_commands as add_bench_commands
     from bench.load import add_commands as add_load_commands
     from bench.scale import add_commands as add_scale_commands
+    from service.serve_cli import add_commands as add_service_commands
+    from service.train_cli import add_commands
 
     add_commands(commands)
     add_service_commands(commands)
@@ -80,9 +80,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from model.scenes.errors import SceneError
     from pydantic import ValidationError
 
+    from model.scenes.errors import SceneError
     from service.client import ClientError
     from service.db import SchemaError
     from workers.run import RunError

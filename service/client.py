@@ -146,7 +146,8 @@ def submit_command(args: argparse.Namespace) -> int:
         return 130
     artifacts = api.call("GET", f"/v1/jobs/{job['id']}/artifacts").json()
     result = {"job": job["id"], "state": job["state"], "error": job["error"],
-              "artifacts": [f"{api.url}{a['url']}  {a['kind']:15s} {a['name']} ({a['size']:,} bytes)" for a in artifacts]}
+              "artifacts": [f"{api.url}{a['url']}  {a['kind']:15s} {a['name']} ({a['size']:,} bytes)"
+                            for a in artifacts]}
     summary = next((a for a in artifacts if a["name"] == "summary.json"), None)
     if summary is not None:
         data = api.call("GET", summary["url"]).json()
@@ -174,7 +175,8 @@ def add_submit(commands) -> None:
     sub.add_argument("--budget-min", type=float, default=None)
     sub.add_argument("--seed", type=int, default=0)
     sub.add_argument("--downscale", type=int, default=None,
-                     help="integer factor for images and intrinsics, in training and evaluation alike (default: the scene's own scale; the paper uses 4 on Mega-NeRF scenes)")
+                     help="integer factor for images and intrinsics, in training and evaluation alike "
+                          "(default: the scene's own scale; the paper uses 4 on Mega-NeRF scenes)")
     sub.add_argument("--eval-every-s", type=float, default=None,
                      help="validation PSNR every this many training seconds (the dashboard's comparison uses it)")
     sub.add_argument("--set", action="append", metavar="KEY=VALUE", help="profile override (repeatable)")

@@ -80,8 +80,8 @@ def execute(settings: Settings, job_id: int, attempt: int) -> str:
         # lapses and the reaper does the same.
         log.warning("job %s attempt %s gave the job up: %s", job_id, attempt, error)
         try:
-            retrying(f"handing job {job_id} back to the queue",
-                     lambda: queue.release(url, job_id, attempt, f"attempt {attempt} gave up: {error}"),
+            reason = f"attempt {attempt} gave up: {error}"
+            retrying(f"handing job {job_id} back to the queue", lambda: queue.release(url, job_id, attempt, reason),
                      settings.retry_s)
         except DatabaseUnavailable:
             pass

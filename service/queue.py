@@ -111,7 +111,8 @@ def requeue_expired(db_url: str, max_attempts: int) -> list[tuple[int, str]]:
             select(Job.id, Job.attempts, Job.cancel_requested, Job.lease_owner)
             .where(Job.state == "running", Job.lease_expires_at < now).with_for_update(skip_locked=True)).all()
         for job_id, attempts, cancel, owner in expired:
-            reason = f"lease of attempt {attempts} expired at {now:%Y-%m-%d %H:%M:%S} UTC (owner {owner} stopped renewing it)"
+            reason = (f"lease of attempt {attempts} expired at {now:%Y-%m-%d %H:%M:%S} UTC "
+                      f"(owner {owner} stopped renewing it)")
             if cancel:
                 state, error = "cancelled", None
             elif attempts >= max_attempts:

@@ -162,7 +162,8 @@ def dispatch(args: argparse.Namespace) -> int:
 
 
 def add_commands(commands) -> None:
-    db = commands.add_parser("db", help="database schema and artifact store upkeep").add_subparsers(dest="action", required=True)
+    db = (commands.add_parser("db", help="database schema and artifact store upkeep")
+          .add_subparsers(dest="action", required=True))
     up = db.add_parser("upgrade", help="apply the Alembic migrations (DATABASE_URL, or the embedded SQLite)")
     up.add_argument("--data-dir", help="embedded data folder (default: $LECO_DATA_DIR or ./leco-data)")
     up.set_defaults(func=db_upgrade)

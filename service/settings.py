@@ -95,10 +95,12 @@ class Settings(BaseModel):
             if not values["api_tokens"]:  # set but blank must not mean "no auth"
                 raise ValueError("LECO_API_TOKENS is set but holds no token (only spaces or commas): set tokens, "
                                  "or unset it and let `leco serve` make one")
-        for key, name in (("max_upload_bytes", "LECO_MAX_UPLOAD_BYTES"), ("lease_s", "LECO_LEASE_S"), ("db_retry_s", "LECO_DB_RETRY_S"),
+        for key, name in (("max_upload_bytes", "LECO_MAX_UPLOAD_BYTES"), ("lease_s", "LECO_LEASE_S"),
+                          ("db_retry_s", "LECO_DB_RETRY_S"),
                           ("max_attempts", "LECO_MAX_ATTEMPTS"), ("local_cpus", "LECO_LOCAL_CPUS"),
                           ("backend", "LECO_BACKEND"), ("poll_cache_s", "LECO_POLL_CACHE_S"),
-                          ("slot_memory_mb", "LECO_SLOT_MEMORY_MB"), ("cluster_max_workers", "LECO_CLUSTER_MAX_WORKERS"),
+                          ("slot_memory_mb", "LECO_SLOT_MEMORY_MB"),
+                          ("cluster_max_workers", "LECO_CLUSTER_MAX_WORKERS"),
                           ("cluster_gpus", "LECO_CLUSTER_GPUS"), ("max_scene_pixels", "LECO_MAX_SCENE_PIXELS"),
                           ("scene_workers", "LECO_SCENE_WORKERS"), ("scene_queue", "LECO_SCENE_QUEUE")):
             if env.get(name):

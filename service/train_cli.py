@@ -87,7 +87,8 @@ def add_commands(commands) -> None:
     train.add_argument("--budget-min", type=float, default=None, help="wall-clock budget in minutes")
     train.add_argument("--seed", type=int, default=0)
     train.add_argument("--downscale", type=int, default=None,
-                       help="integer factor for images and intrinsics, in training and evaluation alike (default: the scene's own scale; the paper uses 4 on Mega-NeRF scenes)")
+                       help="integer factor for images and intrinsics, in training and evaluation alike "
+                            "(default: the scene's own scale; the paper uses 4 on Mega-NeRF scenes)")
     train.add_argument("--checkpoint-every", type=int, default=200, help="steps between checkpoints")
     train.add_argument("--eval-every-s", type=float, default=None,
                        help="validation PSNR/SSIM every this many seconds of training time (not counted in it)")

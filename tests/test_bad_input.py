@@ -99,7 +99,8 @@ def test_blender_image_size_mismatch(blender):
 
 
 def test_blender_nan_pose(blender):
-    edit_json(blender / "transforms_train.json", lambda d: d["frames"][1]["transform_matrix"][0].__setitem__(3, float("nan")))
+    edit_json(blender / "transforms_train.json",
+              lambda d: d["frames"][1]["transform_matrix"][0].__setitem__(3, float("nan")))
     expect(blender, r"camera pose \(frame 1\) has non-finite values", "transforms_train.json")
 
 
@@ -147,7 +148,8 @@ def look_at_drb(position):
 def meganerf(tmp_path):
     """Three views written by hand in the Mega-NeRF layout, aimed at one ground point."""
     root = tmp_path / "mega"
-    torch.save({"origin_drb": torch.zeros(3, dtype=torch.float64), "pose_scale_factor": 10.0}, root.mkdir() or root / "coordinates.pt")
+    torch.save({"origin_drb": torch.zeros(3, dtype=torch.float64), "pose_scale_factor": 10.0},
+               root.mkdir() or root / "coordinates.pt")
     for split in ("train", "val"):
         (root / split / "metadata").mkdir(parents=True)
         (root / split / "rgbs").mkdir()
@@ -277,7 +279,7 @@ def test_unknown_format_and_missing_path(tmp_path):
 def test_blender_file_path_outside_the_scene(blender, tmp_path):
     shutil.copy(blender / "train" / "r_0.png", tmp_path / "elsewhere.png")
     for target in ("../elsewhere", str(tmp_path / "elsewhere"), "../nothing-here"):
-        edit_json(blender / "transforms_train.json", lambda d: d["frames"][1].update(file_path=target))
+        edit_json(blender / "transforms_train.json", lambda d, target=target: d["frames"][1].update(file_path=target))
         error = expect(blender, "points outside the scene folder", "transforms_train.json")
         assert error.problem == f"file_path (frame 1) {target!r} points outside the scene folder"
 

@@ -111,7 +111,13 @@ def test_bench_smoke_on_the_tiny_city(tiny_scene, tmp_path, capsys):
     assert bench("--scene", str(tiny_scene.root), "--out", str(out), "--ablation") == 0
     results = json.loads((out / "results.json").read_text())
     runs = {r["variant"]: r for r in results["runs"]}
-    assert set(runs) == {"leco", "switch", "grid", "prop", "leco-homogeneous", "leco-no-density-loss"}
+    assert set(runs) == {"leco", "switch", "grid", "prop", "leco-homogeneous", "leco-no-density-loss", "grid-256",
+                         "leco-empty-4-layer", "leco-empty-homogeneous"}
+    assert runs["grid-256"]["summary"]["occupancy"]["params"] == 256**3
+    report = (out / "report.md").read_text()
+    for title in ("Tables 4 and 5", "Table 7", "Table 9"):
+        assert f"the paper's {title})" in report
+    assert "| Grid-256 |" in report and "| E_e: identity (LeCO) |" in report and "| E_e: 4-layer MLP |" in report
     assert results["occupancy_reference"].startswith("exact ground truth")
     leco = runs["leco"]
     phases = [p["phase"] for p in leco["curve"] if "val_psnr" in p]
@@ -264,5 +270,6 @@ def test_loadtest_keeps_off_databases_in_use_and_drops_its_own(database_url):
         refuse_used_database(url)  # new and empty: accepted
     engine = create_engine(admin)
     with engine.connect() as connection:
-        assert connection.execute(text("SELECT count(*) FROM pg_database WHERE datname = :n"), {"n": name}).scalar() == 0
+        assert connection.execute(text("SELECT count(*) FROM pg_database WHERE datname = :n"),
+                                  {"n": name}).scalar() == 0
     engine.dispose()

@@ -16,7 +16,7 @@ from service.dispatcher import Dispatcher
 from service.queue import StaleAttempt
 from service.runstore import DatabaseRunStore
 from service.settings import Settings
-from service.tables import Artifact, Job, JobPhase, Metric, Scene
+from service.tables import Artifact, JobPhase, Metric, Scene
 from workers.config import TrainConfig
 
 

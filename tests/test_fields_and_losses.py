@@ -40,7 +40,8 @@ def test_imbalanced_gate_loss_optimum_is_one_at_v_over_n_plus_v():
     index = torch.cat([torch.full((c,), e) for e, c in enumerate(counts)])
     assert imbalanced_gate_loss(one_hot_probs(index, n + 1), index, v).item() == pytest.approx(1.0)
     everything_to_one = torch.zeros(total, dtype=torch.long)
-    assert imbalanced_gate_loss(one_hot_probs(everything_to_one, n + 1), everything_to_one, v).item() == pytest.approx(n + v)
+    assert (imbalanced_gate_loss(one_hot_probs(everything_to_one, n + 1), everything_to_one, v).item()
+            == pytest.approx(n + v))
     all_empty = torch.full((total,), n)
     assert imbalanced_gate_loss(one_hot_probs(all_empty, n + 1), all_empty, v).item() == pytest.approx((n + v) / v)
 

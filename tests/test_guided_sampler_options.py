@@ -117,7 +117,8 @@ class WallField(torch.nn.Module):
         sigma = wall(xyz).float() * 1e3
         rgb = torch.tensor([1.0, 0.0, 0.0]).expand(len(xyz), 3)
         n = len(xyz)
-        return FieldOutput(sigma, rgb, torch.ones(n, 1), torch.zeros(n, dtype=torch.long), torch.ones(n, dtype=torch.bool))
+        return FieldOutput(sigma, rgb, torch.ones(n, 1), torch.zeros(n, dtype=torch.long),
+                           torch.ones(n, dtype=torch.bool))
 
 
 def straight_rays(n=16):
@@ -166,7 +167,8 @@ def test_transmittance_culling_in_the_guided_render_counts_both_passes():
     background = BackgroundField(1, width=8, layers=1, frequencies=2, dir_frequencies=2, appearance_dim=4)
     everything = lambda points: torch.ones(len(points), dtype=torch.bool)
     plain = render_guided(field, background, rays, profile, everything, None)
-    culled_profile = profile.model_copy(update={"guided": profile.guided.model_copy(update={"cull_transmittance": 1e-4})})
+    culled_profile = profile.model_copy(
+        update={"guided": profile.guided.model_copy(update={"cull_transmittance": 1e-4})})
     culled = render_guided(field, background, rays, culled_profile, everything, None)
     assert torch.allclose(plain.rendered.rgb, culled.rendered.rgb, atol=1e-3)
     evaluated = plain.samples_per_ray  # every sample, once

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from model import lpips
-from model.lpips import BACKBONES, PINNED_SHA256, LPIPS, LPIPSScores, load_lpips
+from model.lpips import BACKBONES, LPIPS, PINNED_SHA256, LPIPSScores, load_lpips
 
 # Where torchvision's alexnet() and vgg16() keep their convolutions inside `features` (and their widths).
 TORCHVISION_CONVS = {

@@ -25,7 +25,8 @@ def test_the_estimate_of_a_steps_activations_is_within_15_percent_of_what_autogr
     field, behind = switch_nerf(profile, 10), background(profile, 10)
     with SavedTensorBytes() as saved:
         loss, _ = main_loss(render_vanilla(field, behind, random_rays(profile.rays_per_device), profile,
-                                           torch.Generator().manual_seed(0)), random_rays(profile.rays_per_device), 5e-4)
+                                           torch.Generator().manual_seed(0)),
+                            random_rays(profile.rays_per_device), 5e-4)
     weights = sum(p.numel() * 4 for m in (field, behind) for p in m.parameters())
     kept = saved.megabytes * 2**20 - weights  # the hook also sees the weights (saved by the matmuls)
     estimated = estimate_peak_bytes("switch", profile, 10)["training_activations"]

@@ -79,7 +79,8 @@ def test_opencv_distortion_is_applied(nerfstudio):
     assert cams.distortion[0].tolist() == pytest.approx([-0.1, 0.01, 1e-3, -1e-3])
     # Known camera-frame directions -> ideal image coordinates -> distorted pixels.
     g = torch.Generator().manual_seed(0)
-    x, y = (torch.rand(200, generator=g, dtype=torch.float64) - 0.5) * 0.7, (torch.rand(200, generator=g, dtype=torch.float64) - 0.5) * 0.7
+    x, y = ((torch.rand(200, generator=g, dtype=torch.float64) - 0.5) * 0.7,
+            (torch.rand(200, generator=g, dtype=torch.float64) - 0.5) * 0.7)
     xd, yd = distort(x, y, **k)
     u, v = xd * FOCAL + 100 - 0.5, yd * FOCAL + 100 - 0.5
     cam = torch.zeros(200, dtype=torch.long)
@@ -135,9 +136,9 @@ def test_paths_outside_the_scene_are_refused_alike_whether_they_exist(nerfstudio
     messages = []
     for target in ("/proc/self/environ", "../other/stolen.png", "../other/absent.png", "images/../../ns/../x"):
         if field == "file_path":
-            rewrite(nerfstudio, lambda d: d["frames"][0].update(file_path=target))
+            rewrite(nerfstudio, lambda d, target=target: d["frames"][0].update(file_path=target))
         else:
-            rewrite(nerfstudio, lambda d: d.update(ply_file_path=target))
+            rewrite(nerfstudio, lambda d, target=target: d.update(ply_file_path=target))
         with pytest.raises(SceneError) as info:
             load_scene(nerfstudio)
         assert info.value.path.name == "transforms.json"

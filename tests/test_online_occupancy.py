@@ -4,8 +4,8 @@ surface O missed, and that a LeCO run with it trains, saves the O it ended with 
 import torch
 
 from model.fields.hmoe import OccupancyNetwork
-from model.online_occupancy import OnlineOccupancy
 from model.occupancy import OccupancyPredictor
+from model.online_occupancy import OnlineOccupancy
 from model.rendering import packed_weights
 from model.samplers import PackedSamples, guided_samples
 from model.scenes.rays import RayBatch
@@ -28,7 +28,8 @@ def ray_batch(n: int) -> RayBatch:
 def test_kept_bins_teach_surface_and_seen_through_space_and_nothing_else():
     rays = ray_batch(1)
     # Samples in bins 0, 1 and 2 of 4 (bin 3 skipped); bin 1 holds the surface, bin 2 lies behind it.
-    samples = PackedSamples(torch.tensor([0.5, 2.5, 4.5]), torch.tensor([1.0, 3.0, 5.0]), torch.zeros(3, dtype=torch.long))
+    samples = PackedSamples(torch.tensor([0.5, 2.5, 4.5]), torch.tensor([1.0, 3.0, 5.0]),
+                            torch.zeros(3, dtype=torch.long))
     weights = torch.tensor([0.004, 0.8, 0.003])
     online = OnlineOccupancy(OccupancyNetwork(2, 16, 4), empty_threshold=0.9)
     target, mask = online.bin_targets(samples, weights, rays, num_coarse=4)

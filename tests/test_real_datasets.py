@@ -69,7 +69,8 @@ def test_lego_bounds_hold_the_model(lego):
     assert lego.bounds.source == "camera_axes"
     assert (aabb_source[0] <= torch.tensor([-1.2, -1.2, -0.4], dtype=torch.float64)).all()
     assert (aabb_source[1] >= torch.tensor([1.2, 1.2, 1.1], dtype=torch.float64)).all()
-    inside = ((lego.train.cameras.centers >= lego.bounds.aabb[0]) & (lego.train.cameras.centers <= lego.bounds.aabb[1])).all(-1)
+    inside = ((lego.train.cameras.centers >= lego.bounds.aabb[0])
+              & (lego.train.cameras.centers <= lego.bounds.aabb[1])).all(-1)
     assert not inside.any()
 
 

@@ -41,7 +41,8 @@ def test_ray_with_no_samples_renders_the_background():
     sigma = torch.tensor([5.0, 5.0])
     out = composite_packed(sigma, torch.ones(2, 3), torch.tensor([1.0, 2.0]), torch.tensor([0.1, 0.1]),
                            torch.tensor([0, 0]), 3, torch.tensor([[0.0, 0.0, 0.0], [0.3, 0.3, 0.3], [0.9, 0.1, 0.1]]))
-    assert torch.allclose(out.rgb[1], torch.tensor([0.3, 0.3, 0.3])) and torch.allclose(out.rgb[2], torch.tensor([0.9, 0.1, 0.1]))
+    assert (torch.allclose(out.rgb[1], torch.tensor([0.3, 0.3, 0.3]))
+            and torch.allclose(out.rgb[2], torch.tensor([0.9, 0.1, 0.1])))
     assert out.opacity[1:].tolist() == [0.0, 0.0] and out.transmittance[1:].tolist() == [1.0, 1.0]
 
 
@@ -55,7 +56,8 @@ def test_gradients_finite_on_hard_cases():
 
 
 def test_opaque_first_sample_takes_all_weight():
-    w, remaining = packed_weights(torch.tensor([1e6, 1.0, 1.0]), torch.tensor([1e10, 1.0, 1.0]), torch.zeros(3, dtype=torch.long), 1)
+    w, remaining = packed_weights(torch.tensor([1e6, 1.0, 1.0]), torch.tensor([1e10, 1.0, 1.0]),
+                                  torch.zeros(3, dtype=torch.long), 1)
     assert w.tolist() == pytest.approx([1.0, 0.0, 0.0]) and remaining.item() == 0.0
 
 
@@ -113,5 +115,6 @@ def test_background_samples_and_compositing():
     assert torch.allclose(bg.opacity, torch.ones(3), atol=1e-5)  # the opaque last sample covers the sky
     # Foreground with no density shows the background exactly; an opaque one hides it.
     clear = composite_batched(torch.zeros(3, 4), torch.ones(3, 4, 3), torch.ones(3, 4), torch.full((3, 4), 0.1), bg.rgb)
-    opaque = composite_batched(torch.full((3, 4), 1e6), torch.ones(3, 4, 3), torch.ones(3, 4), torch.full((3, 4), 0.1), bg.rgb)
+    opaque = composite_batched(torch.full((3, 4), 1e6), torch.ones(3, 4, 3), torch.ones(3, 4), torch.full((3, 4), 0.1),
+                               bg.rgb)
     assert torch.allclose(clear.rgb, bg.rgb) and torch.allclose(opaque.rgb, torch.ones(3, 3))

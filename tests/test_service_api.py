@@ -198,7 +198,8 @@ def test_job_requests_are_validated_field_by_field(api):
         ({"scene": scene["id"], "method": "leco", "downscale": 0}, "downscale"),
         ({"scene": scene["id"], "method": "leco", "downscale": 1.5}, "downscale"),
         ({"scene": scene["id"], "method": "leco", "downscale": 65}, "downscale"),
-        ({"scene": scene["id"], "method": "leco", "overrides": {"occupancy.stepz": 5}}, "'occupancy.stepz': no such setting"),
+        ({"scene": scene["id"], "method": "leco", "overrides": {"occupancy.stepz": 5}},
+         "'occupancy.stepz': no such setting"),
         ({"scene": scene["id"], "method": "leco", "profile": "huge"}, "unknown profile 'huge'"),
         ({"method": "leco"}, "scene"),
     ]
@@ -358,7 +359,8 @@ def test_the_token_is_checked_and_the_body_capped_before_the_body_is_read(api):
         assert answer.status_code == 401 and answer.headers["www-authenticate"] == "Bearer", answer.text
     answer = bare.post("/v1/scenes/upload", params={"name": "x"}, content=b"x" * 1000)
     assert answer.status_code == 401
-    huge = api.post("/v1/jobs", content=b"{" + b" " * MAX_JSON_BODY + b"}", headers={"content-type": "application/json"})
+    huge = api.post("/v1/jobs", content=b"{" + b" " * MAX_JSON_BODY + b"}",
+                    headers={"content-type": "application/json"})
     assert huge.status_code == 413 and "limit" in huge.json()["detail"]
 
     def chunks():  # no Content-Length: the size is counted as it arrives

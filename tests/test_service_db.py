@@ -10,8 +10,16 @@ from alembic.migration import MigrationContext
 from sqlalchemy import inspect, select, update
 
 from service import queue
-from service.db import (SchemaError, alembic_config, check_schema, current_revision, engine_for, head_revision,
-                        transaction, upgrade)
+from service.db import (
+    SchemaError,
+    alembic_config,
+    check_schema,
+    current_revision,
+    engine_for,
+    head_revision,
+    transaction,
+    upgrade,
+)
 from service.tables import Artifact, Base, Job, JobPhase, Scene, utcnow
 from workers.config import TrainConfig
 

@@ -132,7 +132,8 @@ def test_a_killed_dispatcher_loses_its_lease_and_the_job_resumes_once(api, servi
         os.kill(first.pid, signal.SIGKILL)  # the dispatcher, with its local Ray, dies mid-job
         first.wait(10)
     finally:
-        try:  # Ray's agents of the dead dispatcher outlive it in its process group: clear them, as a container stop would
+        try:  # Ray's agents of the dead dispatcher outlive it in its process group:
+              # clear them, as a container stop would
             os.killpg(first.pid, signal.SIGKILL)
         except ProcessLookupError:
             pass

@@ -6,10 +6,11 @@ import os
 
 import pytest
 from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
 
+from service.db import reading
 from service.store import ArtifactError, ArtifactStore, CorruptArtifact
 from service.tables import Artifact
-from service.db import reading
 from tests.test_service_db import add_jobs, add_scene
 
 
@@ -61,7 +62,7 @@ def test_corrupted_or_missing_bytes_are_detected(store_and_job):
 
 def test_a_failed_row_leaves_no_bytes(store_and_job):
     store, job = store_and_job
-    with pytest.raises(Exception):  # the foreign key refuses a job that does not exist
+    with pytest.raises(IntegrityError):  # the foreign key refuses a job that does not exist
         store.put(job + 100, "report", "x.json", b"orphan?")
     assert blobs(store.root) == []
     with reading(store.db_url) as session:

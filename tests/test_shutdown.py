@@ -37,7 +37,8 @@ def test_ctrl_c_on_leco_serve_returns_the_job_to_the_queue_and_a_restart_finishe
     finally:
         stop(first)
     with sqlite3.connect(data / "leco.db") as db:
-        state, attempts, error = db.execute("SELECT state, attempts, error FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        state, attempts, error = db.execute("SELECT state, attempts, error FROM jobs WHERE id = ?",
+                                            (job_id,)).fetchone()
     assert (state, attempts) == ("queued", 1) and "its dispatcher" in error, (state, attempts, error)
     log = (data / "serve.log").read_text()
     assert "returned to the queue" in log and "Traceback" not in log.split("returned to the queue")[-1]

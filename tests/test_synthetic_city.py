@@ -10,8 +10,7 @@ import pytest
 import torch
 from PIL import Image
 
-from model.scenes.synthetic import PRESETS, build_city, generate, raycast
-from model.scenes.synthetic import writer
+from model.scenes.synthetic import PRESETS, build_city, generate, raycast, writer
 from model.scenes.synthetic.city import POLE
 from model.scenes.synthetic.raycast import GROUND, SKY
 from model.scenes.synthetic.shading import SUN, ground_albedo, shade

@@ -82,7 +82,8 @@ def test_smoke_run_writes_a_valid_summary(method, tiny_scene, tmp_path):
     assert all(r["rays_per_s"] > 0 and r["peak_memory_mb"] > 0 for r in rows)
     assert 5 < summary["val"]["psnr"] < 60 and 0 < summary["val"]["ssim"] <= 1
     assert (tmp_path / "run" / "occupancy.ply").read_bytes().startswith(b"ply\n")
-    assert list((tmp_path / "run" / "renders").glob("step*.png")) and list((tmp_path / "run" / "renders").glob("final_*.png"))
+    assert (list((tmp_path / "run" / "renders").glob("step*.png"))
+            and list((tmp_path / "run" / "renders").glob("final_*.png")))
     if method == "switch":
         assert summary["occupancy"] is None and summary["samples_per_ray"] == 8 + 8 + 16  # coarse twice + fine
     elif method == "prop":  # its occupancy is scored, but it keeps no coarse bins to count a ratio over
@@ -228,6 +229,7 @@ def test_train_command_names_bad_arguments_and_writes_nothing(tiny_scene, tmp_pa
     assert "workers: Input should be less than or equal to 8" in capsys.readouterr().err
     assert main(base + ["--set", "network.width=-1"]) == 2
     assert "network.width" in capsys.readouterr().err
-    assert main(["train", "--scene", str(tmp_path / "missing"), "--method", "leco", "--out", str(tmp_path / "run")]) == 2
+    assert main(["train", "--scene", str(tmp_path / "missing"), "--method", "leco",
+                 "--out", str(tmp_path / "run")]) == 2
     assert "scene folder does not exist" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()

@@ -3,10 +3,10 @@
 import pytest
 import torch
 
+from model.methods import get_method
 from model.schedules import log_linear, phase_progress
 from model.warm_start import warm_start_main
 from workers.config import TrainConfig
-from model.methods import get_method
 from workers.models import build_models, build_optimizer
 from workers.run import run_training
 from workers.sinks import read_metrics
@@ -70,8 +70,8 @@ def test_a_wider_occupancy_network_saves_loads_and_warm_starts_what_still_fits(t
     gate = models.hmoe.gate
     assert gate.input_layer.out_features == 16 and gate.inner[0].weight.shape == (32, 16)  # experts stay 16 wide
     own = lambda w: (16 * w + w) + (w * w + w) + 2 * w + (w * 3 + 3)  # inner, LayerNorm, 2 experts + E_e logits
-    narrow = build_models(get_method("leco")(TrainConfig(method="leco", profile="smoke").resolved_profile()), tiny_scene.num_images,
-                       tiny_scene.bounds.aabb, 0).hmoe.gate
+    narrow = build_models(get_method("leco")(TrainConfig(method="leco", profile="smoke").resolved_profile()),
+                          tiny_scene.num_images, tiny_scene.bounds.aabb, 0).hmoe.gate
     count = lambda m: sum(p.numel() for p in m.parameters())
     assert count(gate) - count(narrow) == own(32) - own(16)
     predictor = OccupancyPredictor.from_hmoe(models.hmoe, empty_threshold=0.9)
@@ -102,8 +102,8 @@ def test_relu_on_every_layer_of_o_is_a_different_function_that_saves_and_loads(t
     overrides = {"occupancy.gate_relu_every_layer": True}
     profile = TrainConfig(method="leco", profile="smoke", overrides=overrides).resolved_profile()
     hmoe = build_models(get_method("leco")(profile), tiny_scene.num_images, tiny_scene.bounds.aabb, 0).hmoe
-    plain = build_models(get_method("leco")(TrainConfig(method="leco", profile="smoke").resolved_profile()), tiny_scene.num_images,
-                      tiny_scene.bounds.aabb, 0).hmoe
+    plain = build_models(get_method("leco")(TrainConfig(method="leco", profile="smoke").resolved_profile()),
+                         tiny_scene.num_images, tiny_scene.bounds.aabb, 0).hmoe
     plain.gate.load_state_dict(hmoe.gate.state_dict())  # same keys and weights: only the activations differ
     xyz = torch.rand(500, 3) * 2 - 1
     with torch.no_grad():
@@ -124,7 +124,8 @@ def test_after_a_warm_start_the_main_lr_ramps_up_over_its_steps(tiny_scene, tmp_
     run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")
     profile = cfg.resolved_profile()
     method = get_method("leco")(profile)
-    _, _, lr_at = build_optimizer(method, build_models(method, tiny_scene.num_images, tiny_scene.bounds.aabb, 0), "main")
+    _, _, lr_at = build_optimizer(method, build_models(method, tiny_scene.num_images, tiny_scene.bounds.aabb, 0),
+                                  "main")
     main = [r for r in read_metrics(tmp_path / "run" / "metrics.jsonl") if r["phase"] == "main"]
     assert len(main) == main_steps
     for k, row in enumerate(main):

@@ -10,17 +10,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from model.metrics import psnr, ssim
 from model.lpips import LPIPSScores
+from model.methods.base import method_state
+from model.metrics import psnr, ssim
 from model.occupancy_eval import evaluate_occupancy, evaluate_occupancy_exact
 from model.samplers import stratified_edges
 from model.scenes import load_scene
 from model.scenes.rays import PixelTable
+from workers.appearance import prepare_validation_appearance, protocol, right_columns, scored_truth
 from workers.config import TrainConfig
-from model.methods.base import method_state
 from workers.models import build_models
 from workers.pixels import attach_pixel_stores
-from workers.appearance import prepare_validation_appearance, protocol, right_columns, scored_truth
 from workers.validation import render_image, save_triptych
 
 OCCUPANCY_RESOLUTION = 64

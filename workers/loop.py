@@ -18,9 +18,9 @@ from pathlib import Path
 
 import torch
 
-from model.schedules import phase_progress
-from model.scenes import RaySampler, load_scene
 from model.methods.base import method_state
+from model.scenes import RaySampler, load_scene
+from model.schedules import phase_progress
 from workers.config import TrainConfig
 from workers.distributed import any_rank, any_rank_each, average_gradients, grads_finite, is_distributed
 from workers.memory import SavedTensorBytes

@@ -36,7 +36,8 @@ class PeriodicEval:
         images = list(range(self.count))
         columns = lambda image: None
         if "val" in run.scene.splits:  # the protocol; a scene without a val split is scored on training views
-            prepare_validation_appearance(run.method, run.models, phase, self.views, run.scene.train, images, run.aabb, run.device, run.cfg.val_appearance_steps)
+            prepare_validation_appearance(run.method, run.models, phase, self.views, run.scene.train, images, run.aabb,
+                                          run.device, run.cfg.val_appearance_steps)
             columns = lambda image: right_columns(self.views, image)
         for image in images:
             rgb, _ = render_image(run.method, run.models, phase, self.table, image, run.aabb, run.device,

@@ -84,8 +84,10 @@ class HMoE(nn.Module):
         empty_gate_grad: bool = True,
         gate_width: int | None = None,
         gate_relu_every_layer: bool = False,
+        empty_expert_layers: int = 0,
     ):
-        """homogeneous=True makes E_e a full expert (the paper's ablation) instead of an identity layer.
+        """homogeneous=True makes E_e a full expert (the paper's ablation) instead of an identity layer;
+        empty_expert_layers=N an N-layer one (Table 9's 4-layer row).
         empty_gate_grad=False detaches E_e's gate value where it scales E_e's output, so the rendering loss
         cannot lock a visible surface into E_e by raising that gate; L_g and L_d still train it."""
         super().__init__()
@@ -95,7 +97,8 @@ class HMoE(nn.Module):
         self.appearance = nn.Embedding(num_images, appearance_dim)
         self.scene_experts = nn.ModuleList(Expert(width, expert_layers) for _ in range(num_scene_experts))
         self.scene_head = SceneHead(width, self.dir_encoding.out_dim, appearance_dim, density_noise)
-        self.empty_expert = Expert(width, expert_layers) if homogeneous else nn.Identity()
+        layers = expert_layers if homogeneous else empty_expert_layers
+        self.empty_expert = Expert(width, layers) if layers else nn.Identity()
         self.empty_head = EmptyHead(width, density_noise)
 
     def forward(self, xyz: Tensor, dirs: Tensor, image_index: Tensor) -> FieldOutput:

@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from model.main_phase import MainRender, grid_step_size, main_loss, render_grid
+from model.main_phase import MainRender, grid_step_size, render_grid
 from model.methods.base import Method, Networks, Occupied, PhaseMemory, SweepPoint, mean_of
 from model.occupancy_grid import OccupancyGrid
 from model.scenes.rays import RayBatch

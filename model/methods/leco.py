@@ -12,8 +12,17 @@ from torch import Tensor, nn
 
 from model.fields.hmoe import HMoE
 from model.main_phase import MainRender, render_guided
-from model.methods.base import (Method, Networks, Occupied, PhaseMemory, SweepPoint, background, count, mean_of,
-                                switch_nerf)
+from model.methods.base import (
+    Method,
+    Networks,
+    Occupied,
+    PhaseMemory,
+    SweepPoint,
+    background,
+    count,
+    mean_of,
+    switch_nerf,
+)
 from model.occupancy import OccupancyPredictor
 from model.occupancy_phase import occupancy_step, render_hmoe
 from model.online_occupancy import OnlineOccupancy
@@ -28,7 +37,7 @@ def hmoe(profile: Profile, num_images: int) -> HMoE:
     return HMoE(num_images, n.width, n.num_experts, n.expert_layers, n.xyz_frequencies, n.dir_frequencies,
                 n.appearance_dim, profile.occupancy.homogeneous, n.density_noise,
                 profile.occupancy.empty_gate_grad, profile.occupancy.gate_width,
-                profile.occupancy.gate_relu_every_layer)
+                profile.occupancy.gate_relu_every_layer, profile.occupancy.empty_expert_layers)
 
 
 class LeCOMethod(Method):
@@ -81,7 +90,8 @@ class LeCOMethod(Method):
         lean = (SweepPoint("lean", f"dilation {g.dilate - 1}", {"guided.dilate": g.dilate - 1}) if g.dilate > 0
                 else SweepPoint("lean", f"split {max(g.split // 2, 1)}", {"guided.split": max(g.split // 2, 1)}))
         return [lean,
-                SweepPoint("rich", f"{2 * g.coarse_samples} coarse bins", {"guided.coarse_samples": 2 * g.coarse_samples}),
+                SweepPoint("rich", f"{2 * g.coarse_samples} coarse bins",
+                           {"guided.coarse_samples": 2 * g.coarse_samples}),
                 SweepPoint("cull", "culling T < 1e-3", {"guided.cull_transmittance": 1e-3})]
 
     # ----- a run --------------------------------------------------------------------------------------

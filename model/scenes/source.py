@@ -56,7 +56,8 @@ def check_pose(path: Path, c2w: Tensor, where: str = "") -> None:
 
 def check_intrinsics(path: Path, intrinsics: Tensor, width: int, height: int) -> None:
     if not torch.isfinite(intrinsics).all() or bool((intrinsics[:2] <= 0).any()):
-        raise SceneError(path, f"camera intrinsics must be finite with positive focal lengths, got {intrinsics.tolist()}")
+        raise SceneError(path, "camera intrinsics must be finite with positive focal lengths, "
+                               f"got {intrinsics.tolist()}")
     if width <= 0 or height <= 0:
         raise SceneError(path, f"image size must be positive, got {width}x{height}")
 

@@ -20,7 +20,6 @@ from service.db import check_schema, first_line
 from service.settings import Settings
 from service.workpool import RETRY_AFTER_S, Busy, WorkerLost, WorkPool
 
-
 log = logging.getLogger("leco.api")
 
 

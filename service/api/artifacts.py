@@ -66,7 +66,7 @@ def download(artifact_id: RowId, request: Request, settings: Settings = Depends(
     try:
         path = ArtifactStore(settings.db_url, settings.artifacts).verified_path(meta)
     except CorruptArtifact as error:
-        raise HTTPException(500, f"integrity check failed: {error}")
+        raise HTTPException(500, f"integrity check failed: {error}") from None
     filename = meta["name"].rsplit("/", 1)[-1]
     return FileResponse(path, media_type=meta["content_type"], filename=filename,
                         headers={"ETag": etag, "X-Checksum-SHA256": meta["sha256"]})

@@ -1,4 +1,5 @@
-"""What every route needs: the settings, the poll cache and the scene pool (bearer-token auth is service/api/gate.py)."""
+"""What every route needs: the settings, the poll cache and the scene pool
+(bearer-token auth is service/api/gate.py)."""
 
 from __future__ import annotations
 

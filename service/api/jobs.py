@@ -16,9 +16,9 @@ from sqlalchemy.exc import IntegrityError
 from model.memory_estimate import RUNTIME_BYTES, describe, estimate_peak_bytes
 from model.scenes.formats.llff import folder_factor
 from service import queue
-from service.api.methods import check_method_filter
 from service.api.deps import MAX_INT, RowId, not_found, poll_cache_of
 from service.api.links import cancelled_job_links, deleted_job_links, job_links, links, submitted_job_links
+from service.api.methods import check_method_filter
 from service.api.scenes import find_scene
 from service.api.schemas import JobList, JobOut, JobRequest, MetricsOut, PhaseOut, Point, Series
 from service.db import reading, transaction
@@ -65,7 +65,8 @@ def check_resources(cfg: TrainConfig, settings: Settings, num_images: int) -> No
 
     cluster = settings.ray_address is not None
     if cluster and cfg.workers > settings.cluster_max_workers:
-        problem("workers", f"{cfg.workers} workers asked for; this cluster gives a job at most {settings.cluster_max_workers}")
+        problem("workers", f"{cfg.workers} workers asked for; "
+                           f"this cluster gives a job at most {settings.cluster_max_workers}")
     if not cluster and cfg.workers > settings.local_cpus:
         problem("workers", f"{cfg.workers} workers asked for; this service's local Ray has {settings.local_cpus} CPUs")
     gpu_memory = None

@@ -26,7 +26,6 @@ from typing import Callable, Hashable
 
 from starlette.concurrency import run_in_threadpool
 
-
 LISTS = 0  # the job id under which job lists are kept (real ids start at 1): every job's change touches them
 
 

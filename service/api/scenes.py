@@ -45,7 +45,7 @@ def create_synthetic(body: SyntheticSceneRequest, settings: Settings = Depends(s
     try:
         scene_id = registry.register_synthetic(settings, name, body.preset, body.seed, pool)
     except registry.SceneConflict as error:
-        raise HTTPException(409, str(error))
+        raise HTTPException(409, str(error)) from None
     with reading(settings.db_url) as session:
         return scene_out(session.get(Scene, scene_id))
 
@@ -83,11 +83,12 @@ async def _receive_and_register(request: Request, name: str, settings: Settings,
         try:
             return await run_in_threadpool(_register_when_running, pool, settings, name, Path(tmp.name))
         except registry.SceneConflict as error:
-            raise HTTPException(409, str(error))
+            raise HTTPException(409, str(error)) from None
         except WorkerLost as error:  # killed while reading it: the same archive would be killed again
-            raise HTTPException(422, f"archive refused: {error}")
+            raise HTTPException(422, f"archive refused: {error}") from None
         except (ValueError, OSError) as error:  # ArchiveError, SceneError, unreadable images: the user's archive
-            raise HTTPException(422, f"archive refused: {error}".replace(str(settings.scenes_dir), "<upload>"))
+            raise HTTPException(422, f"archive refused: {error}".replace(str(settings.scenes_dir),
+                                                                         "<upload>")) from None
 
 
 def _register_when_running(pool: WorkPool, settings: Settings, name: str, archive: Path) -> int:
@@ -145,4 +146,5 @@ def cameras(scene: str, settings: Settings = Depends(settings_of), pool: WorkPoo
         try:
             return registry.read_layout(settings, scene_id, path, pool)
         except ValueError as error:  # SceneError: over today's pixel budget, or changed on disk since
-            raise HTTPException(422, f"cannot read the scene's cameras: {error}".replace(str(path), "<scene>"))
+            raise HTTPException(422, f"cannot read the scene's cameras: {error}".replace(str(path),
+                                                                                         "<scene>")) from None

@@ -73,7 +73,8 @@ class JobOut(BaseModel):
     started_at: datetime | None
     finished_at: datetime | None
     phases: list[PhaseOut]
-    latest_metrics: dict[str, dict[str, float]] = Field(description="per phase: metric name -> value at its latest step")
+    latest_metrics: dict[str, dict[str, float]] = Field(
+        description="per phase: metric name -> value at its latest step")
 
 
 class JobList(BaseModel):

@@ -59,7 +59,8 @@ def load_llff(root: Path, downscale: int | None) -> SourceScene:
     if array.ndim != 2 or array.shape[1] != 17 or len(array) == 0:
         raise SceneError(path, f"must be an N x 17 array, got shape {array.shape}")
     if not np.isfinite(array).all():
-        raise SceneError(path, f"has non-finite values in row(s) {sorted(set(np.nonzero(~np.isfinite(array))[0].tolist()))}")
+        raise SceneError(path, "has non-finite values in row(s) "
+                               f"{sorted(set(np.nonzero(~np.isfinite(array))[0].tolist()))}")
     folder, factor, extra = pick_folder(root, downscale)
     files = sorted(scene_file(root, p) for p in folder.iterdir() if p.suffix in IMAGE_SUFFIXES)
     if len(files) != len(array):

@@ -36,7 +36,8 @@ def read_coordinates(root: Path) -> tuple[Tensor, float]:
     origin = torch.as_tensor(data["origin_drb"], dtype=torch.float64).reshape(-1)
     scale = float(data["pose_scale_factor"])
     if origin.shape != (3,) or not torch.isfinite(origin).all() or not np.isfinite(scale) or scale <= 0:
-        raise SceneError(path, f"origin_drb must be 3 finite numbers and pose_scale_factor > 0, got {origin.tolist()}, {scale}")
+        raise SceneError(path, "origin_drb must be 3 finite numbers and pose_scale_factor > 0, "
+                               f"got {origin.tolist()}, {scale}")
     return origin, scale
 
 
@@ -57,7 +58,8 @@ def read_metadata(path: Path) -> dict:
     width, height = int(meta["W"]), int(meta["H"])
     check_intrinsics(path, intrinsics, width, height)
     distortion = meta.get("distortion")
-    distortion = torch.zeros(4) if distortion is None else torch.as_tensor(distortion, dtype=torch.float64).reshape(-1)[:4]
+    distortion = (torch.zeros(4) if distortion is None
+                  else torch.as_tensor(distortion, dtype=torch.float64).reshape(-1)[:4])
     return {"W": width, "H": height, "intrinsics": intrinsics, "c2w": c2w, "distortion": distortion}
 
 

@@ -11,7 +11,14 @@ from model.scenes.formats.jsonfile import field, frames, number, opengl_pose, re
 from model.scenes.formats.points import read_ply_points
 from model.scenes.images import ImageFile, check_image_size, probe_image
 from model.scenes.paths import named_file, scene_file
-from model.scenes.source import SourceScene, SplitBuilder, check_intrinsics, rotate_source, scale_intrinsics, up_alignment
+from model.scenes.source import (
+    SourceScene,
+    SplitBuilder,
+    check_intrinsics,
+    rotate_source,
+    scale_intrinsics,
+    up_alignment,
+)
 
 SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
 VAL_EVERY = 8  # without explicit split lists, every 8th frame is held out (the LLFF/nerfstudio habit)
@@ -22,7 +29,8 @@ def frame_camera(path: Path, data: dict, frame: dict, where: str) -> tuple[torch
     merged = {**data, **frame}
     model = str(merged.get("camera_model", "OPENCV"))
     if model not in SUPPORTED_MODELS:
-        raise SceneError(path, f"camera_model {model!r}{where} is not supported (use one of {', '.join(SUPPORTED_MODELS)})")
+        raise SceneError(path, f"camera_model {model!r}{where} is not supported "
+                               f"(use one of {', '.join(SUPPORTED_MODELS)})")
     fx = number(path, merged, "fl_x", where)
     fy = number(path, merged, "fl_y", where, default=fx)
     w, h = int(number(path, merged, "w", where)), int(number(path, merged, "h", where))

@@ -79,7 +79,8 @@ def add_building(rng, p: CityPreset, x0: float, y0: float, lot: float, owner: in
     lo = np.array([x0 + inset[0], y0 + inset[1]])
     hi = np.array([x0 + lot - inset[2], y0 + lot - inset[3]])
     tower = rng.random() < 0.12
-    height = p.max_height * rng.uniform(0.75, 1.0) if tower else min(p.max_height * 0.6, rng.lognormal(np.log(p.max_height * 0.25), 0.4))
+    height = (p.max_height * rng.uniform(0.75, 1.0) if tower
+              else min(p.max_height * 0.6, rng.lognormal(np.log(p.max_height * 0.25), 0.4)))
     height = float(max(4.0, height))
     colour = (np.array([0.55, 0.5, 0.45]) + rng.uniform(-0.2, 0.25, 3)).clip(0.15, 0.9).tolist()
     size = hi - lo

@@ -54,7 +54,8 @@ def ground_albedo(p: Tensor, geometry: CityGeometry) -> Tensor:
     asphalt = torch.tensor([0.22, 0.22, 0.24]) * (0.85 + 0.3 * fine)
     pavement = torch.tensor([0.58, 0.56, 0.52]) * (0.8 + 0.4 * fine)
     grass = torch.tensor([0.25, 0.45, 0.18]) * (0.7 + 0.6 * fine) * (0.85 + 0.3 * coarse)
-    field = torch.tensor([0.45, 0.42, 0.22]) + torch.tensor([-0.2, 0.05, -0.05]) * hash_noise(lattice(p, 20.0), 3)[:, None]
+    field = (torch.tensor([0.45, 0.42, 0.22])
+             + torch.tensor([-0.2, 0.05, -0.05]) * hash_noise(lattice(p, 20.0), 3)[:, None])
     field = field * (0.85 + 0.3 * fine)
     albedo = torch.where(inside[:, None], grass, field)
     albedo = torch.where(sidewalk[:, None], pavement, albedo)
@@ -64,7 +65,8 @@ def ground_albedo(p: Tensor, geometry: CityGeometry) -> Tensor:
     centre_y = (sy - pr.street_width / 2).abs() < 0.2
     dash_y = torch.remainder(y, 4.0) < 2.0
     dash_x = torch.remainder(x, 4.0) < 2.0
-    marking = inside & ((centre_x & in_street_x & ~in_street_y & dash_y) | (centre_y & in_street_y & ~in_street_x & dash_x))
+    marking = inside & ((centre_x & in_street_x & ~in_street_y & dash_y)
+                        | (centre_y & in_street_y & ~in_street_x & dash_x))
     return torch.where(marking[:, None], torch.tensor([0.9, 0.9, 0.85]), albedo)
 
 

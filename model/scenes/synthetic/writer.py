@@ -34,7 +34,8 @@ def render_view(geometry: CityGeometry, c2w: torch.Tensor, intr: torch.Tensor, p
     s = p.supersample
     fx, fy, cx, cy = intr.tolist()
     offsets = (torch.arange(s, dtype=torch.float64) + 0.5) / s  # sub-pixel positions
-    v, u = torch.meshgrid(torch.arange(p.height, dtype=torch.float64), torch.arange(p.width, dtype=torch.float64), indexing="ij")
+    v, u = torch.meshgrid(torch.arange(p.height, dtype=torch.float64), torch.arange(p.width, dtype=torch.float64),
+                          indexing="ij")
     sub_v = (v[..., None, None] + offsets[:, None]).expand(p.height, p.width, s, s)
     sub_u = (u[..., None, None] + offsets[None, :]).expand(p.height, p.width, s, s)
     # Pixel centres go last so the depth comes from exactly the ray the loaders generate.
