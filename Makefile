@@ -21,7 +21,10 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	deploy/main-job.sh
 
+# Lint and types first (seconds), then the suite.
 test: $(STAMP)
+	$(BIN)/ruff check model workers service bench tests
+	$(BIN)/mypy
 	$(BIN)/python -m pytest -q
 
 clean:

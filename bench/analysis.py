@@ -32,10 +32,10 @@ def time_to_psnr(points: list[tuple[float, float]], target: float) -> float | No
 
 
 def mean_std(values: list[float | None]) -> tuple[float | None, float | None]:
-    values = [v for v in values if v is not None and math.isfinite(v)]
-    if not values:
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    if not finite:
         return None, None
-    return statistics.fmean(values), (statistics.stdev(values) if len(values) > 1 else None)
+    return statistics.fmean(finite), (statistics.stdev(finite) if len(finite) > 1 else None)
 
 
 def get(summary: dict, path: str):
@@ -88,7 +88,7 @@ def speedups(runs: list[dict], equal: list[dict]) -> dict[str, dict]:
     """LeCO over each baseline: rays/s, time to equal PSNR (mean over seeds), samples per ray, memory."""
     names = list(dict.fromkeys(r["variant"] for r in runs if not r["ablation"]))
     ours = roles()[0]
-    if ours not in names:
+    if ours is None or ours not in names:
         return {}
     rays = per_variant(runs, "rays_per_s")
     spr = per_variant(runs, "samples_per_ray")
@@ -110,6 +110,14 @@ def speedups(runs: list[dict], equal: list[dict]) -> dict[str, dict]:
     return out
 
 
+def _at_least(a: float | None, b: float | None) -> bool | None:
+    return None if a is None or b is None else a >= b
+
+
+def _above(a: float | None, b: float | None) -> bool | None:
+    return None if a is None or b is None else a > b
+
+
 def targets(runs: list[dict], speed: dict) -> list[dict]:
     """The issue's targets, each with what was measured and whether it was met (None: not measurable here):
     against the reference method, then against every baseline that learns an occupancy."""
@@ -125,7 +133,7 @@ def targets(runs: list[dict], speed: dict) -> list[dict]:
         rows.append({"target": text, "measured": measured, "met": met})
 
     fmt = lambda v, spec: "n/a" if v is None else format(v, spec)
-    if {ours, ref} <= names:
+    if ours is not None and ref is not None and {ours, ref} <= names:
         s = speed[ref]
         add("guided phase rays/s >= 2.5x vanilla Switch-NeRF", f"{fmt(s['rays_per_s'], '.2f')}x",
             None if s["rays_per_s"] is None else s["rays_per_s"] >= 2.5)
@@ -136,27 +144,25 @@ def targets(runs: list[dict], speed: dict) -> list[dict]:
         add("main-network samples per ray <= 25% of vanilla", f"{fmt(s['samples_per_ray_fraction'], '.1%')}",
             None if s["samples_per_ray_fraction"] is None else s["samples_per_ray_fraction"] <= 0.25)
         add("validation PSNR >= vanilla's at equal budget",
-            f"{fmt(psnr[ours][0], '.2f')} vs {fmt(psnr[ref][0], '.2f')} dB",
-            None if None in (psnr[ours][0], psnr[ref][0]) else psnr[ours][0] >= psnr[ref][0])
+            f"{fmt(psnr[ours][0], '.2f')} vs {fmt(psnr[ref][0], '.2f')} dB", _at_least(psnr[ours][0], psnr[ref][0]))
         memory = s["peak_memory_fraction"] if _on_gpu(runs) else s["activation_memory_fraction"]
         add("peak training memory <= half of vanilla's" + ("" if _on_gpu(runs) else " (autograd activations, CPU)"),
             f"{fmt(memory, '.1%')} of vanilla's", None if memory is None else memory <= 0.5)
-    others = [n for n in METHODS if n in names and n != ours and METHODS[n].has_occupancy]
-    for other in others if ours in names else []:
+    if ours is None or ours not in names:
+        return rows
+    for other in [n for n in METHODS if n in names and n != ours and METHODS[n].has_occupancy]:
         label = METHODS[other].label
         add(f"validation PSNR >= {label}'s at equal budget",
-            f"{fmt(psnr[ours][0], '.2f')} vs {fmt(psnr[other][0], '.2f')} dB",
-            None if None in (psnr[ours][0], psnr[other][0]) else psnr[ours][0] >= psnr[other][0])
+            f"{fmt(psnr[ours][0], '.2f')} vs {fmt(psnr[other][0], '.2f')} dB", _at_least(psnr[ours][0], psnr[other][0]))
         add(f"occupancy F1 above {label}'s", f"{fmt(f1[ours][0], '.3f')} vs {fmt(f1[other][0], '.3f')}",
-            None if None in (f1[ours][0], f1[other][0]) else f1[ours][0] > f1[other][0])
+            _above(f1[ours][0], f1[other][0]))
         bound = METHODS[other].occupancy_size_target
         if bound is not None:
             p = ratio(params[ours][0], params[other][0])
             add(f"occupancy parameters <= {bound:.0%} of {label}'s", f"{fmt(p, '.1%')}",
                 None if p is None else p <= bound)
-    if ours in names:
-        r = occ_ratio[ours][0]
-        add("LeCO occupancy ratio <= 20%", fmt(r, ".1%"), None if r is None else r <= 0.20)
+    r = occ_ratio[ours][0]
+    add("LeCO occupancy ratio <= 20%", fmt(r, ".1%"), None if r is None else r <= 0.20)
     return rows
 
 

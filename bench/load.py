@@ -23,6 +23,7 @@ import tempfile
 import time
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -117,18 +118,20 @@ class Connection:
     def __init__(self, host: str, port: int, token: str):
         self.host, self.port = host, port
         self.headers = f"Host: {host}:{port}\r\nAuthorization: Bearer {token}\r\n\r\n".encode()
-        self.reader = self.writer = None
+        self.reader: asyncio.StreamReader | None = None
+        self.writer: asyncio.StreamWriter | None = None
 
     async def get(self, target: str) -> tuple[int, bytes]:
-        if self.writer is None:
+        if self.reader is None or self.writer is None:
             self.reader, self.writer = await asyncio.open_connection(self.host, self.port)
+        reader, writer = self.reader, self.writer
         try:
-            self.writer.write(b"GET " + target.encode() + b" HTTP/1.1\r\n" + self.headers)
-            head = (await self.reader.readuntil(b"\r\n\r\n")).decode("latin-1").split("\r\n")
+            writer.write(b"GET " + target.encode() + b" HTTP/1.1\r\n" + self.headers)
+            head = (await reader.readuntil(b"\r\n\r\n")).decode("latin-1").split("\r\n")
             fields = dict(line.lower().split(": ", 1) for line in head[1:] if ": " in line)
             if "content-length" not in fields:
                 raise ValueError(f"an answer without Content-Length: {head[0]}")
-            body = await self.reader.readexactly(int(fields["content-length"]))
+            body = await reader.readexactly(int(fields["content-length"]))
             if fields.get("connection") == "close":
                 self.close()
             return int(head[0].split(" ")[1]), body
@@ -169,7 +172,8 @@ async def poller(url: str, token: str, job: int, start: float, until: float, int
 
 async def poll_all(url: str, token: str, job: int, pollers: int, seconds: float, interval: float,
                    attack_bodies: dict | None = None, flood_pause: float = 0.0) -> dict:
-    samples = {"job": [], "metrics": [], "errors": [], "attacks": {}}
+    # Answer times (ms) per route, the routes of failed requests, and attack_tasks' results.
+    samples: dict[str, Any] = {"job": [], "metrics": [], "errors": [], "attacks": {}}
     # Nothing slow may run between `begin` and the gather: pollers whose first due times have passed fire
     # back to back until they catch up, and that burst, not the server, would be what the tail measures.
     begin = time.monotonic()
@@ -200,8 +204,13 @@ def steps_per_s(api: httpx.Client, job: int, seconds: float) -> tuple[float, dic
 
 def poll_cache_counts(api: httpx.Client) -> dict:
     text = api.get("/metrics").text
-    return {kind: int(float(re.search(rf'leco_poll_cache_total{{result="{kind}"}} (\S+)', text).group(1)))
-            for kind in ("hit", "miss")}
+    counts = {}
+    for kind in ("hit", "miss"):
+        found = re.search(rf'leco_poll_cache_total{{result="{kind}"}} (\S+)', text)
+        if found is None:
+            raise RuntimeError(f"/metrics has no leco_poll_cache_total for result={kind!r}")
+        counts[kind] = int(float(found.group(1)))
+    return counts
 
 
 def run_loadtest(database_url: str | None, pollers: int = 200, seconds: float = 30.0, interval: float = 1.0,

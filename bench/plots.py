@@ -74,9 +74,10 @@ def occupancy_phase(runs: list[dict], path: Path) -> str | None:
 
 def samples_per_ray(runs: list[dict], path: Path) -> str:
     means = per_variant(runs, "samples_per_ray")
-    names = [n for n, (m, _) in means.items() if m is not None]
+    measured = {n: m for n, (m, _) in means.items() if m is not None}
+    names = list(measured)
     fig, ax = plt.subplots(figsize=(6, 3.4))
-    bars = ax.bar(names, [means[n][0] for n in names], color=[COLOURS.get(n, "grey") for n in names])
+    bars = ax.bar(names, list(measured.values()), color=[COLOURS.get(n, "grey") for n in names])
     ax.bar_label(bars, fmt="%.1f")
     ax.set_ylabel("main-network samples per ray")
     ax.set_title("Main-network samples per ray (mean over the main phase)")

@@ -10,6 +10,7 @@ import torch
 
 from model.occupancy_eval import evaluate_occupancy
 from model.scenes.rays import PixelTable, RayBatch
+from model.scenes.scene import Scene, Views
 from workers.evaluate import load_final
 
 CHUNK = 4096
@@ -18,7 +19,7 @@ RESOLUTION = 64
 
 
 @torch.no_grad()
-def vanilla_depth_maps(switch_run: Path) -> tuple[list[torch.Tensor], object]:
+def vanilla_depth_maps(switch_run: Path) -> tuple[list[torch.Tensor], tuple[Scene, Views]]:
     """Per validation view: the vanilla model's surface distance along each unit pixel ray (inf: none)."""
     _, scene, method, models = load_final(switch_run, torch.device("cpu"))
     models.eval()
@@ -46,7 +47,8 @@ def score_against_vanilla(switch_run: Path, runs: list[Path]) -> dict[str, dict]
     for run_dir in runs:
         _, _, method, models = load_final(run_dir, torch.device("cpu"))
         occupied = method.final_occupancy(models)
-        metrics = evaluate_occupancy(occupied, views, scene.bounds.aabb.float(), RESOLUTION, depth=maps)
+        metrics: dict[str, float | str] = dict(
+            evaluate_occupancy(occupied, views, scene.bounds.aabb.float(), RESOLUTION, depth=maps))
         metrics["reference"] = f"depth of the trained vanilla Switch-NeRF ({Path(switch_run).name})"
         results[str(run_dir)] = metrics
     return results

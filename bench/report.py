@@ -78,7 +78,7 @@ def ladder_table(runs: list[dict]) -> str:
     names += [ours] if any(r["variant"] == ours for r in runs) else []
     labels = {r["variant"]: r["label"] for r in runs}
     labels[ours] = RUNGS[-1][1]
-    reach = {n: [] for n in names}
+    reach: dict[str, list[float | None]] = {n: [] for n in names}  # per seed; None: never reached
     for r in runs:
         vanilla = [v for v in runs if v["variant"] == ref and v["seed"] == r["seed"]]
         if r["variant"] in reach and vanilla and main_curve(vanilla[0]):
@@ -114,7 +114,8 @@ def table_rows(runs: list[dict], table_name: str) -> list[str]:
     """The variants of one of the paper's ablation tables that ran, with its reference rows first."""
     refs = [roles()[0] if n == "ours" else n for n in TABLE_REFERENCES[table_name]]
     ran = set(r["variant"] for r in runs)
-    return [n for n in refs if n in ran] + [n for n, v in ABLATIONS.items() if v.table == table_name and n in ran]
+    return ([n for n in refs if n is not None and n in ran]
+            + [n for n, v in ABLATIONS.items() if v.table == table_name and n in ran])
 
 
 def grid_resolution_table(runs: list[dict]) -> str:
@@ -211,8 +212,9 @@ def write_report(results: dict, out: Path) -> None:
     speed = results["speedups"]
     if speed:
         parts += ["## Speed-up of LeCO", ""]
-        rows = [[labels.get(base, base), cell(v["rays_per_s"], ".2f") + "x", cell(v["time_to_equal_psnr"], ".2f") + "x",
-                 cell(v["time_to_its_best_psnr"], ".2f") + "x", cell(v["samples_per_ray_fraction"], ".1%"),
+        times = lambda value: "n/a" if value is None else cell(value, ".2f") + "x"
+        rows = [[labels.get(base, base), times(v["rays_per_s"]), times(v["time_to_equal_psnr"]),
+                 times(v["time_to_its_best_psnr"]), cell(v["samples_per_ray_fraction"], ".1%"),
                  cell(v["activation_memory_fraction"], ".1%"),
                  cell(v["peak_memory_fraction"], ".1%")] for base, v in speed.items()]
         parts += [table(["over", "rays/s", "time to equal PSNR", "time to its best PSNR", "samples per ray (LeCO / it)",

@@ -92,6 +92,13 @@ def sweep(methods: list[str], profile: Profile) -> list[Variant]:
             for m in methods for p in get_method(m)(profile).sweep()]
 
 
+def _ours() -> str:
+    ours = with_role("ours")
+    if ours is None:
+        raise ValueError("no registered method has the role 'ours': the ablations and the ladder compare to it")
+    return ours
+
+
 def select(methods: list[str], ablation: bool, with_ladder: bool = False,
            sweep_profile: Profile | None = None) -> list[Variant]:
     known = method_variants()
@@ -101,14 +108,14 @@ def select(methods: list[str], ablation: bool, with_ladder: bool = False,
     if not methods and not ablation:
         raise ValueError("--methods is empty and --ablation is off: nothing to benchmark")
     chosen = [known[m] for m in dict.fromkeys(methods)]
-    ours = with_role("ours")
     if ablation:
         chosen += list(ABLATIONS.values())
         for name in dict.fromkeys(n for refs in TABLE_REFERENCES.values() for n in refs):
-            name = ours if name == "ours" else name
+            name = _ours() if name == "ours" else name
             if name not in [v.name for v in chosen]:
                 chosen.append(known[name])  # a table's reference row (the full method: HMoE + L_d)
     if with_ladder:
+        ours = _ours()
         chosen += ladder()
         if ours not in [v.name for v in chosen]:
             chosen.append(known[ours])  # the last rung: the profile's defaults

@@ -98,6 +98,9 @@ BACKBONES = {
 class LPIPS(nn.Module):
     """Distance between two (H, W, 3) images in [0, 1]; lower is more similar, 0 for identical images."""
 
+    shift: Tensor  # buffers registered in __init__, declared so their type is known
+    scale: Tensor
+
     def __init__(self, backbone: str = "alex"):
         super().__init__()
         spec = BACKBONES[backbone]
@@ -174,23 +177,24 @@ def load_lpips(backbone: str = "alex", pins: dict[str, str] | None = None) -> tu
     dirs = search_dirs()
     found = {name: next((d / name for d in dirs if (d / name).is_file()), None)
              for name in (spec.trunk_file, spec.linear_file)}
-    missing = [name for name, path in found.items() if path is None]
+    paths = {name: path for name, path in found.items() if path is not None}
+    missing = [name for name in found if name not in paths]
     if missing:
         return None, (f"LPIPS ({backbone}) weights not found locally ({', '.join(missing)} in "
                       f"{', '.join(str(d) for d in dirs)}); set LECO_LPIPS_DIR to a folder holding them "
                       "(docs/TRAINING.md). Nothing is downloaded at run time, so LPIPS is reported as null.")
     try:
-        problems = [p for p in (hash_problem(path, pins.get(name)) for name, path in found.items()) if p]
+        problems = [p for p in (hash_problem(path, pins.get(name)) for name, path in paths.items()) if p]
     except OSError as error:
         return None, f"LPIPS ({backbone}) weights could not be read: {error}"
     if problems:
         return None, f"LPIPS ({backbone}) is null: " + "; ".join(problems)
     model = LPIPS(backbone)
     try:
-        model.load_weights(torch.load(found[spec.trunk_file], map_location="cpu", weights_only=True),
-                           torch.load(found[spec.linear_file], map_location="cpu", weights_only=True))
+        model.load_weights(torch.load(paths[spec.trunk_file], map_location="cpu", weights_only=True),
+                           torch.load(paths[spec.linear_file], map_location="cpu", weights_only=True))
     except (KeyError, RuntimeError, OSError, ValueError, pickle.UnpicklingError) as error:
-        return None, f"LPIPS ({backbone}) weights in {found[spec.trunk_file].parent} could not be loaded: {error}"
+        return None, f"LPIPS ({backbone}) weights in {paths[spec.trunk_file].parent} could not be loaded: {error}"
     return model, ""
 
 
@@ -219,7 +223,7 @@ class LPIPSScores:
 
     def report(self) -> dict:
         """{"lpips_vgg": mean or None, "lpips_alex": mean or None, "lpips_note": {backbone: reason or None}}."""
-        out = {}
+        out: dict[str, float | dict[str, str | None] | None] = {}
         for name in self.ORDER:
             values = self.distances.get(name) or []
             out[f"lpips_{name}"] = sum(values) / len(values) if values else None

@@ -104,6 +104,7 @@ def cull_occluded(field: SwitchNeRF, rays: RayBatch, samples: PackedSamples, eps
         return samples
     with torch.no_grad():
         out = field_on_packed(field, rays, samples)
+        assert out is not None  # there are samples (checked above)
         reach = packed_transmittance(out.sigma, samples.deltas, samples.ray_index, len(rays))
     return samples.subset(reach >= eps)
 

@@ -9,7 +9,7 @@ and cells no ray saw (inside buildings, behind walls) are left out, so neither m
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -30,7 +30,7 @@ def cell_index(points: Tensor, aabb: Tensor, resolution: int) -> tuple[Tensor, T
     return (ijk[:, 0] * resolution + ijk[:, 1]) * resolution + ijk[:, 2], inside
 
 
-def reference_from_depth(views: Views, aabb: Tensor, resolution: int, depth: list[Tensor] | None = None,
+def reference_from_depth(views: Views, aabb: Tensor, resolution: int, depth: Sequence[Tensor] | None = None,
                          steps_per_cell: float = 2.0) -> tuple[Tensor, Tensor]:
     """(occupied, observed) boolean grids from depth maps along unit pixel rays (inf: no surface)."""
     depth = depth if depth is not None else views.depth

@@ -71,6 +71,8 @@ class OnlineOccupancy:
         """Binary cross-entropy on the decision logit, over the bins that teach: O keeps a point where most
         rays through its bin found a surface there, whatever the threshold the sampler decides with."""
         target, mask = self.bin_targets(samples, weights, rays, num_coarse)
+        if self.logits is None:
+            raise RuntimeError("OnlineOccupancy.loss needs the logits of this step's occupied() call")
         logit = self.decision_logit(self.logits).reshape(target.shape)
         nll = F.binary_cross_entropy_with_logits(logit, target, reduction="none")
         self.logits = None

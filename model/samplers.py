@@ -113,7 +113,7 @@ def guided_samples(
     kept bin one sample per coarse bin."""
     edges = stratified_edges(near, far, num_coarse, None)  # coarse bins are fixed; jitter happens inside them
     lo_all, hi_all = edges[:, :-1], edges[:, 1:]
-    u = 0.5
+    u: Tensor | float = 0.5
     if jitter and generator is not None:
         u = torch.rand(lo_all.shape, generator=generator, device=near.device, dtype=near.dtype)
     t = lo_all + (hi_all - lo_all) * u

@@ -16,6 +16,7 @@ import zipfile
 import zlib
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import IO, Callable, Iterator
 
@@ -117,8 +118,7 @@ def _tar_entries(tar: tarfile.TarFile, limits: Limits) -> Iterator[Entry]:
             raise _refuse(info.name, "FIFOs are not allowed")
         if not (info.isreg() or info.isdir()):
             raise _refuse(info.name, f"not a regular file or a folder (tar type {info.type!r})")
-        yield Entry(info.name, info.isdir(), info.size if info.isreg() else 0,
-                    lambda info=info: tar.extractfile(info))
+        yield Entry(info.name, info.isdir(), info.size if info.isreg() else 0, _tar_opener(tar, info))
     # tarfile stops at its end marker; reading on to the end lets gzip and xz check their CRCs, so a flipped
     # byte in the data is refused here, before anything is written. Whatever follows the end marker is
     # decompressed too, so every byte of the stream counts against the limits (153 bytes of bzip2 can
@@ -126,6 +126,15 @@ def _tar_entries(tar: tarfile.TarFile, limits: Limits) -> Iterator[Entry]:
     stream = tar.fileobj
     while stream.read(CHUNK):
         limits.check_total("(data after the last member)", stream.tell(), "decompresses to")
+
+
+def _tar_opener(tar: tarfile.TarFile, info: tarfile.TarInfo) -> Callable[[], IO[bytes]]:
+    def open_member() -> IO[bytes]:
+        src = tar.extractfile(info)
+        if src is None:  # tarfile gives a reader to every regular file, and only those are opened
+            raise _refuse(info.name, "not a regular file")
+        return src
+    return open_member
 
 
 def _check_zip_directory(archive: Path, limits: Limits) -> None:
@@ -164,7 +173,7 @@ def _zip_entries(zf: zipfile.ZipFile) -> Iterator[Entry]:
         if info.compress_type not in ZIP_METHODS:
             raise _refuse(info.filename, f"unsupported compression method {info.compress_type}")
         is_dir = info.is_dir() or stat.S_ISDIR(kind)
-        yield Entry(info.filename, is_dir, 0 if is_dir else info.file_size, lambda info=info: zf.open(info))
+        yield Entry(info.filename, is_dir, 0 if is_dir else info.file_size, partial(zf.open, info))
 
 
 def _plan(entries: Iterator[Entry], limits: Limits) -> list[Entry]:

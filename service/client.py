@@ -11,6 +11,10 @@ import sys
 import time
 import uuid
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import httpx  # imported where used at run time, so the CLI starts without it
 
 
 class ClientError(RuntimeError):
@@ -29,23 +33,7 @@ class Api:
         """One request; while the service restarts (no connection) or says it is briefly unavailable (502, 503,
         504) it is retried for up to `retry_s` seconds. Submits carry an Idempotency-Key, so a retry never
         makes a second job."""
-        import httpx
-
-        deadline, pause = time.monotonic() + self.retry_s, 0.5
-        while True:
-            try:
-                response = self.http.request(method, path, **kwargs)
-                if response.status_code not in (502, 503, 504):
-                    break
-                problem = f"HTTP {response.status_code}"
-            except httpx.TransportError as error:
-                response, problem = None, f"{type(error).__name__}: {error}"
-            if time.monotonic() + pause > deadline:
-                if response is not None:
-                    break
-                raise ClientError(f"cannot reach the service at {self.url} for {self.retry_s:.0f} s: {problem}")
-            time.sleep(pause)
-            pause = min(pause * 2, 5.0)
+        response = self._send(method, path, **kwargs)
         if response.status_code not in ok:
             try:
                 detail = response.json().get("detail")
@@ -53,6 +41,27 @@ class Api:
                 detail = response.text
             raise ClientError(f"{method} {path}: HTTP {response.status_code}: {detail}")
         return response
+
+    def _send(self, method: str, path: str, **kwargs) -> httpx.Response:
+        """The first answer other than 502-504, or the last answer when `retry_s` runs out."""
+        import httpx
+
+        deadline, pause = time.monotonic() + self.retry_s, 0.5
+        response: httpx.Response | None
+        while True:
+            try:
+                response = self.http.request(method, path, **kwargs)
+                if response.status_code not in (502, 503, 504):
+                    return response
+                problem = f"HTTP {response.status_code}"
+            except httpx.TransportError as error:
+                response, problem = None, f"{type(error).__name__}: {error}"
+            if time.monotonic() + pause > deadline:
+                if response is not None:
+                    return response
+                raise ClientError(f"cannot reach the service at {self.url} for {self.retry_s:.0f} s: {problem}")
+            time.sleep(pause)
+            pause = min(pause * 2, 5.0)
 
 
 def default_token(data_dir: str | None) -> str | None:

@@ -136,7 +136,10 @@ def upgrade(url: str) -> tuple[str | None, str]:
 def head_revision() -> str:
     from alembic.script import ScriptDirectory
 
-    return ScriptDirectory.from_config(alembic_config("sqlite://")).get_current_head()
+    head = ScriptDirectory.from_config(alembic_config("sqlite://")).get_current_head()
+    if head is None:  # alembic's answer for a migrations folder without any revision
+        raise SchemaError(f"no migrations found in {MIGRATIONS}")
+    return head
 
 
 def current_revision(url: str) -> str | None:

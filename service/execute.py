@@ -65,6 +65,8 @@ def execute(settings: Settings, job_id: int, attempt: int) -> str:
         if run_dir is None:
             run_dir = run_dir_for(settings, job_id, attempt)
             seed = seed_from_store(settings, job_id, run_dir)
+            if scene_path is None:  # the scenes foreign key forbids it; should it happen, the job fails saying so
+                raise RunError(f"scene {job.scene_id} of job {job_id} no longer exists")
             run_training(cfg, scene_path, run_dir, backend=settings.backend, store=store, resume_from=seed)
         if store.stop_reason() is not None and not job_cancelled(settings, job_id):
             return "lost"

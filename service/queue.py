@@ -9,8 +9,9 @@ race without ever handing one job to two owners or moving a finished job.
 from __future__ import annotations
 
 from datetime import timedelta
+from typing import cast
 
-from sqlalchemy import select, update
+from sqlalchemy import CursorResult, Result, select, update
 from sqlalchemy.orm import Session
 
 from service.db import transaction
@@ -36,6 +37,12 @@ def hold(session: Session, job_id: int, attempt: int) -> None:
     if attempts != attempt:
         raise StaleAttempt(f"attempt {attempt} no longer holds job {job_id} (attempt {attempts} does): "
                            "its write was refused")
+
+
+def _rowcount(result: Result) -> int:
+    # Session.execute is typed to return a plain Result, since it cannot promise a cursor for every statement
+    # (sqlalchemy/sqlalchemy#12913); for the UPDATEs without RETURNING here it is a CursorResult.
+    return cast(CursorResult, result).rowcount
 
 
 def submit(session: Session, scene_id: int, cfg: TrainConfig) -> Job:
@@ -77,7 +84,7 @@ def heartbeat(db_url: str, job_id: int, attempt: int, owner: str, lease_s: float
                               Job.lease_owner == owner)
             .values(lease_expires_at=utcnow() + timedelta(seconds=lease_s)),
             execution_options={"synchronize_session": False})
-    return result.rowcount == 1
+    return _rowcount(result) == 1
 
 
 def finish(db_url: str, job_id: int, attempt: int, state: str, error: str | None = None) -> bool:
@@ -90,7 +97,7 @@ def finish(db_url: str, job_id: int, attempt: int, state: str, error: str | None
             update(Job).where(Job.id == job_id, Job.state == "running", Job.attempts == attempt)
             .values(state=state, error=error, finished_at=now, lease_owner=None, lease_expires_at=None),
             execution_options={"synchronize_session": False})
-        if result.rowcount != 1:
+        if _rowcount(result) != 1:
             return False
         close_phases(session, job_id, state, now)
     return True
@@ -119,13 +126,13 @@ def requeue_expired(db_url: str, max_attempts: int) -> list[tuple[int, str]]:
                 state, error = "failed", f"{reason}; no attempts left ({attempts} of {max_attempts})"
             else:
                 state, error = "queued", reason
-            values = dict(state=state, error=error, lease_owner=None, lease_expires_at=None)
+            values: dict[str, object] = dict(state=state, error=error, lease_owner=None, lease_expires_at=None)
             if state != "queued":
                 values["finished_at"] = now
             result = session.execute(
                 update(Job).where(Job.id == job_id, Job.state == "running", Job.attempts == attempts).values(**values),
                 execution_options={"synchronize_session": False})
-            if result.rowcount != 1:
+            if _rowcount(result) != 1:
                 continue
             if state == "queued":
                 requeue_phases(session, job_id)
@@ -145,7 +152,7 @@ def release(db_url: str, job_id: int, attempt: int, reason: str) -> bool:
                               Job.cancel_requested.is_(False))
             .values(state="queued", error=reason, lease_owner=None, lease_expires_at=None),
             execution_options={"synchronize_session": False})
-        if result.rowcount != 1:
+        if _rowcount(result) != 1:
             return False
         requeue_phases(session, job_id)
     return True
@@ -165,7 +172,7 @@ def cancel(db_url: str, job_id: int) -> str | None:
         result = session.execute(update(Job).where(Job.id == job_id, Job.state == "queued")
                                  .values(state="cancelled", finished_at=now, cancel_requested=True),
                                  execution_options={"synchronize_session": False})
-        if result.rowcount == 1:
+        if _rowcount(result) == 1:
             close_phases(session, job_id, "cancelled", now)
             return "cancelled"
         session.execute(update(Job).where(Job.id == job_id, Job.state == "running").values(cancel_requested=True),
@@ -188,4 +195,6 @@ def phase_started(db_url: str, job_id: int, attempt: int, phase: str) -> None:
             elif p.name == phase and p.state != "running":
                 p.state, p.started_at = "running", p.started_at or now
         job = session.get(Job, job_id)
+        if job is None:  # not after hold() found and locked the row; checked so the type says so
+            raise StaleAttempt(f"job {job_id} was deleted: attempt {attempt}'s write was refused")
         job.phase = phase

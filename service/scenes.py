@@ -137,6 +137,9 @@ def _generate(settings: Settings, scene_id: int, pool: WorkPool, admitted: bool)
 def _generate_now(settings: Settings, scene_id: int, pool: WorkPool) -> None:
     with transaction(settings.db_url) as session:
         row = session.get(Scene, scene_id)
+        # The API refuses to delete a scene while it is generating, and synthetic scenes always have a generator.
+        if row is None or row.generator is None:
+            raise RuntimeError(f"scene {scene_id}: no row with a generator to generate it from")
         path, generator = Path(row.path), dict(row.generator)
     try:
         info, layout = pool.call(generate_folder, generator["preset"], int(generator["seed"]), path,

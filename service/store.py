@@ -60,6 +60,7 @@ class ArtifactStore:
         write), only while that attempt holds the job (queue.hold; else StaleAttempt and nothing stored)."""
         if kind not in ARTIFACT_KINDS:
             raise ValueError(f"artifact kind {kind!r}: expected one of {', '.join(ARTIFACT_KINDS)}")
+        staged: Path | None  # None once placed: then a failure has no staged file to remove
         staged, sha, size = self._stage(source)
         replaced: str | None = None
         try:
@@ -212,7 +213,8 @@ class _Seen:
     """A bounded set (least recently used out) of blob versions already hashed by this process."""
 
     def __init__(self, size: int = 65_536):
-        self.size, self.items, self.lock = size, OrderedDict(), threading.Lock()
+        self.size, self.lock = size, threading.Lock()
+        self.items: OrderedDict[tuple, None] = OrderedDict()
 
     def seen(self, key: tuple) -> bool:
         with self.lock:

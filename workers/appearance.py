@@ -109,6 +109,7 @@ def prepare_validation_appearance(method: Method, run_models, phase: str, views:
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             for w in weights:
-                w.grad.mul_(mask)  # only the validation rows move; Adam leaves zero-gradient rows exactly put
+                if w.grad is not None:  # only the validation rows move; Adam leaves zero-gradient rows put
+                    w.grad.mul_(mask)
             optimizer.step()
     return FitResult(losses[0], losses[-1])

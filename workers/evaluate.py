@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -94,7 +95,7 @@ def evaluate_run(run_dir: str | Path, device: str | torch.device = "cpu") -> dic
         prepare_validation_appearance(method, models, "main", views, scene.train, list(range(len(views))),
                                       scene.bounds.aabb, device, cfg.val_appearance_steps)
     lpips = LPIPSScores(device=device)  # VGG (what the papers report) and AlexNet; null with the reason if absent
-    scores = {"psnr": [], "ssim": []}
+    scores: dict[str, list[float]] = {"psnr": [], "ssim": []}
     for image in range(len(views)):
         scored = right_columns(views, image) if has_val else None
         picture = image < MAX_RENDERS
@@ -114,12 +115,12 @@ def evaluate_run(run_dir: str | Path, device: str | torch.device = "cpu") -> dic
            "protocol": protocol(cfg.val_appearance_steps) if has_val else "whole training views scored (no val split)"}
 
     occupied = method.final_occupancy(models)
-    occupancy = {}
+    occupancy: dict[str, Any] = {}
     if occupied is not None and scene.occupancy is not None and views.depth is not None:
-        occupancy = evaluate_occupancy_exact(occupied, scene.occupancy, views, OCCUPANCY_RESOLUTION)
+        occupancy.update(evaluate_occupancy_exact(occupied, scene.occupancy, views, OCCUPANCY_RESOLUTION))
         occupancy["reference"] = "exact ground truth, on the cells the validation views observe"
     elif occupied is not None and views.depth is not None:
-        occupancy = evaluate_occupancy(occupied, views, scene.bounds.aabb.float(), OCCUPANCY_RESOLUTION)
+        occupancy.update(evaluate_occupancy(occupied, views, scene.bounds.aabb.float(), OCCUPANCY_RESOLUTION))
         occupancy["reference"] = "depth maps of the validation views"
     points = export_point_cloud(run_dir / "occupancy.ply", models, occupied, views, scene.bounds.aabb, device,
                                 method.point_cloud_samples())

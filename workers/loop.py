@@ -15,6 +15,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -24,7 +25,7 @@ from model.schedules import phase_progress
 from workers.config import TrainConfig
 from workers.distributed import any_rank, any_rank_each, average_gradients, grads_finite, is_distributed
 from workers.memory import SavedTensorBytes
-from workers.models import build_models, build_optimizer
+from workers.models import PhaseObjects, build_models, build_optimizer
 from workers.periodic_eval import PeriodicEval
 from workers.pixels import attach_pixel_stores
 from workers.session import Session
@@ -74,9 +75,9 @@ class RankRun:
                                   session.world_size)
         # Per-rank seeds, on the device the samplers draw on (a CPU generator cannot fill CUDA tensors).
         self.generator = torch.Generator(device=device).manual_seed(cfg.seed * 7919 + session.rank)
-        self.progress = {"phase": cfg.phases[0], "phase_step": 0, "step": 0, "elapsed": {}, "steps": {},
+        self.progress: dict[str, Any] = {"phase": cfg.phases[0], "phase_step": 0, "step": 0, "elapsed": {}, "steps": {},
                          "nonfinite": 0}
-        self.phase_objects = None
+        self.phase_objects: PhaseObjects | None = None
         self.activation_mb: float | None = None
         self.sink = JsonlSink(self.run_dir / "metrics.jsonl") if session.rank == 0 else None
         self.store = store if session.rank == 0 else None
@@ -91,7 +92,7 @@ class RankRun:
             return [state]
         import torch.distributed as dist
 
-        gathered = [None] * self.session.world_size
+        gathered: list[Any] = [None] * self.session.world_size
         dist.all_gather_object(gathered, state)
         return gathered
 
@@ -100,7 +101,7 @@ class RankRun:
         if self.session.rank != 0:
             self.session.report(metrics, None)
             return
-        _, optimizer, _ = self.phase_objects
+        optimizer = self.current_phase().optimizer
         state = {
             "progress": self.progress, "models": self.models.state_dict(), "method": self.method.state_dict(),
             "optimizer": optimizer.state_dict(),
@@ -142,7 +143,7 @@ class RankRun:
         self.method.load_state_dict(method_state(state))
         self.models.to(self.device)
         self.start_phase(self.progress["phase"])
-        _, optimizer, _ = self.phase_objects
+        optimizer = self.current_phase().optimizer
         optimizer.load_state_dict(state["optimizer"])  # the lr follows from progress (phase_progress)
         self.sampler.load_state_dict(state["sampler"])
         states = state["generators"]
@@ -151,6 +152,11 @@ class RankRun:
         return True
 
     # ----- phases ------------------------------------------------------------------------------------
+    def current_phase(self) -> PhaseObjects:
+        if self.phase_objects is None:
+            raise RuntimeError("no phase started: start_phase makes the optimizer")
+        return self.phase_objects
+
     def start_phase(self, phase: str, fresh: bool = False) -> None:
         """Optimizer and frozen parts of a phase; `fresh` when the phase begins now (not on a resume)."""
         log = lambda text: print(f"[{self.cfg.method}] {text}", flush=True) if self.session.rank == 0 else None
@@ -191,7 +197,7 @@ class RankRun:
                                 self.cfg.seed)
 
     def run_phase(self, phase: str) -> None:
-        params, optimizer, lr_at = self.phase_objects
+        params, optimizer, lr_at = self.current_phase()
         total = self.method.phase_steps(phase)
         window_seconds, window_steps, samples_in_window = 0.0, 0, 0.0
         while self.progress["phase_step"] < total:

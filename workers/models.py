@@ -3,6 +3,8 @@ the networks from the same seed, so data-parallel replicas start identical."""
 
 from __future__ import annotations
 
+from typing import Callable, NamedTuple
+
 import torch
 
 from model.methods import Method, Networks
@@ -19,7 +21,13 @@ def phase_parameters(method: Method, models: Networks, phase: str) -> list[torch
     return params + method.extra_parameters(models, phase)
 
 
-def build_optimizer(method: Method, models: Networks, phase: str):
+class PhaseObjects(NamedTuple):
+    params: list[torch.nn.Parameter]
+    optimizer: torch.optim.Optimizer
+    lr_at: Callable[[float], float]  # the phase's learning rate at a progress in [0, 1]
+
+
+def build_optimizer(method: Method, models: Networks, phase: str) -> PhaseObjects:
     """Adam over what the phase trains, and its learning rate as a function of the phase's progress in [0, 1]
     (log-linear from the method's start to its final lr, constant without one). Progress counts steps or,
     under a wall-clock budget, training time (model/schedules.py), so a budgeted run ends at its final lr too."""
@@ -27,4 +35,4 @@ def build_optimizer(method: Method, models: Networks, phase: str):
     start, final = method.phase_lr(phase)
     # Fused: one kernel over every tensor instead of a loop over ~90 (4.0 -> 0.8 ms a step on 2 CPU cores).
     optimizer = torch.optim.Adam(params, lr=start, fused=True)
-    return params, optimizer, lambda progress: log_linear(start, final, progress)
+    return PhaseObjects(params, optimizer, lambda progress: log_linear(start, final, progress))

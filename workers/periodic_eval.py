@@ -7,6 +7,7 @@ phase 1, the grid all along), its occupancy metrics. This gives the benchmark it
 from __future__ import annotations
 
 import time
+from typing import Callable
 
 from model.metrics import psnr, ssim
 from model.occupancy_eval import evaluate_occupancy, evaluate_occupancy_exact
@@ -34,7 +35,7 @@ class PeriodicEval:
         started = time.perf_counter()
         scores = {"val_psnr": 0.0, "val_ssim": 0.0}
         images = list(range(self.count))
-        columns = lambda image: None
+        columns: Callable[[int], tuple[int, int] | None] = lambda image: None
         if "val" in run.scene.splits:  # the protocol; a scene without a val split is scored on training views
             prepare_validation_appearance(run.method, run.models, phase, self.views, run.scene.train, images, run.aabb,
                                           run.device, run.cfg.val_appearance_steps)

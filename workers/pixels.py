@@ -26,5 +26,5 @@ def attach_pixel_stores(scene: Scene, splits: tuple[str, ...] | None = None) -> 
             continue
         sizes = [(int(h), int(w)) for h, w in zip(views.cameras.height, views.cameras.width)]
         views.store = ensure_store(pixel_cache(), scene.root, name, scene.downscale, sizes,
-                                   lambda i, images=views.images: images[i], log)
+                                   views.images.__getitem__, log)
     return scene

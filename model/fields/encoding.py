@@ -7,6 +7,8 @@ from torch import Tensor, nn
 
 
 class FrequencyEncoding(nn.Module):
+    freqs: Tensor  # a buffer, registered below
+
     def __init__(self, num_frequencies: int, in_dim: int = 3):
         super().__init__()
         self.in_dim = in_dim

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, ClassVar
+from typing import Any, Callable, ClassVar
 
 import torch
 from torch import Tensor, nn
@@ -66,6 +66,10 @@ class SweepPoint:
 
 class Networks(nn.Module):
     """A run's trainable networks, named by the method that built them (checkpoints keep these names)."""
+
+    def __getattr__(self, name: str) -> Any:
+        # Submodules are the method's to name; typed as Any so each method reads its own without casts.
+        return super().__getattr__(name)
 
 
 class Method:

@@ -21,9 +21,7 @@ class GridMethod(Method):
     has_occupancy = True
     occupancy_size_target = 0.10  # the paper: 0.15M parameters instead of a 2M-cell grid
 
-    def __init__(self, profile):
-        super().__init__(profile)
-        self.grid: OccupancyGrid | None = None
+    grid: OccupancyGrid  # made by build()
 
     def build(self, num_images: int, aabb: Tensor) -> Networks:
         self.grid = OccupancyGrid(aabb.float(), self.profile.grid.resolution)

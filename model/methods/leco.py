@@ -147,8 +147,13 @@ class LeCOMethod(Method):
         # O learns once the main network has had `online_warmup` steps to fit what its weights will teach.
         learns = phase_step is not None and self.profile.guided.online_learns(phase_step)
         online = self.online if learns else None
-        occupied = online.occupied if online else self.predictor.occupied
+        occupied = online.occupied if online else self.frozen_predictor().occupied
         return render_guided(models.field, models.background, rays, self.profile, occupied, generator, online)
+
+    def frozen_predictor(self) -> OccupancyPredictor:
+        if self.predictor is None:
+            raise RuntimeError("LeCO's main phase renders with O's predictor: start_phase('main') makes it")
+        return self.predictor
 
     def render(self, models: Networks, phase: str, rays: RayBatch) -> Rendered:
         if phase == "occupancy":

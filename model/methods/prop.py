@@ -55,7 +55,8 @@ class ProposalMethod(Method):
     def __init__(self, profile: Profile):
         super().__init__(profile)
         self.schedule = UpdateSchedule(profile.prop.update_every, profile.prop.update_warmup)
-        self.aabb: Tensor | None = None
+
+    aabb: Tensor  # the foreground box, set by build()
 
     def build(self, num_images: int, aabb: Tensor) -> Networks:
         models = super().build(num_images, aabb)

@@ -15,6 +15,8 @@ hand-set box or altitude range. The rule (docs/SCENES.md):
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import torch
 from torch import Tensor
 
@@ -33,7 +35,7 @@ AXIS_MISS_RATIO = 0.25
 MAX_AXIS_CAMERAS = 64
 
 
-def depth_points(cameras: Cameras, depth: list[Tensor], budget: int = MAX_DEPTH_POINTS) -> Tensor:
+def depth_points(cameras: Cameras, depth: Sequence[Tensor], budget: int = MAX_DEPTH_POINTS) -> Tensor:
     """Surface points from depth maps, on a regular pixel stride so the total stays within budget."""
     total = sum(d.numel() for d in depth)
     stride = max(1, int((total / budget) ** 0.5 + 0.999))

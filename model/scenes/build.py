@@ -41,6 +41,8 @@ def build_scene(source: SourceScene) -> Scene:
 
     occupancy = None
     if source.occupied is not None:
+        if source.occupancy_aabb is None:  # readers give the grid and the box it covers together
+            raise SceneError(source.root, "a ground-truth occupancy grid came without its bounding box")
         occupancy = OccupancyGrid(source.occupied, ((source.occupancy_aabb.double() - origin) / scale).float())
     points = None if source.points is None else ((source.points.double() - origin.double()) / scale).float()
     bounds = Bounds(aabb=((aabb - origin) / scale).float(), source=kind, num_points=num_points)

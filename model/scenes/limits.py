@@ -6,10 +6,11 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import io
 import math
 import zipfile
 from pathlib import Path
-from typing import BinaryIO, Iterator
+from typing import Iterator, cast
 
 import numpy as np
 
@@ -31,7 +32,7 @@ def check_file_size(path: Path, limit: int, what: str) -> None:
         raise SceneError(path, f"{what} is {size:,} bytes; at most {limit:,} are accepted")
 
 
-def _array_header(stream: BinaryIO, path: Path, max_bytes: int, shape: tuple[int, ...] | None):
+def _array_header(stream: io.BufferedIOBase, path: Path, max_bytes: int, shape: tuple[int, ...] | None):
     """(shape, fortran order, dtype) of a .npy stream, checked against the limits; the data is not read."""
     try:
         version = np.lib.format.read_magic(stream)
@@ -50,7 +51,7 @@ def _array_header(stream: BinaryIO, path: Path, max_bytes: int, shape: tuple[int
     return found, fortran, dtype
 
 
-def _read_array(stream: BinaryIO, path: Path, max_bytes: int, shape: tuple[int, ...] | None) -> np.ndarray:
+def _read_array(stream: io.BufferedIOBase, path: Path, max_bytes: int, shape: tuple[int, ...] | None) -> np.ndarray:
     found, fortran, dtype = _array_header(stream, path, max_bytes, shape)
     nbytes = math.prod(found) * dtype.itemsize
     data, filled = bytearray(nbytes), 0  # writable, so the tensors made from it are too
@@ -100,7 +101,8 @@ def read_npz(path: Path, max_bytes: int = MAX_ARRAY_BYTES) -> dict[str, np.ndarr
                 if member.file_size > max_bytes + 4096:  # the data plus its header
                     raise SceneError(path, f"member {member.filename!r} is {member.file_size:,} bytes uncompressed; "
                                            f"at most {max_bytes:,} are accepted")
-                with zf.open(member) as stream:
+                # ZipFile.open is typed IO[bytes] for its write mode's sake; reading, it gives a ZipExtFile.
+                with cast(zipfile.ZipExtFile, zf.open(member)) as stream:
                     arrays[member.filename[:-4]] = _read_array(stream, path, max_bytes, None)
             return arrays
     except SceneError:

@@ -72,14 +72,16 @@ class PixelStore:
 def _crc(data: np.ndarray) -> int:
     flat, crc = data.reshape(-1), 0
     for start in range(0, len(flat), CHUNK):
-        crc = zlib.crc32(memoryview(flat[start : start + CHUNK]), crc)
+        # .data, not memoryview(array): numpy's stubs declare arrays buffers only from Python 3.12 on.
+        crc = zlib.crc32(flat[start : start + CHUNK].data, crc)
     return crc
 
 
 def _file_crcs(path: Path, offsets: list[int]) -> list[int]:
     """The CRC-32 of each image's bytes, read through the file (not the map, whose pages would stay resident
     in this process) in bounded chunks."""
-    crcs, buffer = [], bytearray(CHUNK)
+    crcs: list[int] = []
+    buffer = bytearray(CHUNK)
     with open(path, "rb", buffering=0) as f:
         for start, end in zip(offsets[:-1], offsets[1:]):
             crc, left = 0, 3 * (end - start)
@@ -145,7 +147,7 @@ def build_store(folder: Path, fingerprint: str, sizes: list[tuple[int, int]], im
                 raise StoreError(f"image {i} is {tuple(image.shape)} {image.dtype}; the plan says {sizes[i]} uint8")
             block = np.ascontiguousarray(image.reshape(-1, 3).numpy())
             f.seek(3 * offset)
-            f.write(memoryview(block).cast("B"))
+            f.write(block.data.cast("B"))
             crcs.append(_crc(block))
             offset += len(block)
             if len(crcs) % sync_every == 0 or i + 1 == len(sizes):

@@ -80,7 +80,8 @@ class OccupancyGrid:
 
     @property
     def resolution(self) -> tuple[int, int, int]:
-        return tuple(self.occupied.shape)
+        x, y, z = self.occupied.shape
+        return x, y, z
 
     @property
     def cell_size(self) -> Tensor:

@@ -82,7 +82,11 @@ class SplitBuilder:
             depth: Frame | None = None, size: tuple[int, int] | None = None) -> None:
         self.names.append(name)
         self.images.append(image)
-        self._sizes.append(size if size is not None else tuple(image.shape[:2]))
+        if size is None:
+            if not isinstance(image, Tensor):  # a loader's size is known only by decoding it
+                raise TypeError(f"view {name!r}: an image given as a loader needs its decoded size")
+            size = (image.shape[0], image.shape[1])
+        self._sizes.append(size)
         self._intrinsics.append(torch.as_tensor(intrinsics, dtype=torch.float64).reshape(4))
         self._c2w.append(torch.as_tensor(c2w, dtype=torch.float64).reshape(3, 4))
         self._distortion.append(torch.zeros(4) if distortion is None else torch.as_tensor(distortion).reshape(4))

@@ -10,7 +10,7 @@ from datetime import timedelta
 from fastapi import APIRouter, Header, HTTPException, Query, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.responses import JSONResponse, Response
-from sqlalchemy import case, func, select, true
+from sqlalchemy import case, delete, func, select, true
 from sqlalchemy.exc import IntegrityError
 
 from model.memory_estimate import RUNTIME_BYTES, describe, estimate_peak_bytes
@@ -148,7 +148,8 @@ def submit(body: JobRequest, request: Request, idempotency_key: str | None = Hea
         status, payload = create_job_or_error(body, settings, idempotency_key)
     except BaseException:
         with transaction(settings.db_url) as session:  # an unexpected failure: let the client retry with this key
-            session.execute(IdempotencyKey.__table__.delete().where(IdempotencyKey.key == idempotency_key))
+            session.execute(delete(IdempotencyKey).where(IdempotencyKey.key == idempotency_key),
+                            execution_options={"synchronize_session": False})
         raise
     if status != 201:  # refused: no job was written, so the answer is recorded on its own
         with transaction(settings.db_url) as session:
@@ -185,11 +186,15 @@ def begin_idempotent(settings: Settings, key: str, digest: str) -> JSONResponse 
     except IntegrityError:  # another request inserted the key between our read and our write
         with reading(settings.db_url) as session:
             row = session.get(IdempotencyKey, key)
+    if row is None:  # the request that inserted the key failed and removed it since: a retry goes through
+        return JSONResponse({"detail": "a request with this Idempotency-Key is still in flight; retry later"}, 409)
     if row.request_hash != digest:
         return JSONResponse({"detail": [{"loc": ["header", "Idempotency-Key"], "type": "value_error",
                                          "msg": "this Idempotency-Key was used with a different request body"}]}, 422)
     if row.state == "in_flight":
         return JSONResponse({"detail": "a request with this Idempotency-Key is still in flight; retry later"}, 409)
+    if row.status_code is None:  # record_answer sets it together with state 'done'
+        raise RuntimeError(f"Idempotency-Key {key!r} is done but has no stored answer")
     return JSONResponse(row.response, row.status_code, headers={"Idempotent-Replayed": "true"})
 
 
@@ -216,7 +221,7 @@ def job_list_json(settings: Settings, state: str | None, scene: str | None, meth
         if scene is not None:
             row = find_scene(session, scene)
             query = query.where(Job.scene_id == (row.id if row else -1))
-        total = session.scalar(select(func.count()).select_from(query.subquery()))
+        total = session.scalars(select(func.count()).select_from(query.subquery())).one()
         jobs = session.scalars(query.order_by(Job.id.desc()).limit(limit).offset(offset)).all()
         items = [job_out(session, j) for j in jobs]
     return JobList(items=items, total=total, limit=limit, offset=offset,
@@ -267,7 +272,8 @@ def delete_job(job_id: RowId, request: Request) -> None:
             raise HTTPException(409, f"job {job_id} is {job.state}: cancel it and wait for it to stop first")
     ArtifactStore(settings.db_url, settings.artifacts).delete_job(job_id)
     with transaction(settings.db_url) as session:
-        session.execute(Job.__table__.delete().where(Job.id == job_id, Job.state.in_(TERMINAL)))
+        session.execute(delete(Job).where(Job.id == job_id, Job.state.in_(TERMINAL)),
+                        execution_options={"synchronize_session": False})
     poll_cache_of(request).forget(job_id)
     shutil.rmtree(job_dir_for(settings, job_id), ignore_errors=True)
 

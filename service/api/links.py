@@ -11,7 +11,7 @@ from __future__ import annotations
 
 
 def _link(operation_id: str, description: str, parameters: dict | None = None, body: dict | str | None = None) -> dict:
-    link = {"operationId": operation_id, "description": description}
+    link: dict[str, str | dict] = {"operationId": operation_id, "description": description}
     if parameters:
         link["parameters"] = parameters
     if body is not None:

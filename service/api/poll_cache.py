@@ -22,7 +22,7 @@ import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Callable, Hashable
+from typing import Callable
 
 from starlette.concurrency import run_in_threadpool
 
@@ -39,8 +39,9 @@ class Entry:
 class PollCache:
     def __init__(self, ttl_s: float, max_entries: int = 4096, clock: Callable[[], float] = time.monotonic):
         self.ttl_s, self.max_entries, self.clock = ttl_s, max_entries, clock
-        self.entries: OrderedDict[Hashable, Entry] = OrderedDict()
-        self.in_flight: dict[Hashable, tuple[bytes | None, int, asyncio.Task]] = {}
+        # Keys are tuples whose second item is the job id (LISTS for job lists): forget() matches on it.
+        self.entries: OrderedDict[tuple, Entry] = OrderedDict()
+        self.in_flight: dict[tuple, tuple[bytes | None, int, asyncio.Task[Entry]]] = {}
         # Bumped by every forget(): a read begun before any forget is not stored. One number for all jobs, not
         # one per job, so the cache's memory stays bounded however many jobs it has ever seen; a write then
         # also leaves other jobs' reads in flight unstored (they are still served), which writes' rarity makes

@@ -27,6 +27,14 @@ def scene_out(row: Scene) -> SceneOut:
                     created_at=row.created_at)
 
 
+def _created_scene(settings: Settings, scene_id: int) -> SceneOut:
+    with reading(settings.db_url) as session:
+        row = session.get(Scene, scene_id)
+        if row is None:  # another request deleted it since this one created it
+            raise not_found("scene", scene_id)
+        return scene_out(row)
+
+
 def find_scene(session, ident: int | str) -> Scene | None:
     if isinstance(ident, int) or (str(ident).isascii() and str(ident).isdigit()):
         if len(str(ident)) > 10:  # more digits than a 32-bit id has (and past what int() parses at 4,300)
@@ -46,8 +54,7 @@ def create_synthetic(body: SyntheticSceneRequest, settings: Settings = Depends(s
         scene_id = registry.register_synthetic(settings, name, body.preset, body.seed, pool)
     except registry.SceneConflict as error:
         raise HTTPException(409, str(error)) from None
-    with reading(settings.db_url) as session:
-        return scene_out(session.get(Scene, scene_id))
+    return _created_scene(settings, scene_id)
 
 
 @router.post("/upload", status_code=201, response_model=SceneOut, operation_id="uploadScene",
@@ -62,8 +69,7 @@ async def upload(request: Request, name: str = Query(..., pattern=NAME),
         raise HTTPException(413, f"upload is {int(declared)} bytes; the limit is {settings.max_upload_bytes}")
     with pool.admitted():  # Busy -> 429 before the body is read: a flood of uploads cannot fill the disk
         scene_id = await _receive_and_register(request, name, settings, pool)
-    with reading(settings.db_url) as session:
-        return scene_out(session.get(Scene, scene_id))
+    return _created_scene(settings, scene_id)
 
 
 async def _receive_and_register(request: Request, name: str, settings: Settings, pool: WorkPool) -> int:

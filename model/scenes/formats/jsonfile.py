@@ -34,11 +34,13 @@ def field(path: Path, obj: dict, key: str, where: str = "") -> object:
 
 
 def number(path: Path, obj: dict, key: str, where: str = "", default: float | None = None) -> float:
-    value = obj.get(key, default) if default is not None else field(path, obj, key, where)
+    raw = obj.get(key, default) if default is not None else field(path, obj, key, where)
     try:
-        value = float(value)
+        if not isinstance(raw, (int, float, str)):  # JSON's null, lists and objects, which float() refuses too
+            raise TypeError
+        value = float(raw)
     except (TypeError, ValueError):
-        raise SceneError(path, f"field '{key}'{where} must be a number, got {value!r}") from None
+        raise SceneError(path, f"field '{key}'{where} must be a number, got {raw!r}") from None
     if not math.isfinite(value):
         raise SceneError(path, f"field '{key}'{where} must be finite, got {value}")
     return value

@@ -35,8 +35,8 @@ def pick_folder(root: Path, downscale: int | None) -> tuple[Path, int, int]:
     if not folders:
         raise SceneError(root, "no image folder: expected images/ or images_N/ beside poses_bounds.npy")
     if downscale is None:
-        factor = min(folders)
-        return folders[factor], factor, 1
+        smallest = min(folders)
+        return folders[smallest], smallest, 1
     factor = folder_factor(folders, downscale)
     if factor is None:
         have = ", ".join(folders[f].name for f in sorted(folders))

@@ -73,10 +73,10 @@ def check_depth_file(path: Path, height: int, width: int) -> None:
 
 
 def read_depth(path: Path, height: int, width: int) -> Tensor:
-    depth = read_npy(path, shape=(height, width))  # its image's size, checked before the data is read
-    if depth.dtype.kind != "f":
-        raise SceneError(path, f"depth map must hold floats, not {depth.dtype}")
-    depth = torch.from_numpy(depth.astype(np.float32))
+    array = read_npy(path, shape=(height, width))  # its image's size, checked before the data is read
+    if array.dtype.kind != "f":
+        raise SceneError(path, f"depth map must hold floats, not {array.dtype}")
+    depth = torch.from_numpy(array.astype(np.float32))
     if torch.isnan(depth).any() or (depth <= 0).any():
         raise SceneError(path, "depth map must be positive (inf for sky) with no NaN")
     return depth
