@@ -212,9 +212,9 @@ def write_report(results: dict, out: Path) -> None:
     speed = results["speedups"]
     if speed:
         parts += ["## Speed-up of LeCO", ""]
-        times = lambda value: "n/a" if value is None else cell(value, ".2f") + "x"
-        rows = [[labels.get(base, base), times(v["rays_per_s"]), times(v["time_to_equal_psnr"]),
-                 times(v["time_to_its_best_psnr"]), cell(v["samples_per_ray_fraction"], ".1%"),
+        ratio = lambda value: "n/a" if value is None else cell(value, ".2f") + "x"
+        rows = [[labels.get(base, base), ratio(v["rays_per_s"]), ratio(v["time_to_equal_psnr"]),
+                 ratio(v["time_to_its_best_psnr"]), cell(v["samples_per_ray_fraction"], ".1%"),
                  cell(v["activation_memory_fraction"], ".1%"),
                  cell(v["peak_memory_fraction"], ".1%")] for base, v in speed.items()]
         parts += [table(["over", "rays/s", "time to equal PSNR", "time to its best PSNR", "samples per ray (LeCO / it)",
