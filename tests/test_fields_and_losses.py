@@ -143,6 +143,9 @@ def test_hmoe_empty_points_use_the_empty_head_and_homogeneous_switch():
     heavy = HMoE(num_images=10, width=32, num_scene_experts=4, expert_layers=2, homogeneous=True)
     extra = sum(p.numel() for p in heavy.empty_expert.parameters())
     assert extra == 2 * (32 * 32 + 32) and sum(p.numel() for p in model.empty_expert.parameters()) == 0
+    four = HMoE(num_images=10, width=32, num_scene_experts=4, expert_layers=2, empty_expert_layers=4)  # Table 9
+    assert sum(p.numel() for p in four.empty_expert.parameters()) == 4 * (32 * 32 + 32)
+    assert four(xyz, dirs, img).sigma.shape == (300,)
 
 
 def test_bf16_autocast_keeps_the_gate_in_fp32():
