@@ -9,6 +9,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from model.samplers import invert_cdf
+
 EPS = 1e-7
 
 
@@ -34,12 +36,7 @@ def pdf_edges(edges: Tensor, weights: Tensor, n: int, generator: torch.Generator
         u = torch.linspace(0.0, 1.0, n + 1, device=device).expand(r, n + 1).contiguous()
     else:
         u = (torch.arange(n + 1, device=device) + torch.rand(r, n + 1, generator=generator, device=device)) / (n + 1)
-    hi = torch.searchsorted(cdf, u, right=True).clamp(1, cdf.shape[-1] - 1)
-    lo = hi - 1
-    c0, c1 = cdf.gather(-1, lo), cdf.gather(-1, hi)
-    e0, e1 = edges.gather(-1, lo), edges.gather(-1, hi)
-    frac = ((u - c0) / (c1 - c0).clamp(min=1e-12)).clamp(0, 1)
-    return e0 + frac * (e1 - e0)
+    return invert_cdf(edges, cdf, u)
 
 
 def outer_weights(target: Tensor, source: Tensor, source_weights: Tensor) -> Tensor:

@@ -55,6 +55,11 @@ def inverse_cdf_edges(edges: Tensor, weights: Tensor, n: int, generator: torch.G
         u = torch.linspace(0.0, 1.0, n + 2, device=edges.device)[1:-1].expand(len(edges), n).contiguous()
     else:
         u = torch.rand(len(edges), n, generator=generator, device=edges.device)
+    return invert_cdf(edges, cdf, u)
+
+
+def invert_cdf(edges: Tensor, cdf: Tensor, u: Tensor) -> Tensor:
+    """(R, K) positions t whose CDF is u, the CDF (R, M + 1) being linear inside each bin of `edges` (R, M + 1)."""
     hi = torch.searchsorted(cdf, u, right=True).clamp(1, cdf.shape[-1] - 1)
     lo = hi - 1
     c0, c1 = cdf.gather(-1, lo), cdf.gather(-1, hi)

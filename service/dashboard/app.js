@@ -25,7 +25,7 @@ async function api(path, options = {}) {
 const getJson = async path => (await api(path)).json();
 // The method registry (GET /v1/methods): names, labels, roles and phases; fetched once, never typed out here.
 let methodsPromise = null;
-const methods = () => (methodsPromise ??= getJson("/v1/methods").then(m => Object.fromEntries(m.items.map(i => [i.name, i]))));
+const methodRegistry = () => (methodsPromise ??= getJson("/v1/methods").then(m => Object.fromEntries(m.items.map(i => [i.name, i]))));
 const hasOccupancyPhase = (registry, job) => (registry[job.method]?.phases || []).includes("occupancy");
 
 let tokenWaiters = [];
@@ -194,7 +194,7 @@ async function showJob(id) {
   const charts = document.getElementById("charts");
   charts.replaceChildren(chartCard("Loss", ["loss"], phases), chartCard("PSNR (training batch)", ["psnr"], phases),
     chartCard("Throughput (rays/s)", ["rays_per_s"], phases), chartCard("Main-network samples per ray", ["samples_per_ray"], ["main"]));
-  const registry = await methods();
+  const registry = await methodRegistry();
   if (hasOccupancyPhase(registry, job)) charts.appendChild(chartCard("Fraction of points to the empty expert", ["fraction_empty"], ["occupancy"]));
   document.getElementById("stats").innerHTML = occupancyStats(job, registry) + `<div class="card" id="throughput"><h3>Throughput</h3><dl class="stats">
     <dt>rays/s (${esc(job.phase || "–")})</dt><dd>${fmt(job.rays_per_s, 0)}</dd>
@@ -280,7 +280,7 @@ async function showCompare(sceneId) {
   // Equal PSNR: the best smoothed PSNR that every run reached; each run's first training time at or above it.
   const target = runs.length ? Math.min(...runs.map(r => Math.max(...r.points.map(p => p.value)))) : null;
   const reach = r => (r.points.find(p => p.value >= target) || {}).wall_time_s ?? null;
-  const registry = await methods();
+  const registry = await methodRegistry();
   const ours = Object.values(registry).find(m => m.role === "ours");
   const leco = ours && runs.find(r => r.job.method === ours.name);
   const rows = runs.map(r => {
