@@ -30,11 +30,6 @@ def live_bytes_per_sample(width: int) -> int:
     return 4 * (5 * width + 100)
 
 
-def main_samples_bound(method: str, profile: Profile) -> int:
-    """The most main-network samples with gradient one ray can have."""
-    return get_method(method)(profile).main_samples_bound()
-
-
 def estimate_peak_bytes(method: str, profile: Profile, num_images: int) -> dict:
     """Per-rank peak bytes and its parts (each naming the settings that drive it): the worst phase of the
     method's (model/methods/base.py PhaseMemory) for each part."""
