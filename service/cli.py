@@ -67,10 +67,12 @@ def build_parser() -> argparse.ArgumentParser:
     from bench.cli import add_commands as add_bench_commands
     from bench.load import add_commands as add_load_commands
     from bench.scale import add_commands as add_scale_commands
+    from service.render_cli import add_commands as add_render_commands
     from service.serve_cli import add_commands as add_service_commands
     from service.train_cli import add_commands
 
     add_commands(commands)
+    add_render_commands(commands)
     add_service_commands(commands)
     add_bench_commands(commands)
     add_load_commands(commands)

@@ -56,6 +56,10 @@ def execute(settings: Settings, job_id: int, attempt: int) -> str:
         scene_path = session.scalar(select(Scene.path).where(Scene.id == job.scene_id)) if job else None
     if job is None or job.state != "running" or job.attempts != attempt:
         return "lost"
+    if job.kind != "train":  # a render or export of a finished training job (issue 20)
+        from service.derived import execute_work
+
+        return execute_work(settings, job, attempt, scene_path)
     cfg = TrainConfig.model_validate(job.config)
     if attempt == 1:  # a new job never inherits a folder (a reset database)
         shutil.rmtree(job_dir_for(settings, job_id), ignore_errors=True)

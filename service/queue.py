@@ -57,6 +57,17 @@ def submit(session: Session, scene_id: int, cfg: TrainConfig) -> Job:
     return job
 
 
+def submit_work(session: Session, parent: Job, kind: str, config: dict, phase: str, steps: int) -> Job:
+    """A render or export of the finished training job `parent` (issue 20): queued like any job, on its scene."""
+    job = Job(kind=kind, parent_id=parent.id, scene_id=parent.scene_id, state="queued", method=parent.method,
+              profile=parent.profile, config=config, total_steps=steps, step=0, attempts=0, cancel_requested=False,
+              submitted_at=utcnow())
+    session.add(job)
+    session.flush()
+    session.add(JobPhase(job_id=job.id, name=phase, position=0, state="queued", steps_total=steps, step=0))
+    return job
+
+
 def claim(db_url: str, owner: str, lease_s: float) -> tuple[int, int] | None:
     """Takes the oldest queued job whose scene is ready: (job id, attempt), or None.
 

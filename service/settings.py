@@ -25,6 +25,10 @@ class Settings(BaseModel):
     max_scene_pixels: int = Field(400_000_000, gt=0)
     scene_workers: int = Field(2, ge=1)
     scene_queue: int = Field(4, ge=0)
+    # The dashboard viewer's renders (POST /v1/jobs/{id}/view): processes rendering at once, and requests that may
+    # wait for one (more: 429). One process keeps the last few jobs' networks loaded.
+    view_workers: int = Field(1, ge=1)
+    view_queue: int = Field(1, ge=0)
     lease_s: float = Field(180.0, gt=0)  # a running job's lease; the dispatcher renews it every lease_s / 4
     # How long training and the dispatcher wait out a database outage before giving up (None: two thirds of the
     # lease). Must end before the lease can lapse (see `check_lease_and_retry`).
@@ -102,7 +106,8 @@ class Settings(BaseModel):
                           ("slot_memory_mb", "LECO_SLOT_MEMORY_MB"),
                           ("cluster_max_workers", "LECO_CLUSTER_MAX_WORKERS"),
                           ("cluster_gpus", "LECO_CLUSTER_GPUS"), ("max_scene_pixels", "LECO_MAX_SCENE_PIXELS"),
-                          ("scene_workers", "LECO_SCENE_WORKERS"), ("scene_queue", "LECO_SCENE_QUEUE")):
+                          ("scene_workers", "LECO_SCENE_WORKERS"), ("scene_queue", "LECO_SCENE_QUEUE"),
+                          ("view_workers", "LECO_VIEW_WORKERS"), ("view_queue", "LECO_VIEW_QUEUE")):
             if env.get(name):
                 values[key] = env[name]
         try:

@@ -28,7 +28,8 @@ from workers.store import StoreWriteError
 
 CHUNK = 1 << 20
 CONTENT_TYPES = {".png": "image/png", ".json": "application/json", ".jsonl": "application/x-ndjson",
-                 ".pt": "application/octet-stream", ".ply": "application/x-ply"}
+                 ".pt": "application/octet-stream", ".ply": "application/x-ply",
+                 ".mp4": "video/mp4"}
 
 
 class ArtifactError(StoreWriteError):

@@ -25,6 +25,8 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 TERMINAL = ("succeeded", "failed", "cancelled")
 SCENE_STATES = ("generating", "ready", "failed")
+# A training job, or work on a finished one (issue 20): a video along a camera path, or an export of its geometry.
+JOB_KINDS = ("train", "render", "export")
 ARTIFACT_KINDS = ("checkpoint", "render", "occupancy_model", "pointcloud", "report")
 
 
@@ -79,14 +81,19 @@ class Scene(Base):
 
 class Job(Base):
     __tablename__ = "jobs"
-    __table_args__ = (one_of("state", JOB_STATES), Index("ix_jobs_state_id", "state", "id"), NEVER_REUSED)
+    __table_args__ = (one_of("state", JOB_STATES), one_of("kind", JOB_KINDS), Index("ix_jobs_state_id", "state", "id"),
+                      NEVER_REUSED)
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    kind: Mapped[str] = mapped_column(String(16), default="train", server_default="train")
+    # The finished training job a render or export works on; deleting it deletes them (the API refuses while
+    # one has not ended).
+    parent_id: Mapped[int | None] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
     scene_id: Mapped[int] = mapped_column(ForeignKey("scenes.id", ondelete="RESTRICT"), index=True)
     state: Mapped[str] = mapped_column(String(16), default="queued")
     method: Mapped[str] = mapped_column(String(16))
     profile: Mapped[str] = mapped_column(String(32))
-    config: Mapped[dict] = mapped_column(JSON)  # workers.config.TrainConfig, as submitted
+    config: Mapped[dict] = mapped_column(JSON)  # TrainConfig, RenderConfig or ExportConfig (by kind), as submitted
     phase: Mapped[str | None] = mapped_column(String(16))  # current phase
     step: Mapped[int] = mapped_column(Integer, default=0)  # global step of the latest metrics
     total_steps: Mapped[int] = mapped_column(Integer)

@@ -12,16 +12,13 @@ import numpy as np
 import torch
 
 from model.lpips import LPIPSScores
-from model.methods.base import method_state
 from model.metrics import psnr, ssim
 from model.occupancy_eval import evaluate_occupancy, evaluate_occupancy_exact
 from model.samplers import stratified_edges
-from model.scenes import load_scene
 from model.scenes.rays import PixelTable
 from workers.appearance import prepare_validation_appearance, protocol, right_columns, scored_truth
-from workers.config import TrainConfig
-from workers.models import build_models
 from workers.pixels import attach_pixel_stores
+from workers.trained import load_run
 from workers.validation import render_image, save_triptych
 
 OCCUPANCY_RESOLUTION = 64
@@ -30,21 +27,10 @@ PLY_RAYS = 4096  # validation rays whose coarse samples make the point cloud
 
 
 def load_final(run_dir: Path, device: torch.device):
-    final = Path(run_dir) / "final"
-    if not (final / "models.pt").is_file():
-        raise FileNotFoundError(f"{run_dir}: no finished run here (final/models.pt is missing)")
-    saved = torch.load(final / "models.pt", map_location=device, weights_only=False)
-    run = json.loads((Path(run_dir) / "run.json").read_text())
-    cfg = TrainConfig.model_validate(saved["config"])
-    scene = load_scene(run["scene"], downscale=cfg.downscale)
+    trained = load_run(run_dir, device)
+    scene = trained.scene
     attach_pixel_stores(scene, ("val",) if "val" in scene.splits else ("train",))  # what evaluation reads
-    method = cfg.method_for_run()
-    models = build_models(method, scene.num_images, scene.bounds.aabb, cfg.seed).to(device)
-    method.to(device)
-    models.load_state_dict(saved["models"])
-    method.load_state_dict(method_state(saved))
-    method.load_final(models, final, device)
-    return cfg, scene, method, models
+    return trained.cfg, scene, trained.method, trained.models
 
 
 def write_ply(path: Path, points: np.ndarray, rgba: np.ndarray) -> None:

@@ -17,6 +17,17 @@ class StoreWriteError(RuntimeError):
     retryable = False
 
 
+class StopRequested(RuntimeError):
+    """A job's work stopped because its store asked it to (`stop_reason`): cancelled, or its lease lost."""
+
+
+def check_stop(store: "RunStore | None") -> None:
+    """Raises StopRequested when the store asks the work to stop; between frames or views of a render job."""
+    reason = store.stop_reason() if store is not None else None
+    if reason is not None:
+        raise StopRequested(reason)
+
+
 class RunStore(Protocol):
     def resume(self, step: int) -> None:
         """A restarted attempt continues from the checkpoint at `step`: forget metrics after it."""

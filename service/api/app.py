@@ -12,7 +12,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from sqlalchemy.exc import InterfaceError, OperationalError
 
-from service.api import artifacts, dashboard, health, jobs, methods, scenes
+from service.api import artifacts, dashboard, health, jobs, methods, scenes, work
 from service.api.gate import Gatekeeper
 from service.api.headers import SecurityHeaders
 from service.api.poll_cache import PollCache
@@ -57,6 +57,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI):
         yield
         app.state.scene_pool.close()  # its worker processes end with the server
+        app.state.view_pool.close()
 
     app = FastAPI(title="LeCO-NeRF Service", version="1", lifespan=lifespan,
                   description="Register scenes, submit LeCO-NeRF / Switch-NeRF / occupancy-grid training jobs, "
@@ -65,9 +66,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.http_stats = {"count": Counter(), "seconds": 0.0, "started": time.monotonic()}
     app.state.poll_cache = PollCache(settings.poll_cache_s)
     app.state.scene_pool = WorkPool(settings.scene_workers, settings.scene_queue, "scene registrations")
+    app.state.view_pool = WorkPool(settings.view_workers, settings.view_queue, "view renders")
+    app.state.view_cache = work.ViewCache(work.VIEW_CACHE)
 
     v1 = APIRouter(prefix="/v1")  # the token is checked by Gatekeeper, before the body is read
-    for module in (scenes, jobs, artifacts, methods):
+    for module in (scenes, jobs, work, artifacts, methods):
         v1.include_router(module.router)
     app.include_router(v1)
     app.include_router(health.router)

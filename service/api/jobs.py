@@ -22,10 +22,11 @@ from service.api.methods import check_method_filter
 from service.api.scenes import find_scene
 from service.api.schemas import JobList, JobOut, JobRequest, MetricsOut, PhaseOut, Point, Series
 from service.db import reading, transaction
+from service.derived import rays_per_step
 from service.execute import job_dir_for
 from service.settings import Settings
 from service.store import ArtifactStore
-from service.tables import JOB_STATES, TERMINAL, IdempotencyKey, Job, JobPhase, Metric, utcnow
+from service.tables import JOB_KINDS, JOB_STATES, TERMINAL, IdempotencyKey, Job, JobPhase, Metric, utcnow
 from workers.config import TrainConfig
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
@@ -43,11 +44,12 @@ def job_out(session, job: Job) -> JobOut:
         if rows:
             metrics[phase.name] = dict(rows)
     eta = None
-    if job.state == "running" and job.rays_per_s:
-        batch = TrainConfig.model_validate(job.config).global_batch
+    batch = TrainConfig.model_validate(job.config).global_batch if job.kind == "train" else rays_per_step(job)
+    if job.state == "running" and job.rays_per_s and batch:
         eta = max(job.total_steps - job.step, 0) * batch / job.rays_per_s
     percent = 100.0 if job.state == "succeeded" else round(100.0 * job.step / max(job.total_steps, 1), 2)
-    return JobOut(id=job.id, scene_id=job.scene_id, state=job.state, method=job.method, profile=job.profile,
+    return JobOut(id=job.id, kind=job.kind, parent_id=job.parent_id, scene_id=job.scene_id, state=job.state,
+                  method=job.method, profile=job.profile,
                   config=job.config, phase=job.phase, step=job.step, total_steps=job.total_steps, percent=percent,
                   eta_s=eta, rays_per_s=job.rays_per_s, attempts=job.attempts, cancel_requested=job.cancel_requested,
                   error=job.error, submitted_at=job.submitted_at, started_at=job.started_at,
@@ -201,19 +203,23 @@ def begin_idempotent(settings: Settings, key: str, digest: str) -> JSONResponse 
 @router.get("", response_model=JobList, operation_id="listJobs", responses=links(200, job_links("/items/0")))
 async def list_jobs(request: Request, state: str | None = Query(None, pattern="^(" + "|".join(JOB_STATES) + ")$"),
                     scene: str | None = None, method: str | None = Query(None, max_length=64),
+                    kind: str | None = Query(None, pattern="^(" + "|".join(JOB_KINDS) + ")$"),
                     limit: int = Query(50, ge=1, le=200), offset: int = Query(0, ge=0, le=MAX_INT)) -> Response:
     # The dashboard's jobs page polls this: served from the poll cache, at most LECO_POLL_CACHE_S old.
     check_method_filter(method)
     settings = request.app.state.settings
     body = await poll_cache_of(request).job_list(
-        (state, scene, method, limit, offset), lambda: job_list_json(settings, state, scene, method, limit, offset))
+        (state, scene, method, kind, limit, offset),
+        lambda: job_list_json(settings, state, scene, method, limit, offset, kind))
     return Response(body, media_type="application/json")
 
 
 def job_list_json(settings: Settings, state: str | None, scene: str | None, method: str | None, limit: int,
-                  offset: int) -> bytes:
+                  offset: int, kind: str | None = None) -> bytes:
     with reading(settings.db_url) as session:
         query = select(Job)
+        if kind:
+            query = query.where(Job.kind == kind)
         if state:
             query = query.where(Job.state == state)
         if method:
@@ -270,12 +276,20 @@ def delete_job(job_id: RowId, request: Request) -> None:
         job = get_job(session, job_id)
         if job.state not in TERMINAL:
             raise HTTPException(409, f"job {job_id} is {job.state}: cancel it and wait for it to stop first")
-    ArtifactStore(settings.db_url, settings.artifacts).delete_job(job_id)
+        works = session.execute(select(Job.id, Job.kind, Job.state).where(Job.parent_id == job_id)).all()
+    for work_id, kind, state in works:  # its renders and exports go with it (the rows by ON DELETE CASCADE)
+        if state not in TERMINAL:
+            raise HTTPException(409, f"job {job_id}'s {kind} job {work_id} is {state}: cancel it and wait for it to "
+                                     "stop first")
+    store = ArtifactStore(settings.db_url, settings.artifacts)
+    for ident in [w[0] for w in works] + [job_id]:
+        store.delete_job(ident)
     with transaction(settings.db_url) as session:
-        session.execute(delete(Job).where(Job.id == job_id, Job.state.in_(TERMINAL)),
+        session.execute(delete(Job).where(Job.id.in_([w[0] for w in works] + [job_id]), Job.state.in_(TERMINAL)),
                         execution_options={"synchronize_session": False})
-    poll_cache_of(request).forget(job_id)
-    shutil.rmtree(job_dir_for(settings, job_id), ignore_errors=True)
+    for ident in [w[0] for w in works] + [job_id]:
+        poll_cache_of(request).forget(ident)
+        shutil.rmtree(job_dir_for(settings, ident), ignore_errors=True)
 
 
 @router.get("/{job_id}/metrics", response_model=MetricsOut, operation_id="getJobMetrics")

@@ -55,6 +55,8 @@ class PhaseOut(BaseModel):
 
 class JobOut(BaseModel):
     id: int
+    kind: str = Field(description="train, or render / export of the finished training job `parent_id`")
+    parent_id: int | None
     scene_id: int
     state: str
     method: str

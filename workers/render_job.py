@@ -1,0 +1,130 @@
+"""A video of a finished run along a camera path (issue 20): `leco render` and the service's render jobs.
+Frames are rendered one at a time with the method's own sampler and encoded as they come; the store (the
+service's, or none) gets each frame's progress and is asked between frames whether to stop."""
+
+from __future__ import annotations
+
+import json
+import statistics
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+from PIL import Image
+
+from model.camera_paths import CameraPath, flyover, intrinsics_for_fov, orbit, spiral, user_path, world_to_source_pose
+from model.scenes.scene import Scene
+from workers.frames import appearance_row, depth_uint8, render_frame, to_uint8
+from workers.render_config import CamerasPath, FlyoverPath, NerfstudioPath, OrbitPath, RenderConfig, SpiralPath
+from workers.store import RunStore, check_stop
+from workers.trained import Trained
+from workers.video import Mp4Writer
+
+PHASE = "render"
+SIBLINGS = {"depth": ".depth.mp4", "poster": ".poster.png", "path": ".camera_path.json", "summary": ".render.json"}
+
+
+def outputs(video: Path) -> dict[str, Path]:
+    """The files a render writes: the video and, beside it under its stem, the rest."""
+    video = Path(video)
+    return {"video": video, **{k: video.with_name(video.stem + suffix) for k, suffix in SIBLINGS.items()}}
+
+
+def training_order(scene: Scene):
+    """The training cameras in capture order (by image name)."""
+    order = sorted(range(len(scene.train)), key=lambda i: scene.train.names[i])
+    return scene.train.cameras.index(order)
+
+
+def build_path(cfg: RenderConfig, scene: Scene) -> CameraPath:
+    """The path in the world frame, at the render's size."""
+    p, w, h, n, aabb = cfg.path, cfg.width, cfg.height, cfg.frames, scene.bounds.aabb
+    if isinstance(p, OrbitPath):
+        altitude = None if p.altitude is None else p.altitude / scene.normalization.scale
+        return orbit(aabb, n, w, h, fov_deg=p.fov_deg, pitch_deg=p.pitch_deg, altitude=altitude, turns=p.turns)
+    if isinstance(p, FlyoverPath):
+        return flyover(training_order(scene), n, w, h, fov_deg=p.fov_deg, smoothing=p.smoothing)
+    if isinstance(p, SpiralPath):
+        return spiral(training_order(scene), aabb, n, w, h, fov_deg=p.fov_deg, turns=p.turns, spread=p.spread)
+    if isinstance(p, CamerasPath):
+        sx, sy = w / (p.width or w), h / (p.height or h)
+        intrinsics = [[c.intrinsics[0] * sx, c.intrinsics[1] * sy, c.intrinsics[2] * sx, c.intrinsics[3] * sy]
+                      if c.intrinsics is not None else intrinsics_for_fov(c.fov_deg, w, h).tolist()
+                      for c in p.cameras]
+        norm = scene.normalization if p.frame == "source" else None
+        return user_path([c.c2w for c in p.cameras], intrinsics, w, h, norm, field="path.cameras")
+    if isinstance(p, NerfstudioPath):
+        c2w = [[f.camera_to_world[i:i + 4] for i in range(0, 16, 4)] for f in p.camera_path]
+        intrinsics = [intrinsics_for_fov(f.fov, w, h).tolist() for f in p.camera_path]
+        return user_path(c2w, intrinsics, w, h, scene.normalization, field="path.camera_path")
+    raise TypeError(f"unknown path {p!r}")
+
+
+def path_in_source_frame(path: CameraPath, scene: Scene) -> dict:
+    """The rendered path as a `cameras` path in the dataset's own frame: a file `--path` takes again."""
+    scale = scene.normalization.scale
+    return {"kind": "cameras", "frame": "source", "units": scene.normalization.units, "width": path.width,
+            "height": path.height,
+            "cameras": [{"c2w": world_to_source_pose(c, scene.normalization).tolist(), "intrinsics": k.tolist()}
+                        for c, k in zip(path.c2w, path.intrinsics)],
+            "note": f"OpenGL camera axes (right, up, back); the world frame is the dataset's frame moved and scaled "
+                    f"by 1/{scale:g}"}
+
+
+def render_video(trained: Trained, cfg: RenderConfig, video: Path, store: RunStore | None = None,
+                 log: Callable[[str], None] = lambda text: None) -> dict:
+    """Writes `video` (an H.264 MP4) and beside it NAME.poster.png (the first frame), NAME.camera_path.json (the
+    path in the dataset's frame), NAME.render.json (timings) and, when asked, NAME.depth.mp4."""
+    files = outputs(video)
+    files["video"].parent.mkdir(parents=True, exist_ok=True)
+    path = build_path(cfg, trained.scene)
+    cameras = path.cameras()
+    row = appearance_row(trained, cfg.appearance)
+    writers = [Mp4Writer(files["video"], cfg.width, cfg.height, cfg.fps)]
+    if cfg.depth_video:
+        writers.append(Mp4Writer(files["depth"], cfg.width, cfg.height, cfg.fps))
+    seconds, samples, depth_range = [], [], (0.0, 1.0)
+    if store is not None:
+        store.phase_started(PHASE)
+    try:
+        for i in range(len(path)):
+            check_stop(store)
+            started = time.perf_counter()
+            frame = render_frame(trained, cameras, i, row)
+            seconds.append(time.perf_counter() - started)
+            samples.append(frame.samples_per_ray)
+            writers[0].write(to_uint8(frame.rgb).numpy())
+            if i == 0:
+                Image.fromarray(to_uint8(frame.rgb).numpy()).save(files["poster"])
+                seen = frame.depth[frame.opacity > 0.5] / frame.opacity[frame.opacity > 0.5]
+                if len(seen):
+                    depth_range = (float(torch.quantile(seen, 0.01)), float(torch.quantile(seen, 0.99)))
+            if cfg.depth_video:
+                writers[1].write(depth_uint8(frame, *depth_range).numpy())
+            if store is not None:
+                store.write(i + 1, {"phase": PHASE, "phase_step": i + 1, "seconds_per_frame": seconds[-1],
+                                    "rays_per_s": cfg.width * cfg.height / seconds[-1],
+                                    "samples_per_ray": frame.samples_per_ray})
+            log(f"frame {i + 1}/{len(path)}: {seconds[-1]:.2f} s")
+        for writer in writers:
+            writer.close()
+    except BaseException:
+        for writer in writers:
+            writer.abort()
+        raise
+    files["path"].write_text(json.dumps(path_in_source_frame(path, trained.scene), indent=1))
+    summary = {
+        "method": trained.cfg.method, "profile": trained.cfg.profile, "path": cfg.path.kind, "frames": len(path),
+        "width": cfg.width, "height": cfg.height, "fps": cfg.fps, "device": str(trained.device),
+        "appearance": ("mean of the training views' embeddings" if cfg.appearance == "mean"
+                       else f"training image {cfg.appearance} ({trained.scene.train.names[int(cfg.appearance)]})"),
+        "seconds_per_frame": statistics.fmean(seconds), "median_seconds_per_frame": statistics.median(seconds),
+        "seconds_total": sum(seconds), "rays_per_s": cfg.width * cfg.height * len(seconds) / sum(seconds),
+        "samples_per_ray": float(np.mean(samples)), "threads": torch.get_num_threads(),
+        "files": [files[k].name for k in ("video", "poster", "path", "summary")]
+        + ([files["depth"].name] if cfg.depth_video else []),
+    }
+    files["summary"].write_text(json.dumps(summary, indent=1))
+    return summary
