@@ -183,6 +183,38 @@ def spiral(cameras: Cameras, aabb: Tensor, frames: int, width: int, height: int,
                       width, height)
 
 
+def slerp_rotations(r0: Tensor, r1: Tensor, t: float) -> Tensor:
+    """The rotation a fraction t of the way from r0 to r1 along the shortest arc (axis-angle of r0^T r1)."""
+    delta = r0.T @ r1
+    angle = math.acos(max(-1.0, min(1.0, (float(torch.trace(delta)) - 1) / 2)))
+    if angle < 1e-9:
+        return r0.clone()
+    axis = torch.stack([delta[2, 1] - delta[1, 2], delta[0, 2] - delta[2, 0], delta[1, 0] - delta[0, 1]])
+    if float(axis.norm()) < 1e-9:  # half a turn: the axis is the eigenvector of delta with eigenvalue 1
+        values, vectors = torch.linalg.eigh(0.5 * (delta + delta.T))
+        axis = vectors[:, int(values.argmax())]
+    axis = axis / axis.norm()
+    k = torch.tensor([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]], dtype=r0.dtype)
+    a = angle * t
+    return r0 @ (torch.eye(3, dtype=r0.dtype) + math.sin(a) * k + (1 - math.cos(a)) * k @ k)
+
+
+def interpolate(path: CameraPath, frames: int) -> CameraPath:
+    """`frames` cameras through a path's cameras taken as keyframes: centres evenly spaced along the polyline's
+    arc length, rotations and intrinsics interpolated between the two keyframes around each (the viewer's
+    saved cameras become a smooth fly-through)."""
+    if len(path) < 2:
+        raise PathError("path.cameras", "interpolating a path needs at least two cameras")
+    lower, w = resample_by_arc_length(path.c2w[:, :, 3], frames)
+    poses, intrinsics = [], []
+    for i, t in zip(lower.tolist(), w.tolist()):
+        a, b = path.c2w[i], path.c2w[i + 1]
+        rotation = slerp_rotations(a[:, :3], b[:, :3], t)
+        poses.append(torch.cat([rotation, (a[:, 3] * (1 - t) + b[:, 3] * t)[:, None]], dim=1))
+        intrinsics.append(path.intrinsics[i] * (1 - t) + path.intrinsics[i + 1] * t)
+    return CameraPath(torch.stack(poses), torch.stack(intrinsics), path.width, path.height)
+
+
 def check_rotation(c2w: Tensor, field: str) -> None:
     r = c2w.double().reshape(1, 3, 4)
     if not bool(torch.isfinite(r).all()):

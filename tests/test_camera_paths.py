@@ -12,6 +12,7 @@ from model.camera_paths import (
     PathError,
     fitting_distance,
     flyover,
+    interpolate,
     look_at,
     orbit,
     source_to_world_pose,
@@ -152,3 +153,23 @@ def test_nerfstudio_camera_path_files_are_read(tmp_path):
     with pytest.raises(ValidationError, match="not a rotation"):
         RenderConfig.model_validate({"path": {"kind": "nerfstudio", "camera_path": [
             {**frame, "camera_to_world": [1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 5, 0, 0, 0, 1]}]}})
+
+
+def test_keyframes_interpolate_into_a_smooth_path():
+    a = look_at(torch.tensor([2.0, 0, 1], dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
+    b = look_at(torch.tensor([0.0, 2, 1], dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
+    keys = user_path([a.tolist(), b.tolist()], [[40, 40, 16, 12], [60, 60, 16, 12]], 32, 24, None)
+    path = interpolate(keys, 11)
+    assert len(path) == 11 and rotation_error(path.c2w).max() < 1e-9
+    assert torch.allclose(path.c2w[0], a) and torch.allclose(path.c2w[-1], b)
+    assert torch.allclose(path.intrinsics[5], torch.tensor([50, 50, 16, 12], dtype=torch.float64))
+    # halfway, the rotation is halfway: turned 45 degrees about z from the first, at the same elevation
+    c, s = math.cos(math.pi / 4), math.sin(math.pi / 4)
+    yaw = torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=torch.float64)
+    assert torch.allclose(path.c2w[5, :, :3], yaw @ a[:, :3], atol=1e-6)
+    with pytest.raises(ValidationError, match="at least two"):
+        RenderConfig.model_validate({"path": {"kind": "cameras", "interpolate": True,
+                                              "cameras": [{"c2w": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]}]}})
+    cfg = RenderConfig.model_validate({"frames": 30, "path": {"kind": "cameras", "interpolate": True, "cameras": [
+        {"c2w": a.tolist()}, {"c2w": b.tolist()}]}})
+    assert cfg.frame_count == 30

@@ -70,8 +70,8 @@ class SpiralPath(BaseModel):
 
 
 class CamerasPath(BaseModel):
-    """A user's path: one camera per frame, in the dataset's own frame (`source`) or the normalised world the
-    API's cameras route and the dashboard's viewer use (`world`)."""
+    """A user's path: one camera per frame (or keyframes to interpolate), in the dataset's own frame (`source`)
+    or the normalised world the API's cameras route and the dashboard's viewer use (`world`)."""
 
     model_config = STRICT
     kind: Literal["cameras"] = "cameras"
@@ -79,7 +79,16 @@ class CamerasPath(BaseModel):
     width: int | None = Field(None, ge=1, le=8192, description="the size the intrinsics are given at (default: "
                               "the render's)")
     height: int | None = Field(None, ge=1, le=8192)
+    interpolate: bool = Field(False, description="the cameras are keyframes: render `frames` frames through them "
+                              "(evenly along the path, rotations interpolated); else one frame per camera")
     cameras: list[Camera] = Field(min_length=1, max_length=MAX_FRAMES)
+
+    @field_validator("cameras")
+    @classmethod
+    def keyframes(cls, cameras: list[Camera], info: ValidationInfo) -> list[Camera]:
+        if info.data.get("interpolate") and len(cameras) < 2:
+            raise ValueError("interpolating a path needs at least two cameras")
+        return cameras
 
 
 class NerfstudioFrame(BaseModel):
@@ -159,7 +168,7 @@ class RenderConfig(BaseModel):
 def path_frames(path) -> int | None:
     """A user path's frame count (one per camera), None for a generated path (`frames` sets it)."""
     if isinstance(path, CamerasPath):
-        return len(path.cameras)
+        return None if path.interpolate else len(path.cameras)
     if isinstance(path, NerfstudioPath):
         return len(path.camera_path)
     return None

@@ -14,7 +14,16 @@ import numpy as np
 import torch
 from PIL import Image
 
-from model.camera_paths import CameraPath, flyover, intrinsics_for_fov, orbit, spiral, user_path, world_to_source_pose
+from model.camera_paths import (
+    CameraPath,
+    flyover,
+    interpolate,
+    intrinsics_for_fov,
+    orbit,
+    spiral,
+    user_path,
+    world_to_source_pose,
+)
 from model.scenes.scene import Scene
 from workers.frames import appearance_row, depth_uint8, render_frame, to_uint8
 from workers.render_config import CamerasPath, FlyoverPath, NerfstudioPath, OrbitPath, RenderConfig, SpiralPath
@@ -54,7 +63,8 @@ def build_path(cfg: RenderConfig, scene: Scene) -> CameraPath:
                       if c.intrinsics is not None else intrinsics_for_fov(c.fov_deg, w, h).tolist()
                       for c in p.cameras]
         norm = scene.normalization if p.frame == "source" else None
-        return user_path([c.c2w for c in p.cameras], intrinsics, w, h, norm, field="path.cameras")
+        given = user_path([c.c2w for c in p.cameras], intrinsics, w, h, norm, field="path.cameras")
+        return interpolate(given, n) if p.interpolate else given
     if isinstance(p, NerfstudioPath):
         c2w = [[f.camera_to_world[i:i + 4] for i in range(0, 16, 4)] for f in p.camera_path]
         intrinsics = [intrinsics_for_fov(f.fov, w, h).tolist() for f in p.camera_path]
