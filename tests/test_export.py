@@ -1,0 +1,67 @@
+"""Geometry exports in the dataset's own frame and units (issue 20): the cameras of real scenes come back as the
+dataset wrote them (lego's transforms, fern's poses_bounds), points land inside the source-frame foreground box,
+and the transform written beside maps them to the world the networks live in."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from model.scenes import load_scene
+from workers.config import TrainConfig
+from workers.export import cameras_json, export, read_ply_points, transform
+from workers.models import build_models
+from workers.render_config import ExportConfig
+from workers.trained import Trained
+
+
+def untrained(scene, method="switch") -> Trained:
+    """Networks as initialised: enough to check where exported points go (not what they look like)."""
+    cfg = TrainConfig(method=method, profile="smoke")
+    m = cfg.method_for_run()
+    models = build_models(m, scene.num_images, scene.bounds.aabb, 0)
+    return Trained(cfg, scene, m, models.eval(), torch.device("cpu"))
+
+
+def check_points_in_source_box(trained, tmp_path):
+    info = export(trained, ExportConfig(what="pointcloud", stride=20, min_opacity=0.0), tmp_path)
+    points = read_ply_points(tmp_path / "pointcloud.ply")
+    assert info["points"] == len(points) > 0
+    t = json.loads((tmp_path / "transform.json").read_text())
+    world = points @ np.asarray(t["world_from_source"])[:3, :3].T + np.asarray(t["world_from_source"])[:3, 3]
+    box = np.asarray(t["foreground_box_world"])
+    assert (world >= box[0] - 1e-4).all() and (world <= box[1] + 1e-4).all()
+    return points
+
+
+def test_lego_exports_its_cameras_as_its_transforms_say(lego_dir, tmp_path):
+    scene = load_scene(lego_dir)
+    exported = {(c["split"], c["name"]): c for c in cameras_json(scene)["cameras"]}
+    for split in scene.splits:
+        frames = json.loads((lego_dir / f"transforms_{split}.json").read_text())["frames"]
+        for frame in frames:
+            name = frame["file_path"].split("/")[-1]
+            c2w = np.asarray(exported[(split, name)]["c2w"])
+            assert np.allclose(c2w, np.asarray(frame["transform_matrix"])[:3], atol=1e-5)
+    assert transform(scene)["units"] == "source units"
+    points = check_points_in_source_box(untrained(scene), tmp_path)
+    assert np.abs(points).max() < 10  # Blender's frame: the object within a few units of its origin
+
+
+def test_fern_exports_its_cameras_and_points_in_its_own_frame(fern_dir, tmp_path):
+    scene = load_scene(fern_dir)
+    poses = np.load(fern_dir / "poses_bounds.npy")[:, :15].reshape(-1, 3, 5)
+    cameras = sorted(cameras_json(scene)["cameras"], key=lambda c: c["name"])
+    assert len(cameras) == len(poses)
+    for camera, pose in zip(cameras, poses):
+        c2w = np.asarray(camera["c2w"])
+        assert np.allclose(c2w[:, 3], pose[:, 3], atol=1e-4)  # LLFF's centre, as written
+        assert np.allclose(c2w[:, 2], pose[:, 2], atol=1e-5)  # its back axis; right and up are LLFF's [right, -down]
+        assert np.allclose(c2w[:, 0], pose[:, 1], atol=1e-5) and np.allclose(c2w[:, 1], -pose[:, 0], atol=1e-5)
+    check_points_in_source_box(untrained(scene), tmp_path)
+
+
+def test_an_occupancy_export_needs_a_method_that_learns_one(tiny_scene, tmp_path):
+    with pytest.raises(ValueError, match="learns no occupancy"):
+        export(untrained(tiny_scene), ExportConfig(what="occupancy", resolution=8), tmp_path)
