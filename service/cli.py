@@ -66,6 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     from bench.cli import add_commands as add_bench_commands
     from bench.load import add_commands as add_load_commands
+    from bench.render_speed import add_commands as add_render_bench_commands
     from bench.scale import add_commands as add_scale_commands
     from service.render_cli import add_commands as add_render_commands
     from service.serve_cli import add_commands as add_service_commands
@@ -77,6 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_bench_commands(commands)
     add_load_commands(commands)
     add_scale_commands(commands)
+    add_render_bench_commands(commands)
     return parser
 
 

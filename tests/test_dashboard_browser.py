@@ -123,3 +123,113 @@ def test_the_dashboard_follows_a_job_and_cancels_another(service):
 
 def sessionStorage_token(page) -> str:
     return page.evaluate("() => sessionStorage.getItem('leco-token')")
+
+
+def test_the_dashboard_renders_videos_and_views_a_finished_job(service):
+    """Issue 20 on the page: a render submitted from the job view's form plays in a <video> (H.264 through a
+    blob: URL, under the Content-Security-Policy), a bad one shows the API's 422; the viewer answers a drag with
+    low-resolution frames and a sharp one once the pointer rests; two of its cameras render as a path."""
+    from playwright.sync_api import expect, sync_playwright
+
+    url, api, token = service
+    scene = api.post("/v1/scenes/synthetic", json={"preset": "tiny", "seed": 0}).json()
+    while scene["state"] == "generating":
+        time.sleep(0.3)
+        scene = api.get(f"/v1/scenes/{scene['id']}").json()
+    job = api.post("/v1/jobs", json={"scene": scene["id"], "method": "leco", "profile": "smoke", "workers": 1}).json()
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+        page = browser.new_page(viewport={"width": 1280, "height": 1400})
+        blocked = []
+        page.on("console", lambda m: blocked.append(m.text) if "Content Security Policy" in m.text else None)
+        page.goto(f"{url}/dashboard/#/jobs/{job['id']}")
+        page.fill("#token-input", token)
+        page.click("#token-form button")
+        h264 = page.evaluate("() => document.createElement('video').canPlayType('video/mp4; codecs=\"avc1.640015\"')")
+        assert h264 in ("probably", "maybe"), f"this Chromium cannot play H.264 ({h264!r})"
+        # the cards appear once the training job the page follows has succeeded
+        expect(page.locator("#render-form")).to_be_visible(timeout=300_000)
+        expect(page.locator("#job-state [data-state]")).to_have_attribute("data-state", "succeeded")
+
+        form = page.locator("#render-form")  # a video over the API's pixel budget: the 422 names the field
+        form.locator("input[name=frames]").fill("1200")
+        form.locator("select[name=size]").select_option("640x480")
+        form.locator("button[type=submit]").click()
+        expect(page.locator("#render-error")).to_contain_text("frames: ")
+        expect(page.locator("#render-error")).to_contain_text("more than 60,000,000")
+        form.locator("select[name=kind]").select_option("orbit")
+        form.locator("input[name=frames]").fill("8")
+        form.locator("select[name=size]").select_option("160x120")
+        form.locator("button[type=submit]").click()
+        expect(page.locator("#render-error")).to_be_empty()
+        orbit = page.locator("#render-list .render-item").first
+        expect(orbit.locator(".render-state [data-state]")).to_have_attribute("data-state", "succeeded",
+                                                                              timeout=180_000)
+        video = orbit.locator("video.render-video")
+        expect(video).to_be_visible(timeout=30_000)
+        video.evaluate("v => new Promise((ok, no) => { const t = setTimeout(() => no(new Error('no data')), 20000);"
+                       " const check = () => v.readyState >= 2 ? (clearTimeout(t), ok()) : setTimeout(check, 50);"
+                       " check(); })")
+        assert video.evaluate("v => [v.videoWidth, v.videoHeight]") == [160, 120]
+        assert video.evaluate("v => v.src.startsWith('blob:') && v.poster.startsWith('blob:')")
+        video.evaluate("v => v.play()")
+        page.wait_for_function("v => !v.paused && v.currentTime > 0.05", arg=video.element_handle(), timeout=10_000)
+        assert video.evaluate("v => v.getVideoPlaybackQuality().totalVideoFrames") >= 2  # decoded, not just timed
+        assert orbit.locator(".links a.dl").count() >= 4  # the video, its poster, camera path and summary
+        page.locator("#renders-card").screenshot(path=SHOTS / "renders.png")
+
+        image = page.locator("#viewer-image")
+        expect(image).to_have_attribute("data-size", "320x240", timeout=120_000)  # the first view, sharp
+
+        def drag_until_a_frame(dx):
+            """Holds the button down and keeps moving until a new frame arrives: a low-resolution one."""
+            frames, box = int(image.get_attribute("data-frames")), image.bounding_box()
+            x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+            page.mouse.move(x, y)
+            page.mouse.down()
+            deadline = time.monotonic() + 60
+            while int(image.get_attribute("data-frames")) == frames:
+                assert time.monotonic() < deadline, "no frame arrived while dragging"
+                x, y = x + dx, y + 1
+                page.mouse.move(x, y, steps=2)
+                page.wait_for_timeout(100)
+            assert image.get_attribute("data-size") == "80x60"
+            frames = int(image.get_attribute("data-frames"))
+            page.mouse.up()  # at rest: a sharp frame of where the drag ended
+            page.wait_for_function("([img, n]) => Number(img.dataset.frames) > n && img.dataset.size === '320x240'",
+                                   arg=[image.element_handle(), frames], timeout=60_000)
+
+        drag_until_a_frame(6)
+        page.click("#add-camera")
+        expect(page.locator("#path-cameras li")).to_have_count(1)
+        expect(page.locator("#render-path")).to_be_disabled()
+        frames, box = int(image.get_attribute("data-frames")), image.bounding_box()
+        page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        page.mouse.wheel(0, -200)  # zoom in a little: a sharp frame once the wheel rests
+        page.wait_for_function("([img, n]) => Number(img.dataset.frames) > n && img.dataset.size === '320x240'",
+                               arg=[image.element_handle(), frames], timeout=60_000)
+        page.wait_for_timeout(500)  # nothing more on its way
+        drag_until_a_frame(-8)
+        page.click("#add-camera")
+        expect(page.locator("#path-cameras li")).to_have_count(2)
+        page.screenshot(path=SHOTS / "viewer-full.png", full_page=True)
+        page.locator("#viewer").screenshot(path=SHOTS / "viewer.png")
+        page.click("#render-path")
+        expect(page.locator("#render-list .render-item")).to_have_count(2)
+        path_item = page.locator("#render-list .render-item").first
+        expect(path_item.locator(".render-state [data-state]")).to_have_attribute("data-state", "succeeded",
+                                                                                  timeout=180_000)
+        expect(path_item.locator("video.render-video")).to_be_visible(timeout=30_000)
+        renders = api.get(f"/v1/jobs/{job['id']}/renders").json()["items"]
+        assert [r["state"] for r in renders] == ["succeeded", "succeeded"]
+        path = renders[0]["config"]["path"]
+        assert path["kind"] == "cameras" and path["frame"] == "world" and path["interpolate"]
+        assert len(path["cameras"]) == 2 and path["cameras"][0]["c2w"] != path["cameras"][1]["c2w"]
+        assert renders[0]["config"]["frames"] == 8 and renders[0]["config"]["width"] == 160
+        page.locator("#work-area").screenshot(path=SHOTS / "renders-path.png")
+
+        page.goto(f"{url}/dashboard/#/")  # the jobs list shows training jobs only
+        expect(page.locator("tr.job-row")).to_have_count(1)
+        assert blocked == [], blocked
+        browser.close()

@@ -1,14 +1,15 @@
 """Security headers on every answer (issue 17): no MIME sniffing, no framing (clickjacking), no referrer; and on
 the dashboard a Content-Security-Policy that allows only its own files, so an injected `<script>` or
-`onerror=` in any text it shows cannot run (it has no inline script; charts set inline styles)."""
+`onerror=` in any text it shows cannot run (it has no inline script; charts set inline styles). Pictures and
+videos it fetched with the token are shown through blob: URLs (img-src, media-src)."""
 
 from __future__ import annotations
 
 COMMON = [(b"x-content-type-options", b"nosniff"), (b"x-frame-options", b"DENY"),
           (b"referrer-policy", b"no-referrer")]
 DASHBOARD_CSP = (b"default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; "
-                 b"img-src 'self' blob: data:; connect-src 'self'; object-src 'none'; base-uri 'none'; "
-                 b"form-action 'self'; frame-ancestors 'none'")
+                 b"img-src 'self' blob: data:; media-src 'self' blob:; connect-src 'self'; object-src 'none'; "
+                 b"base-uri 'none'; form-action 'self'; frame-ancestors 'none'")
 
 
 class SecurityHeaders:

@@ -16,11 +16,20 @@ async function api(path, options = {}) {
     return api(path, options);
   }
   if (!response.ok) {
-    let detail = response.statusText;
-    try { detail = JSON.stringify((await response.json()).detail); } catch (e) { /* not JSON */ }
-    throw new Error(`${response.status}: ${detail}`);
+    let detail = response.statusText, body = null;
+    try { body = (await response.json()).detail; detail = JSON.stringify(body); } catch (e) { /* not JSON */ }
+    // status, the parsed `detail` and Retry-After stay on the error: a 422 is shown field by field, a 429 retried
+    throw Object.assign(new Error(`${response.status}: ${detail}`), {
+      status: response.status, detail: body, retryAfter: Number(response.headers.get("Retry-After")) || null });
   }
   return response;
+}
+// An error as a person reads it: FastAPI's 422 list as "field: message" lines (the field's path without "body").
+function problem(error) {
+  if (Array.isArray(error.detail)) {
+    return error.detail.map(d => `${(d.loc || []).filter(l => l !== "body").join(".") || "request"}: ${d.msg}`).join("\n");
+  }
+  return typeof error.detail === "string" ? `${error.status}: ${error.detail}` : error.message;
 }
 const getJson = async path => (await api(path)).json();
 // The method registry (GET /v1/methods): names, labels, roles and phases; fetched once, never typed out here.
@@ -63,7 +72,7 @@ async function download(url, name) {
 // ----- jobs list ------------------------------------------------------------------------------------------
 async function showJobs() {
   const view = document.getElementById("view");
-  const [jobs, scenes] = await Promise.all([getJson("/v1/jobs?limit=100"), getJson("/v1/scenes")]);
+  const [jobs, scenes] = await Promise.all([getJson("/v1/jobs?kind=train&limit=100"), getJson("/v1/scenes")]);
   const sceneName = Object.fromEntries(scenes.map(s => [s.id, s.name]));
   const rows = jobs.items.map(j => {
     const psnr = (j.latest_metrics[j.phase || ""] || {}).psnr;
@@ -163,6 +172,7 @@ async function showJob(id) {
   const phases = job.phases.map(p => p.name);
   if (!document.getElementById("job-view") || view.dataset.job !== String(id)) {
     view.dataset.job = String(id);
+    Object.assign(jobState, { renderId: null, plyId: null });  // a rebuilt page (back from another view) loads its pictures again
     view.innerHTML = `<div id="job-view">
       <h1>Job ${id} <span id="job-state"></span></h1><div id="job-summary" class="muted"></div>
       <div class="toolbar"><button id="cancel" class="danger">Cancel job</button>
@@ -170,6 +180,7 @@ async function showJob(id) {
       <p id="job-error" class="error"></p>
       <div class="grid" id="charts"></div>
       <h2>Occupancy and throughput</h2><div class="grid" id="stats"></div>
+      <div id="work-area"></div>
       <h2>Latest validation render</h2><div class="card"><img id="render" class="render" alt="no render yet"><div id="render-caption" class="muted">no render yet</div></div>
       <h2>Learned occupancy</h2><div class="grid"><div class="card"><h3>From above</h3><canvas id="occupancy-top" class="occupancy" width="480" height="360"></canvas></div>
         <div class="card"><h3>Oblique</h3><canvas id="occupancy-oblique" class="occupancy" width="480" height="360"></canvas></div></div>
@@ -185,7 +196,8 @@ async function showJob(id) {
     };
   }
   document.getElementById("job-state").innerHTML = stateBadge(job.state);
-  document.getElementById("job-summary").innerHTML = `${esc(job.method)} · profile ${esc(job.profile)} · phase ${esc(job.phase || "–")} ·
+  const parent = job.kind !== "train" && job.parent_id ? `${esc(job.kind)} of <a href="#/jobs/${job.parent_id}">job ${job.parent_id}</a> · ` : "";
+  document.getElementById("job-summary").innerHTML = `${parent}${esc(job.method)} · profile ${esc(job.profile)} · phase ${esc(job.phase || "–")} ·
     step ${job.step}/${job.total_steps} · ${progressBar(job.percent)} ${eta(job.eta_s)} · attempt ${job.attempts}
     ${job.cancel_requested && !TERMINAL.includes(job.state) ? " · stopping (cancel requested)" : ""}`;
   document.getElementById("job-error").textContent = job.error ? `Error: ${job.error}` : "";
@@ -205,8 +217,355 @@ async function showJob(id) {
     <td>${a.step ?? ""}</td><td>${bytes(a.size)}</td><td><a href="#" data-url="${esc(a.url)}" data-name="${esc(a.name.split("/").pop())}" class="dl">download</a></td></tr>`).join("");
   document.querySelectorAll("#artifacts a.dl").forEach(a => { a.onclick = e => { e.preventDefault(); download(a.dataset.url, a.dataset.name); }; });
   await refreshImages(artifacts);
+  let rendering = false;
+  if (job.kind === "train" && job.state === "succeeded") {  // renders and the viewer: of a finished training job only
+    if (!document.getElementById("renders-card")) await buildWork(job);
+    rendering = await refreshRenders();
+  }
   setStatus(`job ${id} · updated ${new Date().toLocaleTimeString()}`);
-  if (!TERMINAL.includes(job.state) || !jobState.plyId) schedule(route);
+  if (!TERMINAL.includes(job.state) || !jobState.plyId || rendering) schedule(route);
+}
+
+// ----- a finished training job: renders (videos along a camera path) and the viewer -------------------------
+// Media come as blobs (the API needs the token) and are shown through object URLs, revoked when the page
+// leaves the job. The viewer keeps at most one view request in flight: a newer camera replaces a waiting one.
+const VIEW_LOW = [80, 60], VIEW_SHARP = [320, 240], VIEW_REST_MS = 300, VIEW_FOV = 50;
+const SIZES = ["160x120", "320x240", "640x480"];
+const work = { jobId: null, urls: [], viewer: null, path: [] };
+
+function keepUrl(url) { work.urls.push(url); return url; }
+
+function leaveWork() {
+  const v = work.viewer;
+  if (v) {
+    v.alive = false;
+    clearTimeout(v.rest);
+    clearTimeout(v.retry);
+    if (v.url) URL.revokeObjectURL(v.url);
+  }
+  work.urls.forEach(url => URL.revokeObjectURL(url));
+  Object.assign(work, { jobId: null, urls: [], viewer: null, path: [] });
+}
+
+async function buildWork(job) {
+  // The cards are written before anything is awaited: a poll arriving meanwhile finds them and builds nothing.
+  leaveWork();
+  work.jobId = job.id;
+  document.getElementById("work-area").innerHTML = `<h2>Renders and viewer</h2><div class="work">
+    <div class="card" id="renders-card"><h3>Renders</h3>
+      <form id="render-form">
+        <label>path <select name="kind"><option value="orbit">orbit</option><option value="flyover">flyover</option>
+          <option value="spiral">spiral</option></select></label>
+        <label>frames <input name="frames" type="number" min="2" max="1200" step="1" value="120" required></label>
+        <label>size <select name="size">${SIZES.map(s => `<option value="${s}"${s === "320x240" ? " selected" : ""}>${s}</option>`).join("")}</select></label>
+        <label>fps <input name="fps" type="number" min="1" max="60" step="1" value="24" required></label>
+        <label class="check"><input name="depth" type="checkbox"> depth video</label>
+        <button type="submit">Render</button>
+      </form>
+      <p id="render-error" class="error"></p>
+      <div id="render-list"><p class="muted">no renders yet</p></div>
+    </div>
+    <div class="card" id="viewer"><h3>Viewer</h3>
+      <img id="viewer-image" alt="loading the view…" draggable="false" data-frames="0" data-size="">
+      <div id="viewer-info" class="muted">drag to orbit, wheel to zoom</div>
+      <div class="toolbar"><button id="add-camera" type="button">Add camera to path</button>
+        <button id="render-path" type="button" disabled>Render path</button>
+        <button id="clear-path" type="button">Clear path</button><button id="viewer-reset" type="button">Reset view</button></div>
+      <ol id="path-cameras"></ol>
+      <p id="path-hint" class="muted">Add two or more cameras: the path passes through them (the render's frames,
+        size and fps are the form's).</p>
+      <p id="path-error" class="error"></p>
+    </div></div>`;
+  const form = document.getElementById("render-form");
+  form.addEventListener("submit", event => {
+    event.preventDefault();
+    submitRender(job.id, { path: { kind: form.elements.kind.value } }, "render-error");
+  });
+  document.getElementById("add-camera").addEventListener("click", () => {
+    const v = work.viewer;
+    if (!v) return;
+    work.path.push(Object.assign(viewCamera(v), { orbit: Object.assign({}, v.orbit) }));
+    showPath();
+  });
+  document.getElementById("clear-path").addEventListener("click", () => { work.path = []; showPath(); });
+  document.getElementById("path-cameras").addEventListener("click", event => {
+    const button = event.target.closest("button.remove-camera");
+    if (!button) return;
+    work.path.splice(Number(button.dataset.index), 1);
+    showPath();
+  });
+  document.getElementById("render-path").addEventListener("click", () => submitRender(job.id, {
+    path: { kind: "cameras", frame: "world", interpolate: true,
+            cameras: work.path.map(c => ({ c2w: c.c2w, fov_deg: c.fov_deg })) } }, "path-error"));
+  document.getElementById("render-list").addEventListener("click", event => {
+    const cancel = event.target.closest("button.cancel-render");
+    if (cancel) { cancelRender(Number(cancel.dataset.render)); return; }
+    const link = event.target.closest("a.dl");
+    if (link) { event.preventDefault(); download(link.dataset.url, link.dataset.name); }
+  });
+  showPath();
+  let renders, layout;
+  try {
+    [renders, layout] = await Promise.all([
+      getJson(`/v1/jobs/${job.id}/renders?limit=50`),
+      getJson(`/v1/scenes/${job.scene_id}/cameras`).catch(() => null)]);  // without it: the unit box
+  } catch (error) {  // the next poll builds the cards again
+    if (work.jobId === job.id) { document.getElementById("work-area").innerHTML = ""; work.jobId = null; }
+    throw error;
+  }
+  if (work.jobId !== job.id) return;
+  renders.items.slice().reverse().forEach(addRenderItem);
+  startViewer(job.id, layout);
+}
+
+// The form's settings (size, frames, fps, depth) with a path, POSTed as a render job of this training job.
+async function submitRender(jobId, body, errorId) {
+  const form = document.getElementById("render-form"), error = document.getElementById(errorId);
+  const [width, height] = form.elements.size.value.split("x").map(Number);
+  error.textContent = "";
+  document.getElementById(errorId === "render-error" ? "path-error" : "render-error").textContent = "";
+  const config = Object.assign({ frames: Number(form.elements.frames.value), width, height,
+                                 fps: Number(form.elements.fps.value), appearance: "mean",
+                                 depth_video: form.elements.depth.checked }, body);
+  try {
+    const render = await (await api(`/v1/jobs/${jobId}/renders`, {
+      method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(config) })).json();
+    if (work.jobId !== jobId) return;
+    addRenderItem(render);
+    schedule(route);  // poll while it runs
+  } catch (e) {
+    error.textContent = problem(e);
+  }
+}
+
+async function cancelRender(renderId) {
+  const item = document.querySelector(`#render-list [data-render="${renderId}"]`);
+  item.querySelector("button.cancel-render").disabled = true;
+  try {
+    await api(`/v1/jobs/${renderId}/cancel`, { method: "POST" });
+  } catch (e) {
+    item.querySelector(".render-error").textContent = problem(e);
+  }
+  schedule(route);
+}
+
+function describeRender(r) {
+  const c = r.config || {}, path = c.path || {};
+  const frames = path.kind === "cameras" && !path.interpolate ? (path.cameras || []).length : c.frames;
+  const kind = path.kind === "cameras" ? `path through ${(path.cameras || []).length} cameras` : esc(path.kind);
+  return `${kind} · ${frames} frames · ${c.width}x${c.height} · ${c.fps} fps${c.depth_video ? " · depth" : ""}`;
+}
+
+function addRenderItem(r) {
+  const list = document.getElementById("render-list");
+  if (!list || list.querySelector(`[data-render="${r.id}"]`)) return;
+  list.querySelector("p.muted")?.remove();
+  const item = document.createElement("div");
+  item.className = "render-item";
+  item.dataset.render = String(r.id);
+  item.innerHTML = `<div class="render-head"><a href="#/jobs/${r.id}">render ${r.id}</a> <span class="render-state"></span>
+      <span class="muted">${describeRender(r)}</span></div>
+    <div class="render-progress"></div><p class="error render-error"></p><div class="render-media"></div>`;
+  list.prepend(item);  // newest first, as the API lists them
+  updateRenderItem(item, r);
+}
+
+function updateRenderItem(item, r) {
+  item.dataset.state = r.state;
+  item.querySelector(".render-state").innerHTML = stateBadge(r.state);
+  const spf = (r.latest_metrics.render || {}).seconds_per_frame;
+  const perFrame = spf === undefined ? "" : ` · ${fmt(spf, 2)} s/frame`;
+  const running = !TERMINAL.includes(r.state);
+  item.querySelector(".render-progress").innerHTML = running
+    ? `${progressBar(r.percent)} frame ${r.step}/${r.total_steps} <span class="muted">${eta(r.eta_s)}${perFrame}</span>
+       <button class="cancel-render danger" type="button" data-render="${r.id}"${r.cancel_requested ? " disabled" : ""}>Cancel</button>
+       ${r.cancel_requested ? '<span class="muted">stopping</span>' : ""}`
+    : `<span class="muted">${r.step}/${r.total_steps} frames${perFrame}</span>`;
+  item.querySelector(".render-error").textContent = r.error ? `Error: ${r.error}` : "";
+}
+
+// Polls the renders still running (GET /v1/jobs/{id}) and loads the video of each that succeeded; true while
+// any is still queued or running.
+async function refreshRenders() {
+  const items = [...document.querySelectorAll("#render-list .render-item")];
+  await Promise.all(items.filter(item => !TERMINAL.includes(item.dataset.state)).map(async item => {
+    updateRenderItem(item, await getJson(`/v1/jobs/${item.dataset.render}`));
+  }));
+  for (const item of items) {
+    if (item.dataset.state === "succeeded" && !item.dataset.media) {
+      item.dataset.media = "loading";
+      loadRenderMedia(item).then(() => { item.dataset.media = "loaded"; }, e => {
+        item.dataset.media = "failed";
+        item.querySelector(".render-error").textContent = `could not load the video: ${problem(e)}`;
+      });
+    }
+  }
+  return items.some(item => !TERMINAL.includes(item.dataset.state));
+}
+
+async function loadRenderMedia(item) {
+  const jobId = work.jobId;
+  const artifacts = await getJson(`/v1/jobs/${item.dataset.render}/artifacts`);
+  const mp4 = artifacts.find(a => a.content_type === "video/mp4" && !a.name.endsWith(".depth.mp4"));
+  const poster = artifacts.find(a => a.name.endsWith(".poster.png"));
+  const media = item.querySelector(".render-media");
+  if (mp4) {
+    const [posterUrl, videoUrl] = await Promise.all([poster ? blobUrl(poster.url) : null, blobUrl(mp4.url)]);
+    if (work.jobId !== jobId || !item.isConnected) {  // the page moved on meanwhile
+      [posterUrl, videoUrl].forEach(u => u && URL.revokeObjectURL(u));
+      return;
+    }
+    const video = document.createElement("video");
+    video.className = "render-video";
+    Object.assign(video, { controls: true, loop: true, muted: true, defaultMuted: true, playsInline: true, preload: "auto" });
+    video.setAttribute("playsinline", "");
+    if (posterUrl) video.poster = keepUrl(posterUrl);
+    video.src = keepUrl(videoUrl);
+    media.appendChild(video);
+  }
+  const links = document.createElement("div");
+  links.className = "links";
+  links.innerHTML = artifacts.map(a => `<span><a href="#" class="dl" data-url="${esc(a.url)}"
+    data-name="${esc(a.name.split("/").pop())}">${esc(a.name)}</a> <span class="muted">${bytes(a.size)}</span></span>`).join("");
+  media.appendChild(links);
+}
+
+// ----- the viewer: orbit (azimuth, elevation, distance) around the centre of the scene's foreground box -----
+const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+const unit = a => { const n = Math.hypot(...a) || 1; return a.map(x => x / n); };
+const rad = deg => deg * Math.PI / 180;
+
+// OpenGL camera axes in the normalised world (z up): back from the target to the camera, right = z x back,
+// up = back x right; c2w's columns are right, up, back and the centre.
+function viewCamera(v) {
+  const { azimuth, elevation, distance } = v.orbit;
+  const back = [Math.cos(rad(elevation)) * Math.cos(rad(azimuth)), Math.cos(rad(elevation)) * Math.sin(rad(azimuth)),
+                Math.sin(rad(elevation))];
+  const centre = v.target.map((t, i) => t + distance * back[i]);
+  const right = unit(cross([0, 0, 1], back)), up = cross(back, right);
+  return { c2w: [0, 1, 2].map(i => [right[i], up[i], back[i], centre[i]]), fov_deg: v.fov };
+}
+
+function startViewer(jobId, layout) {
+  const [lo, hi] = layout ? layout.aabb : [[-1, -1, -1], [1, 1, 1]];
+  const target = lo.map((l, i) => (l + hi[i]) / 2);
+  const halfDiagonal = Math.hypot(...lo.map((l, i) => (hi[i] - l) / 2));
+  // Start from the side the training cameras are on (their mean centre), 35° above the horizon.
+  const train = layout ? layout.cameras.filter(c => c.split === "train") : [];
+  const mean = [0, 1].map(i => train.reduce((s, c) => s + c.center[i] - target[i], 0) / (train.length || 1));
+  const azimuth = Math.hypot(...mean) > 0.05 * halfDiagonal ? Math.atan2(mean[1], mean[0]) * 180 / Math.PI : -90;
+  const home = { azimuth, elevation: 35, distance: 1.6 * halfDiagonal / Math.sin(rad(VIEW_FOV / 2)) };
+  const v = { jobId, target, fov: VIEW_FOV, home, orbit: Object.assign({}, home), alive: true, img: document.getElementById("viewer-image"),
+              info: document.getElementById("viewer-info"), seq: 0, shownSeq: 0, busy: false, pending: null,
+              lastKey: null, rest: null, retry: null, drag: null, frames: 0, url: null };
+  work.viewer = v;
+  const img = v.img;
+  img.addEventListener("pointerdown", event => {
+    if (event.button !== 0) return;
+    event.preventDefault();
+    img.setPointerCapture(event.pointerId);
+    img.classList.add("dragging");
+    v.drag = { x: event.clientX, y: event.clientY };
+  });
+  img.addEventListener("pointermove", event => {
+    if (!v.drag) return;
+    const dx = event.clientX - v.drag.x, dy = event.clientY - v.drag.y;
+    v.drag = { x: event.clientX, y: event.clientY };
+    v.orbit.azimuth = (v.orbit.azimuth - 0.4 * dx) % 360;
+    v.orbit.elevation = Math.max(-85, Math.min(85, v.orbit.elevation + 0.3 * dy));
+    interact(v);
+  });
+  const release = () => { if (v.drag) { v.drag = null; img.classList.remove("dragging"); interact(v, false); } };
+  img.addEventListener("pointerup", release);
+  img.addEventListener("pointercancel", release);
+  img.addEventListener("wheel", event => {
+    event.preventDefault();
+    const d = v.orbit.distance * Math.exp(0.0015 * Math.max(-300, Math.min(300, event.deltaY)));
+    v.orbit.distance = Math.max(0.05 * v.home.distance, Math.min(10 * v.home.distance, d));
+    interact(v);
+  }, { passive: false });
+  document.getElementById("viewer-reset").addEventListener("click", () => {
+    v.orbit = Object.assign({}, v.home);
+    interact(v, false);
+  });
+  requestView(v, VIEW_SHARP);
+}
+
+// While the camera moves: low-resolution frames; once it has rested VIEW_REST_MS, a sharp one.
+function interact(v, moving = true) {
+  if (moving) requestView(v, VIEW_LOW);
+  clearTimeout(v.rest);
+  v.rest = setTimeout(() => requestView(v, VIEW_SHARP), moving ? VIEW_REST_MS : 0);
+}
+
+function requestView(v, [width, height]) {
+  const camera = viewCamera(v), key = JSON.stringify([camera, width, height]);
+  if (!v.alive || key === v.lastKey) return;  // that very frame is already asked for
+  v.lastKey = key;
+  v.pending = { camera, key, cameraKey: JSON.stringify(camera), width, height, sharp: width >= VIEW_SHARP[0], seq: ++v.seq };
+  if (!v.busy) pumpView(v);
+}
+
+async function pumpView(v) {
+  if (!v.alive || !v.pending || v.busy) return;
+  const want = v.pending;
+  v.pending = null;
+  v.busy = true;
+  let wait = 0;
+  try {
+    const response = await api(`/v1/jobs/${v.jobId}/view`, { method: "POST", headers: { "Content-Type": "application/json" },
+      body: JSON.stringify({ camera: want.camera, frame: "world", width: want.width, height: want.height }) });
+    const png = await response.blob();
+    // Stale answers are dropped: one older than the frame shown, for a page that moved on, or a sharp frame of
+    // a camera the user has since moved away from (its low-resolution successor is on its way).
+    const moved = v.pending && v.pending.cameraKey !== want.cameraKey;
+    if (v.alive && want.seq > v.shownSeq && !(want.sharp && moved)) {
+      await showFrame(v, want, png, Number(response.headers.get("X-Render-Seconds")));
+    }
+  } catch (error) {
+    if (error.status === 429) {  // the renderers are busy: ask again (for the newest camera) after Retry-After
+      wait = 1000 * (error.retryAfter || 1);
+      if (!v.pending) v.pending = want;
+      if (v.alive) v.info.textContent = "the view renderers are busy: trying again…";
+    } else if (v.alive) {
+      v.info.textContent = `view failed: ${problem(error)}`;
+      v.lastKey = null;  // the same camera may be asked for again
+    }
+  }
+  if (wait) {
+    v.retry = setTimeout(() => { v.busy = false; pumpView(v); }, wait);
+    return;
+  }
+  v.busy = false;
+  pumpView(v);
+}
+
+async function showFrame(v, want, png, seconds) {
+  const url = URL.createObjectURL(png);
+  v.img.src = url;
+  try {
+    await v.img.decode();
+  } catch (e) {
+    URL.revokeObjectURL(url);
+    return;
+  }
+  if (!v.alive) { URL.revokeObjectURL(url); return; }
+  if (v.url) URL.revokeObjectURL(v.url);
+  v.url = url;
+  v.shownSeq = want.seq;
+  v.frames += 1;
+  v.img.dataset.frames = String(v.frames);
+  v.img.dataset.size = `${want.width}x${want.height}`;
+  v.img.alt = `the view from azimuth ${fmt(v.orbit.azimuth, 0)}°, elevation ${fmt(v.orbit.elevation, 0)}°`;
+  v.info.textContent = `${want.width}x${want.height} rendered in ${fmt(seconds, 3)} s · azimuth ${fmt(v.orbit.azimuth, 0)}°,
+    elevation ${fmt(v.orbit.elevation, 0)}°, distance ${fmt(v.orbit.distance, 2)} · drag to orbit, wheel to zoom`;
+}
+
+function showPath() {
+  document.getElementById("path-cameras").innerHTML = work.path.map((c, i) => `<li>camera ${i + 1}: azimuth
+    ${fmt(c.orbit.azimuth, 0)}°, elevation ${fmt(c.orbit.elevation, 0)}°, distance ${fmt(c.orbit.distance, 2)}
+    <button class="remove-camera" type="button" data-index="${i}" title="remove">×</button></li>`).join("");
+  document.getElementById("render-path").disabled = work.path.length < 2;
 }
 
 // ----- scenes: list, cameras and bounds from above, and a comparison of the jobs on one scene ---------------
@@ -264,7 +623,7 @@ function smooth(points, k = 5) {
 }
 
 async function showCompare(sceneId) {
-  const [scene, jobs] = await Promise.all([getJson(`/v1/scenes/${sceneId}`), getJson(`/v1/jobs?scene=${sceneId}&limit=200`)]);
+  const [scene, jobs] = await Promise.all([getJson(`/v1/scenes/${sceneId}`), getJson(`/v1/jobs?kind=train&scene=${sceneId}&limit=200`)]);
   // Validation PSNR (jobs submitted with eval_every_s) when every job has it; else the training batch's, smoothed.
   const fetched = [];
   for (const job of jobs.items) {
@@ -323,6 +682,7 @@ async function showCompare(sceneId) {
 async function route() {
   clearTimeout(timer);
   const hash = location.hash, id = (hash.match(/\/(\d+)$/) || [])[1];
+  if (!(hash.startsWith("#/jobs/") && Number(id) === work.jobId)) leaveWork();
   try {
     if (hash.startsWith("#/jobs/") && id) await showJob(Number(id));
     else if (hash.startsWith("#/scenes/") && id) await showScene(Number(id));
