@@ -85,7 +85,8 @@ def render_guided(field: SwitchNeRF, background: BackgroundField, rays: RayBatch
     with torch.no_grad():
         g = profile.guided
         samples, ratio = guided_samples(rays.near, rays.far, rays.origins, rays.directions, occupied,
-                                        g.coarse_samples, g.split, generator, g.jitter, g.dilate, g.fallback)
+                                        g.coarse_samples, g.split, generator, g.jitter, g.dilate, g.fallback,
+                                        only_hits=online is None)
     evaluated = 0
     if g.cull_transmittance is not None:
         evaluated = len(samples)

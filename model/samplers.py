@@ -108,14 +108,16 @@ def split_bins(lo: Tensor, hi: Tensor, ray: Tensor, counts: Tensor, generator: t
 def guided_samples(
     near: Tensor, far: Tensor, origins: Tensor, directions: Tensor, occupied: Callable[[Tensor], Tensor],
     num_coarse: int, split: int, generator: torch.Generator | None, jitter: bool = False, dilate: int = 0,
-    fallback: bool = False,
+    fallback: bool = False, only_hits: bool = False,
 ) -> tuple[PackedSamples, Tensor]:
     """LeCO guided sampling; returns the packed fine samples and the kept fraction of coarse samples
     (the occupancy ratio). The paper's sampler is the default: O at fixed bin mid-points, kept bins split in
     `split`, rays with nothing kept render the background only. Options (issue 16): `jitter` queries O at a
     random point of each bin while training (a generator is given), so a surface between mid-points is found
     on some steps; `dilate` keeps the neighbours of kept bins along the ray; `fallback` gives a ray with no
-    kept bin one sample per coarse bin."""
+    kept bin one sample per coarse bin. `only_hits` asks O about the rays that cross the box only (the rest
+    have no bin to keep): the same samples, fewer queries when many rays miss it, as a rendered view's sky does;
+    the online learner needs O's logits for every bin, so training leaves it off."""
     edges = stratified_edges(near, far, num_coarse, None)  # coarse bins are fixed; jitter happens inside them
     lo_all, hi_all = edges[:, :-1], edges[:, 1:]
     u: Tensor | float = 0.5
@@ -124,7 +126,13 @@ def guided_samples(
     t = lo_all + (hi_all - lo_all) * u
     points = origins[:, None, :] + directions[:, None, :] * t[..., None]
     valid = (far > near)[:, None]
-    occupied_bins = occupied(points.reshape(-1, 3)).reshape(t.shape) & valid
+    if only_hits:
+        hits = valid[:, 0]
+        occupied_bins = torch.zeros(t.shape, dtype=torch.bool, device=near.device)
+        if bool(hits.any()):
+            occupied_bins[hits] = occupied(points[hits].reshape(-1, 3)).reshape(-1, t.shape[1])
+    else:
+        occupied_bins = occupied(points.reshape(-1, 3)).reshape(t.shape) & valid
     keep = dilate_bins(occupied_bins, dilate) & valid
     counts = torch.full_like(keep, split, dtype=torch.long)
     if fallback:

@@ -173,3 +173,20 @@ def test_transmittance_culling_in_the_guided_render_counts_both_passes():
     assert torch.allclose(plain.rendered.rgb, culled.rendered.rgb, atol=1e-3)
     evaluated = plain.samples_per_ray  # every sample, once
     assert evaluated < culled.samples_per_ray < 2 * evaluated  # all once without gradient, the visible again
+
+
+def test_asking_o_about_the_rays_that_hit_the_box_only_gives_the_same_samples_with_fewer_queries():
+    near, far, origins, dirs = rays()
+    far[: len(far) // 2] = near[: len(far) // 2]  # half the rays miss the box
+    asked = []
+
+    def counting(points):
+        asked.append(len(points))
+        return wall(points)
+
+    for options in ({}, {"dilate": 1, "fallback": True}):
+        a, ratio_a = guided_samples(near, far, origins, dirs, counting, 8, 4, None, **options)
+        b, ratio_b = guided_samples(near, far, origins, dirs, counting, 8, 4, None, only_hits=True, **options)
+        assert torch.equal(a.ray_index, b.ray_index) and torch.equal(a.starts, b.starts)
+        assert torch.equal(a.ends, b.ends) and float(ratio_a) == float(ratio_b)
+        assert asked[-2:] == [64 * 8, 32 * 8]

@@ -16,6 +16,7 @@ from service.dispatcher import Dispatcher
 from service.settings import Settings
 from service.tables import Artifact
 from service.workpool import WorkPool
+from tests.test_service_lifecycle import wait_for
 from workers.export import read_ply_points
 from workers.video import probe
 
@@ -37,16 +38,6 @@ def start(settings):
     thread = threading.Thread(target=dispatcher.run_forever, daemon=True)
     thread.start()
     return dispatcher
-
-
-def wait_for(api, job_id, done, timeout=180):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        job = api.get(f"/v1/jobs/{job_id}").json()
-        if done(job):
-            return job
-        time.sleep(0.2)
-    raise AssertionError(f"job {job_id} never got there: {job}")
 
 
 def ended(job):

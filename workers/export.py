@@ -81,7 +81,7 @@ def stride_cameras(views, stride: int):
     if stride == 1:
         return cameras
     fx, fy, cx, cy = cameras.intrinsics.unbind(-1)
-    # pixel (u', v') of the strided image has its centre where pixel (s u' + (s-1)/2, ...) of the original has it
+    # The strided image's pixel u' covers original pixels s u' .. s u' + s - 1; its centre is their centre.
     intrinsics = torch.stack([fx / stride, fy / stride, cx / stride, cy / stride], dim=-1)
     width, height = cameras.width // stride, cameras.height // stride
     return replace(cameras, intrinsics=intrinsics, width=width, height=height)
