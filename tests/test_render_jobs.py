@@ -143,6 +143,13 @@ def test_render_export_and_view_of_a_finished_job_and_a_render_across_a_dispatch
         dispatcher = start(settings)
         try:
             long = wait_for(api, long["id"], ended, timeout=300)
+            # a render cancelled mid-way stops between frames and stores nothing
+            stopped = api.post(f"/v1/jobs/{jid}/renders", json={"frames": 200, "width": 160, "height": 120}).json()
+            wait_for(api, stopped["id"], lambda j: j["step"] >= 2)
+            assert api.post(f"/v1/jobs/{stopped['id']}/cancel").json()["cancel_requested"]
+            stopped = wait_for(api, stopped["id"], ended, timeout=60)
+            assert stopped["state"] == "cancelled" and stopped["step"] < 200
+            assert api.get(f"/v1/jobs/{stopped['id']}/artifacts").json() == []
         finally:
             dispatcher.shutdown()
         assert long["state"] == "succeeded" and long["attempts"] == 2, long

@@ -37,6 +37,26 @@ def add_jobs(url, scene_id, n, method="leco") -> list[int]:
         return [queue.submit(session, scene_id, TrainConfig(method=method, profile="smoke")).id for _ in range(n)]
 
 
+def add_job_before_0005(url, scene_id) -> int:
+    """A training job written as a database before migration 0005 holds it (no kind, no parent): the models
+    describe the newest schema, so the row goes in through the reflected tables."""
+    from sqlalchemy import MetaData, insert
+
+    cfg = TrainConfig(method="leco", profile="smoke")
+    tables = MetaData()
+    with engine_for(url).begin() as connection:
+        tables.reflect(connection, only=["jobs", "job_phases"])
+        jobs, phases = tables.tables["jobs"], tables.tables["job_phases"]
+        job = connection.execute(insert(jobs).values(
+            scene_id=scene_id, state="queued", method="leco", profile="smoke", config=cfg.model_dump(mode="json"),
+            step=0, total_steps=40, attempts=0, cancel_requested=False,
+            submitted_at=utcnow().replace(tzinfo=None)).returning(jobs.c.id)).scalar_one()
+        for position, phase in enumerate(cfg.phases):
+            connection.execute(insert(phases).values(job_id=job, name=phase, position=position, state="queued",
+                                                     steps_total=cfg.phase_steps(phase), step=0))
+    return job
+
+
 def test_migrations_upgrade_an_empty_database_to_the_models(database_url):
     with pytest.raises(SchemaError, match="empty database.*leco db upgrade"):
         check_schema(database_url)
@@ -67,11 +87,12 @@ def test_ids_of_deleted_scenes_jobs_and_artifacts_are_never_given_out_again(data
 
     command.upgrade(alembic_config(database_url), "0003")
     scene = add_scene(database_url, "before")
-    [job] = add_jobs(database_url, scene, 1)
+    job = add_job_before_0005(database_url, scene)
     artifact = add_artifact(database_url, job)
     upgrade(database_url)
     with transaction(database_url) as session:
         assert session.get(Scene, scene).name == "before" and session.get(Job, job).scene_id == scene
+        assert session.get(Job, job).kind == "train" and session.get(Job, job).parent_id is None  # 0005's default
         assert session.get(Artifact, artifact).job_id == job
         assert len(session.scalars(select(JobPhase).where(JobPhase.job_id == job)).all()) == 2
         session.delete(session.get(Job, job))  # the newest of each, phases and artifact with it

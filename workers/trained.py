@@ -48,6 +48,8 @@ def load_trained(final: Path, scene_path: str | Path, device: torch.device | str
 def load_run(run_dir: str | Path, device: torch.device | str = "cpu") -> Trained:
     """A run folder of `leco train` (its run.json names the scene)."""
     run_dir = Path(run_dir)
+    if not (run_dir / "final" / "models.pt").is_file():
+        raise FileNotFoundError(f"{run_dir}: no finished run here (final/models.pt is missing)")
     if not (run_dir / "run.json").is_file():
         raise FileNotFoundError(f"{run_dir}: not a run folder (run.json is missing)")
     scene = json.loads((run_dir / "run.json").read_text())["scene"]
