@@ -45,15 +45,15 @@ def appearance_row(trained: Trained, choice: str | int) -> int:
         if not 0 <= int(choice) < len(train):
             raise ValueError(f"appearance: training image {choice} does not exist (the run has {len(train)})")
         return int(train[int(choice)])
-    if getattr(trained, "mean_row", None) is None:
+    if trained.mean_row is None:
         rows = train.to(trained.device)
         for embedding in phase_embeddings(trained.method, trained.models, "main"):
             weight = embedding.weight.detach()
             embedding.weight = nn.Parameter(torch.cat([weight, weight[rows].mean(dim=0, keepdim=True)]),
                                             requires_grad=False)
             embedding.num_embeddings = embedding.weight.shape[0]
-        trained.mean_row = trained.scene.num_images  # type: ignore[attr-defined]
-    return trained.mean_row  # type: ignore[attr-defined]
+        trained.mean_row = trained.scene.num_images
+    return trained.mean_row
 
 
 def frame_rays(cameras: Cameras, index: int, aabb: Tensor, appearance: int) -> RayBatch:

@@ -25,6 +25,7 @@ class Trained:
     method: Method
     models: Networks
     device: torch.device
+    mean_row: int | None = None  # the appended mean appearance row, once a render asked for it (workers/frames.py)
 
 
 def load_trained(final: Path, scene_path: str | Path, device: torch.device | str = "cpu") -> Trained:

@@ -59,7 +59,7 @@ def training_images(session, job: Job) -> int:
 def check_appearance(appearance, images: int, field: list) -> None:
     if appearance != "mean" and int(appearance) >= images:
         raise refuse(field, f"training image {appearance} does not exist: the job's scene has {images} training "
-                            "images (0 to {images - 1}), or use 'mean'".replace("{images - 1}", str(images - 1)))
+                            f"images (0 to {images - 1}), or use 'mean'")
 
 
 def submit(request: Request, job_id: int, kind: str, cfg: RenderConfig | ExportConfig) -> JSONResponse:
@@ -73,7 +73,8 @@ def submit(request: Request, job_id: int, kind: str, cfg: RenderConfig | ExportC
             raise refuse(["body", "what"], f"job {job_id}'s method {parent.method!r} learns no occupancy: there is "
                                            "none to export (pointcloud and cameras are)")
         info = session.scalar(select(Scene.info).where(Scene.id == parent.scene_id)) or {}
-        phase, steps = steps_of(cfg, int(info.get("cameras") or 1))
+        splits = info.get("splits", {})  # a point cloud is made of the training and validation views
+        phase, steps = steps_of(cfg, sum(int(splits.get(n, {}).get("images", 0)) for n in ("train", "val")) or 1)
         job = queue.submit_work(session, parent, kind, cfg.model_dump(mode="json"), phase, steps)
         session.flush()
         payload = jsonable_encoder(job_out(session, job))
