@@ -29,8 +29,9 @@ def pdf_edges(edges: Tensor, weights: Tensor, n: int, generator: torch.Generator
     `edges` (R, M + 1): u at n + 1 stratified levels of the CDF (jittered with a generator), each mapped back to
     t. `padding` is added to every weight first (nerfstudio's histogram padding), so no bin is unreachable."""
     w = weights.detach().float().clamp(min=0) ** anneal + padding
-    cdf = torch.cat([torch.zeros_like(w[:, :1]), (w / w.sum(-1, keepdim=True)).cumsum(-1)], -1)
-    cdf[:, -1] = 1.0
+    w = torch.where(w.sum(-1, keepdim=True) > 0, w, torch.ones_like(w))  # a row with no weight: uniform, not NaN
+    cumulative = torch.cat([torch.zeros_like(w[:, :1]), w.cumsum(-1)], -1)
+    cdf = cumulative / cumulative[:, -1:]
     r, device = len(edges), edges.device
     if generator is None:
         u = torch.linspace(0.0, 1.0, n + 1, device=device).expand(r, n + 1).contiguous()

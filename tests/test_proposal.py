@@ -13,7 +13,7 @@ from model.proposal_sampling import UpdateSchedule, anneal_power, interlevel_los
 from model.scenes.rays import RayBatch
 
 
-@pytest.mark.parametrize("profile,expected,o", [("cpu", 13_888, 13_897), ("paper", 153_760, 153_865)])
+@pytest.mark.parametrize("profile,expected,o", [("cpu", 13_888, 13_962), ("paper", 153_760, 153_865)])
 def test_proposals_total_the_parameters_of_lecos_occupancy_network(profile, expected, o):
     p = get_profile(profile)
     assert occupancy_network_parameters(p) == o
@@ -34,6 +34,17 @@ def test_pdf_edges_follow_the_histogram_and_stay_sorted_inside_it():
     assert torch.allclose(uniform[0], torch.linspace(0.0, 4.0, 65), atol=1e-5)
     padded = pdf_edges(edges, weights, 64, None, padding=1.0)  # weights + 1 = (1, 2, 1, 1): a fifth in [0, 1)
     assert int((padded[0] < 1.0).sum()) == 13  # the edge at 0 and 64 / 5 more
+
+
+def test_pdf_edges_of_a_ray_with_no_weight_are_uniform_not_nan():
+    # A ray that misses the box has an all-zero weight row; without padding the CDF was 0 / 0.
+    edges = torch.linspace(0.0, 4.0, 5).expand(2, 5).contiguous()
+    weights = torch.tensor([[0.0, 0.0, 0.0, 0.0], [0.0, 3.0, 1.0, 0.0]])
+    out = pdf_edges(edges, weights, 8, None, padding=0.0)
+    assert torch.isfinite(out).all()
+    assert torch.allclose(out[0], torch.linspace(0.0, 4.0, 9), atol=1e-5)
+    assert out[1, 0] == pytest.approx(1.0) and out[1, -1] == pytest.approx(3.0)  # the CDF ends at exactly 1
+    assert float(out[1, 6]) == pytest.approx(2.0, abs=1e-5)  # 3/4 of the mass lies in [1, 2)
 
 
 def test_outer_weights_bound_the_histogram_and_the_loss_vanishes_when_it_does():
@@ -83,7 +94,11 @@ def test_a_prop_step_samples_main_samples_per_ray_and_learns_only_when_due(tiny_
     g = torch.Generator().manual_seed(0)
     loss, parts = method.step(models, "main", rays, g, 0.0, 0, seed=0)
     loss.backward()
-    assert parts["samples_per_ray"] == profile.prop.main_samples and parts["interlevel_loss"] >= 0
+    # Every ray that crosses the box gets exactly main_samples; the ones that miss it (7 of these 64) get none.
+    hits = int((rays.far > rays.near).sum())
+    assert 0 < hits < len(rays)
+    assert parts["samples_per_hit_ray"] == profile.prop.main_samples and parts["interlevel_loss"] >= 0
+    assert parts["samples_per_ray"] == pytest.approx(profile.prop.main_samples * hits / len(rays))
     assert all(p.grad is not None for p in models.proposals.parameters())
     models.zero_grad(set_to_none=True)
     method.schedule.since_update = -10  # not due on the next step

@@ -2,8 +2,8 @@
 PropNetEstimator) instead of its coarse + fine passes: the strongest learned sampler, as a baseline.
 
 Sizes: the proposal levels together have as many parameters as LeCO's occupancy network O at the same profile
-(13,888 against O's 13,897 at `cpu`, 153,760 against 153,865 at `paper`), and the main network takes
-`prop.main_samples` per ray, LeCO's own count, so the two learned samplers are compared at equal size and equal
+(13,888 against O's 13,962 at `cpu`, 153,760 against 153,865 at `paper`), and the main network takes
+`prop.main_samples` per hit ray, LeCO's own count, so the two learned samplers are compared at equal size and equal
 main-network work. Every proposal forward and backward runs inside the training step, so it is charged to
 training time. Its occupancy, for the paper's Table 1, is the last proposal level's density thresholded by the
 occupancy grid's own rule (one full update of a grid at `grid.resolution`)."""
@@ -17,14 +17,14 @@ from torch import Tensor, nn
 
 from model.fields.proposal import ProposalDensity
 from model.main_phase import MainRender, grid_step_size, main_loss, render_batched
-from model.methods.base import Method, Networks, Occupied, PhaseMemory, SweepPoint, count
+from model.methods.base import Method, Networks, Occupied, PhaseMemory, SweepPoint, count, mean_of
 from model.methods.leco import hmoe
 from model.occupancy_grid import OccupancyGrid
 from model.occupancy_phase import render_background
 from model.profiles import Profile
 from model.proposal_sampling import UpdateSchedule, anneal_power, interlevel_loss, pdf_edges
-from model.rendering import batched_weights
-from model.samplers import stratified_edges
+from model.rendering import Rendered, batched_weights
+from model.samplers import PackedSamples, pack_edges, stratified_edges
 from model.scenes.rays import RayBatch
 
 
@@ -44,6 +44,11 @@ def proposal_width(profile: Profile) -> int:
     while levels * ProposalDensity.num_parameters(width + 1, p.layers, f) <= target:
         width += 1
     return width
+
+
+def scatter(values: Tensor, index: Tensor, size: int, fill: float) -> Tensor:
+    """(size,) filled with `fill`, `values` at `index`."""
+    return torch.full((size,), fill, dtype=values.dtype, device=values.device).index_copy(0, index, values)
 
 
 class ProposalMethod(Method):
@@ -99,17 +104,24 @@ class ProposalMethod(Method):
     def step(self, models: Networks, phase: str, rays: RayBatch, generator: torch.Generator | None,
              progress: float, phase_step: int, seed: int) -> tuple[Tensor, dict]:
         learn = self.schedule.due(phase_step)
+        hits = self.hits(rays)
         with torch.set_grad_enabled(learn):
-            levels, edges = self.propose(models, rays, generator, phase_step)
-        render = self.render_on(models, rays, edges, generator)
-        loss, parts = main_loss(render, rays, self.profile.balance_weight)
-        parts["proposal_samples_per_ray"] = float(sum(self.profile.prop.samples))
-        if learn:  # only the proposals get this gradient: the main weights are detached inside
+            levels, edges = self.propose(models, rays.subset(hits), generator, phase_step)
+        render = self.render_on(models, rays, hits, edges, generator)
+        loss, parts = main_loss(render, rays, self.profile.balance_weight, self.profile.guided.coarse_samples)
+        parts["proposal_samples_per_ray"] = float(sum(self.profile.prop.samples)) * len(hits) / max(len(rays), 1)
+        if learn and len(hits):  # only the proposals get this gradient: the main weights are detached inside
             l_prop = interlevel_loss(edges, render.rendered.weights, levels)
             loss = loss + self.profile.prop.loss_weight * l_prop
             parts["interlevel_loss"] = float(l_prop.detach())
             parts["loss"] = float(loss.detach())
         return loss, parts
+
+    @staticmethod
+    def hits(rays: RayBatch) -> Tensor:
+        """Indices of the rays that cross the foreground box: the others have no segment to sample, so neither
+        the proposals nor the main network see them (they render the background alone, as LeCO's do)."""
+        return torch.nonzero(rays.far > rays.near)[:, 0]
 
     def propose(self, models: Networks, rays: RayBatch, generator: torch.Generator | None,
                 phase_step: int | None) -> tuple[list[tuple[Tensor, Tensor]], Tensor]:
@@ -128,17 +140,26 @@ class ProposalMethod(Method):
             edges = pdf_edges(edges, weights, n, generator, anneal, p.histogram_padding)
         return levels, edges.detach()
 
-    def render_on(self, models: Networks, rays: RayBatch, edges: Tensor,
+    def render_on(self, models: Networks, rays: RayBatch, hits: Tensor, edges: Tensor,
                   generator: torch.Generator | None) -> MainRender:
+        """The main network on the hit rays' intervals (`edges`, one row per hit ray, batched as the proposals
+        draw them), composited in front of the background of every ray; a ray that misses the box shows its
+        background. `rendered.weights` is (hit rays, main_samples)."""
         behind = render_background(models.background, rays, self.profile.background.samples, generator).rgb
-        rendered, out = render_batched(models.field, rays, edges, behind)
-        return MainRender(rendered, out, float(edges.shape[1] - 1), None)
+        sub, out = render_batched(models.field, rays.subset(hits), edges, behind[hits])
+        rendered = Rendered(behind.index_copy(0, hits, sub.rgb), scatter(sub.depth, hits, len(rays), 0.0),
+                            scatter(sub.opacity, hits, len(rays), 0.0), sub.weights,
+                            scatter(sub.transmittance, hits, len(rays), 1.0))
+        packed = pack_edges(edges)
+        samples = PackedSamples(packed.starts, packed.ends, hits[packed.ray_index])
+        return MainRender(rendered, out, len(samples) / max(len(rays), 1), None, samples=samples)
 
     def render_main(self, models: Networks, rays: RayBatch, generator: torch.Generator | None,
                     phase_step: int | None) -> MainRender:
+        hits = self.hits(rays)
         with torch.no_grad():
-            _, edges = self.propose(models, rays, generator, phase_step)
-        return self.render_on(models, rays, edges, generator)
+            _, edges = self.propose(models, rays.subset(hits), generator, phase_step)
+        return self.render_on(models, rays, hits, edges, generator)
 
     def proposal_grid(self, models: Networks) -> OccupancyGrid:
         """The last proposal level's density through one full update of an occupancy grid: the grid's rule."""
@@ -167,4 +188,5 @@ class ProposalMethod(Method):
     def summary_occupancy(self, final: Path, main: list[dict], first: list[dict]) -> dict:
         p = self.profile.prop
         return {"params": len(p.samples) * ProposalDensity.num_parameters(
-            proposal_width(self.profile), p.layers, self.profile.network.xyz_frequencies)}
+            proposal_width(self.profile), p.layers, self.profile.network.xyz_frequencies),
+            "occupancy_ratio": mean_of(main, "occupancy_ratio")}

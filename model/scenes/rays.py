@@ -31,6 +31,10 @@ class RayBatch:
     def to(self, device: torch.device | str) -> RayBatch:
         return RayBatch(**{k: v.to(device) for k, v in self.__dict__.items()})
 
+    def subset(self, keep: Tensor) -> RayBatch:
+        """The rays where `keep` (a bool mask or indices) selects, in order."""
+        return RayBatch(**{k: v[keep] for k, v in self.__dict__.items()})
+
 
 class PixelTable:
     """Flat pixel ids over all images of a Views: id = offset[image] + v * W + u. Colours come from a
