@@ -50,6 +50,8 @@ PAPER_FORMULATION = {
     "occupancy.lr_final": None, "occupancy.w_g_final": None, "occupancy.w_v": 0.0,
     "occupancy.empty_gate_grad": True, "guided.jitter": False, "guided.dilate": 0, "guided.fallback": False,
     "guided.warm_start": False, "guided.split": 8, "guided.empty_threshold": None, "guided.online": False,
+    "guided.warm_start_background": True, "guided.online_free_opacity": 0.0, "guided.fallback_topk": 0,
+    "guided.placement": False, "guided.placement_in_phase1": False,
 }
 
 # The ablation ladder: from the paper's formulation, one change at a time (cumulative) up to the `cpu`
@@ -61,10 +63,18 @@ RUNGS: list[tuple[str, str, dict]] = [
     ("leco-rung-warm-start", "+ warm start of the main phase", {"guided.warm_start": True}),
     ("leco-rung-fallback", "+ fallback for rays with nothing kept", {"guided.fallback": True}),
     ("leco-rung-jitter", "+ jittered O queries", {"guided.jitter": True}),
-    ("leco-rung-dilate-1", "+ dilation by 1 bin, split 8 -> 4", {"guided.dilate": 1, "guided.split": 4}),
+    ("leco-rung-split-4", "+ kept bins split in 4, not 8", {"guided.split": 4}),
+    ("leco-rung-dilate-1", "+ dilation by 1 bin", {"guided.dilate": 1}),
     ("leco-rung-dilate-2", "+ dilation by 2 bins", {"guided.dilate": 2}),
     ("leco-rung-threshold", "+ keep p(E_e) < 0.9, not O's top-1", {"guided.empty_threshold": 0.9}),
-    ("leco", "+ O keeps learning in the main phase (the cpu defaults)", {"guided.online": True}),
+    ("leco-rung-online", "+ O keeps learning in the main phase", {"guided.online": True}),
+    ("leco-rung-fresh-background", "+ the main phase's background starts fresh",
+     {"guided.warm_start_background": False}),
+    ("leco-rung-free-opacity", "+ no bin called free behind a semi-transparent foreground",
+     {"guided.online_free_opacity": 0.5}),
+    ("leco-rung-topk", "+ O's 2 best bins for a ray with nothing kept", {"guided.fallback_topk": 2}),
+    ("leco", "+ O places 21 samples per hit ray, learnt in both phases (the cpu defaults)",
+     {"guided.placement": True, "guided.placement_in_phase1": True, "guided.main_samples": 21}),
 ]
 
 

@@ -1,7 +1,7 @@
 """The main Switch-NeRF network's step under each sampler (paper section 3.4 and the baselines):
 
 - `vanilla`: stratified coarse + inverse-CDF fine through the same network, all composited together;
-- `guided` (LeCO): coarse bins -> frozen occupancy predictor -> kept bins split into k -> packed samples;
+- `guided` (LeCO): coarse bins -> the occupancy network O -> kept bins split or placed (model/guided_render.py);
 - `grid`: nerfacc-style marching through the occupancy grid (the grid itself is updated by the caller).
 
 Every sampler renders the background behind the foreground, so the three differ only in which foreground
@@ -11,7 +11,7 @@ points the main network sees. Loss = L_r + balance_weight * balance loss (Switch
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from dataclasses import field as dataclass_field
 
 import torch
 from torch import Tensor
@@ -22,10 +22,10 @@ from model.fields.switch_nerf import SwitchNeRF
 from model.losses import balance_loss, dispatch_fractions, rendering_loss
 from model.occupancy_grid import OccupancyGrid
 from model.occupancy_phase import field_on_edges, render_background
-from model.online_occupancy import OnlineOccupancy
 from model.profiles import Profile
 from model.rendering import Rendered, composite_batched, composite_packed, packed_transmittance
-from model.samplers import PackedSamples, guided_samples, inverse_cdf_edges, merge_edges, stratified_edges
+from model.sample_accounting import step_accounting
+from model.samplers import PackedSamples, inverse_cdf_edges, merge_edges, pack_edges, stratified_edges
 from model.scenes.rays import RayBatch
 
 
@@ -36,6 +36,10 @@ class MainRender:
     samples_per_ray: float  # main-network samples per ray (the cost the samplers compete on)
     occupancy_ratio: float | None  # kept fraction of coarse samples (guided) or of march steps (grid)
     occupancy_loss: Tensor | None = None  # O's own loss when it keeps learning (guided.online)
+    # The main network's samples, packed (zero-length intervals of a batched sampler included: they cost too);
+    # model/sample_accounting.py counts what reached the main network from them. None: not known.
+    samples: PackedSamples | None = None
+    stats: dict[str, float] = dataclass_field(default_factory=dict)  # a sampler's own figures, logged as they are
 
 
 def field_on_packed(field: SwitchNeRF, rays: RayBatch, samples: PackedSamples) -> FieldOutput | None:
@@ -68,46 +72,26 @@ def render_vanilla(field: SwitchNeRF, background: BackgroundField, rays: RayBatc
     coarse = stratified_edges(rays.near, rays.far, cfg.coarse_samples, generator)
     if cfg.fine_samples == 0:
         rendered, out = render_batched(field, rays, coarse, behind)
-        return MainRender(rendered, out, float(cfg.coarse_samples), None)
+        return MainRender(rendered, out, float(cfg.coarse_samples), None, samples=pack_edges(coarse))
     with torch.no_grad():  # coarse weights only place the fine samples
         weights = render_batched(field, rays, coarse, behind)[0].weights
     edges = merge_edges(coarse, inverse_cdf_edges(coarse, weights, cfg.fine_samples, generator))
     rendered, out = render_batched(field, rays, edges, behind)
     # Coarse points run the network twice (once without gradient to place the fine ones).
-    return MainRender(rendered, out, float(cfg.coarse_samples + edges.shape[1] - 1), None)
+    return MainRender(rendered, out, float(cfg.coarse_samples + edges.shape[1] - 1), None, samples=pack_edges(edges))
 
 
-def render_guided(field: SwitchNeRF, background: BackgroundField, rays: RayBatch, profile: Profile,
-                  occupied: Callable[[Tensor], Tensor], generator: torch.Generator | None,
-                  online: OnlineOccupancy | None = None) -> MainRender:
-    """`online`: O learning in the main phase; then `occupied` must be its `occupied` (it keeps the logits)."""
-    behind = render_background(background, rays, profile.background.samples, generator).rgb
-    with torch.no_grad():
-        g = profile.guided
-        samples, ratio = guided_samples(rays.near, rays.far, rays.origins, rays.directions, occupied,
-                                        g.coarse_samples, g.split, generator, g.jitter, g.dilate, g.fallback,
-                                        only_hits=online is None)
-    evaluated = 0
-    if g.cull_transmittance is not None:
-        evaluated = len(samples)
-        samples = cull_occluded(field, rays, samples, g.cull_transmittance)
-    out = field_on_packed(field, rays, samples)
-    rendered = composite_field(out, rays, samples, behind)
-    occupancy_loss = None if online is None else online.loss(samples, rendered.weights, rays, g.coarse_samples)
-    # Culled samples still ran the network once (without gradient), so they count, as vanilla's coarse ones do.
-    return MainRender(rendered, out, (evaluated + len(samples)) / len(rays), float(ratio), occupancy_loss)
-
-
-def cull_occluded(field: SwitchNeRF, rays: RayBatch, samples: PackedSamples, eps: float) -> PackedSamples:
+def cull_occluded(field: SwitchNeRF, rays: RayBatch, samples: PackedSamples, eps: float) -> Tensor:
     """nerfacc's early stop for a learned sampler: one gradient-free pass of the main field finds the samples
-    its current density already hides (T_i < eps), so the pass with gradient runs on the visible ones only."""
+    its current density already hides (T_i < eps), so the pass with gradient runs on the visible ones only.
+    Returns the mask of the samples to keep."""
     if len(samples) == 0:
-        return samples
+        return torch.ones(0, dtype=torch.bool, device=rays.near.device)
     with torch.no_grad():
         out = field_on_packed(field, rays, samples)
         assert out is not None  # there are samples (checked above)
         reach = packed_transmittance(out.sigma, samples.deltas, samples.ray_index, len(rays))
-    return samples.subset(reach >= eps)
+    return reach >= eps
 
 
 def grid_step_size(grid: OccupancyGrid, march_steps: int) -> float:
@@ -123,21 +107,25 @@ def render_grid(field: SwitchNeRF, background: BackgroundField, rays: RayBatch, 
     possible = float(((rays.far - rays.near) / step).ceil().clamp(min=0).sum())
     out = field_on_packed(field, rays, samples)
     return MainRender(composite_field(out, rays, samples, behind), out, len(samples) / len(rays),
-                      len(samples) / max(possible, 1.0))
+                      len(samples) / max(possible, 1.0), samples=samples)
 
 
-def main_loss(render: MainRender, rays: RayBatch, balance_weight: float) -> tuple[Tensor, dict]:
-    """L_r + balance_weight * balance loss, and the parts as floats."""
+def main_loss(render: MainRender, rays: RayBatch, balance_weight: float,
+              bins: int | None = None) -> tuple[Tensor, dict]:
+    """L_r + balance_weight * balance loss, and the parts as floats; with `bins`, what reached the main network
+    counted on that many coarse bins per hit ray (model/sample_accounting.py), the same way for every method."""
     l_r = rendering_loss(render.rendered.rgb, rays.rgb)
     loss = l_r
-    parts = {"rendering_loss": float(l_r.detach()), "samples_per_ray": render.samples_per_ray}
+    parts = {"rendering_loss": float(l_r.detach()), "samples_per_ray": render.samples_per_ray, **render.stats}
+    if bins is not None and render.samples is not None:
+        parts.update(step_accounting(render.samples, rays.near, rays.far, bins))
     if render.out is not None:
         l_b = balance_loss(render.out.gate_probs, render.out.expert)
         loss = loss + balance_weight * l_b
         parts["balance_loss"] = float(l_b.detach())
         fractions, _ = dispatch_fractions(render.out.gate_probs.detach(), render.out.expert)
         parts.update({f"fraction_expert_{i}": float(f) for i, f in enumerate(fractions)})
-    if render.occupancy_ratio is not None:
+    if render.occupancy_ratio is not None and "occupancy_ratio" not in parts:
         parts["occupancy_ratio"] = render.occupancy_ratio
     if render.occupancy_loss is not None:  # only O's parameters get its gradient
         loss = loss + render.occupancy_loss

@@ -52,3 +52,30 @@ class OccupancyPredictor:
         network = OccupancyNetwork(**data["config"])
         network.load_state_dict(data["state_dict"])
         return cls(network, empty_threshold=empty_threshold)
+
+
+class OccupancyQuery:
+    """O as the guided sampler asks it, one coarse bin point at a time: `occupied` decides, and keeps the logits
+    (and the placement head's densities) of the last call, with gradient while `learn` is set, for the step's
+    losses. A frozen O (the paper) never learns."""
+
+    def __init__(self, network: OccupancyNetwork, empty_threshold: float | None, chunk: int = 1 << 16):
+        self.network, self.empty_threshold, self.chunk = network, empty_threshold, chunk
+        self.learn = False
+        self.logits: Tensor | None = None
+        self.sigma: Tensor | None = None
+
+    def occupied(self, points: Tensor) -> Tensor:
+        with torch.set_grad_enabled(self.learn):  # the sampler calls this under no_grad; cat keeps the graph
+            starts = range(0, len(points), self.chunk) if len(points) else [0]
+            parts = [self.network.query(points[s : s + self.chunk]) for s in starts]
+            self.logits = torch.cat([p[0] for p in parts])
+            sigmas = [p[1] for p in parts if p[1] is not None]
+            self.sigma = torch.cat(sigmas) if sigmas else None
+        return self.network.decide(self.logits, self.empty_threshold)
+
+    def scores(self) -> Tensor:
+        """The last call's decision logits, detached: positive exactly where it kept the point."""
+        if self.logits is None:
+            raise RuntimeError("OccupancyQuery.scores needs an occupied() call first")
+        return self.network.decision_logit(self.logits.detach(), self.empty_threshold)

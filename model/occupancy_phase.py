@@ -3,6 +3,8 @@ segment through the HMoE, the background behind them, and L_f = w_r L_r + w_g L_
 
 from __future__ import annotations
 
+from typing import Callable
+
 import torch
 from torch import Tensor
 
@@ -39,21 +41,28 @@ def field_on_edges(field, rays: RayBatch, edges: Tensor) -> tuple[FieldOutput, T
 def render_hmoe(model: HMoE, background: BackgroundField, rays: RayBatch, samples: int,
                 background_samples_per_ray: int,
                 generator: torch.Generator | None) -> tuple[Rendered, FieldOutput, Tensor]:
-    """The HMoE's image of a batch of rays (stratified samples), its field output and the sample deltas."""
+    """The HMoE's image of a batch of rays (stratified samples), its field output and the sample edges."""
     r = len(rays)
-    out, mids, deltas = field_on_edges(model, rays, stratified_edges(rays.near, rays.far, samples, generator))
+    edges = stratified_edges(rays.near, rays.far, samples, generator)
+    out, mids, deltas = field_on_edges(model, rays, edges)
     behind = render_background(background, rays, background_samples_per_ray, generator)
     rendered = composite_batched(out.sigma.reshape(r, samples), out.rgb.reshape(r, samples, 3), mids, deltas,
                                  behind.rgb)
-    return rendered, out, deltas
+    return rendered, out, edges
+
+
+# A loss on phase 1's render besides L_f (O's placement head learning the HMoE's weights): render, edges -> loss
+ExtraLoss = Callable[[Rendered, Tensor], Tensor]
 
 
 def occupancy_step(model: HMoE, background: BackgroundField, rays: RayBatch, cfg: OccupancyPhaseConfig,
                    background_samples_per_ray: int, generator: torch.Generator | None,
-                   progress: float = 0.0) -> tuple[Tensor, dict]:
-    """The total loss and its parts (floats) for one batch of rays; `progress` in [0, 1] drives the w_g schedule."""
-    rendered, out, deltas = render_hmoe(model, background, rays, cfg.samples_per_ray, background_samples_per_ray,
-                                        generator)
+                   progress: float = 0.0, extra: tuple[str, ExtraLoss] | None = None) -> tuple[Tensor, dict]:
+    """The total loss and its parts (floats) for one batch of rays; `progress` in [0, 1] drives the w_g schedule.
+    `extra`: (name, loss) added to L_f and reported under its name."""
+    rendered, out, edges = render_hmoe(model, background, rays, cfg.samples_per_ray, background_samples_per_ray,
+                                       generator)
+    deltas = edges[:, 1:] - edges[:, :-1]
     l_r = rendering_loss(rendered.rgb, rays.rgb)
     l_g = imbalanced_gate_loss(out.gate_probs, out.expert, cfg.v)
     l_d = density_loss(out.gate_probs, out.expert, out.sigma)
@@ -64,6 +73,10 @@ def occupancy_step(model: HMoE, background: BackgroundField, rays: RayBatch, cfg
         l_v = visibility_loss(out.gate_probs, rendered.weights)
         loss = loss + cfg.w_v * l_v
         terms.append(("visibility_loss", l_v))
+    if extra is not None:
+        l_x = extra[1](rendered, edges)
+        loss = loss + l_x
+        terms.append((extra[0], l_x))
     terms.append(("loss", loss))
     alpha = -torch.expm1(-(out.sigma.detach() * deltas.reshape(-1)))
     values = {k: float(v.detach()) for k, v in terms}

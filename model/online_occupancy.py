@@ -18,24 +18,19 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from model.fields.hmoe import OccupancyNetwork
+from model.occupancy import OccupancyQuery
 from model.samplers import PackedSamples
 from model.scenes.rays import RayBatch
 
 
-class OnlineOccupancy:
+class OnlineOccupancy(OccupancyQuery):
     """The guided sampler's `occupied` with O's logits kept (with gradient) for `loss` after the render."""
 
     def __init__(self, network: OccupancyNetwork, empty_threshold: float | None,
-                 surface_weight: float = 0.05, seen_through: float = 0.5):
-        self.network = network
-        self.empty_threshold = empty_threshold
-        self.surface_weight, self.seen_through = surface_weight, seen_through
-        self.logits: Tensor | None = None
-
-    def occupied(self, points: Tensor) -> Tensor:
-        with torch.enable_grad():  # the sampler calls this under no_grad
-            self.logits = self.network(points)
-        return self.network.decide(self.logits, self.empty_threshold)
+                 surface_weight: float = 0.05, seen_through: float = 0.5, free_opacity: float = 0.0):
+        super().__init__(network, empty_threshold)
+        self.learn = True
+        self.surface_weight, self.seen_through, self.free_opacity = surface_weight, seen_through, free_opacity
 
     def bin_targets(self, samples: PackedSamples, weights: Tensor, rays: RayBatch,
                     num_coarse: int) -> tuple[Tensor, Tensor]:
@@ -54,18 +49,13 @@ class OnlineOccupancy:
         after = 1.0 - mass.cumsum(dim=1)  # transmittance left after each bin (skipped bins hold no mass)
         surface = mass >= self.surface_weight
         free = sampled & ~surface & (after > self.seen_through)
+        if self.free_opacity > 0:  # a semi-transparent foreground leaves the rest to the background: no "free"
+            free &= (mass.sum(dim=1, keepdim=True) >= self.free_opacity)
         return surface.to(weights.dtype), surface | free
 
     def decision_logit(self, logits: Tensor) -> Tensor:
-        """A logit that is positive exactly where the sampler keeps the point: log-odds of occupancy
-        (1 - p(E_e)) shifted by the decision threshold (top-1 without one: E_e's logit against the best other)."""
-        logits = logits.float()
-        empty = self.network.empty_index
-        scene = torch.cat([logits[:, :empty], logits[:, empty + 1:]], dim=-1)
-        if self.empty_threshold is None:
-            return scene.max(dim=-1).values - logits[:, empty]
-        occupied = torch.logsumexp(scene, dim=-1) - logits[:, empty]  # log((1 - p_e) / p_e)
-        return occupied - torch.log(torch.tensor((1 - self.empty_threshold) / self.empty_threshold))
+        """A logit that is positive exactly where the sampler keeps the point (OccupancyNetwork.decision_logit)."""
+        return self.network.decision_logit(logits, self.empty_threshold)
 
     def loss(self, samples: PackedSamples, weights: Tensor, rays: RayBatch, num_coarse: int) -> Tensor:
         """Binary cross-entropy on the decision logit, over the bins that teach: O keeps a point where most
@@ -73,7 +63,8 @@ class OnlineOccupancy:
         target, mask = self.bin_targets(samples, weights, rays, num_coarse)
         if self.logits is None:
             raise RuntimeError("OnlineOccupancy.loss needs the logits of this step's occupied() call")
-        logit = self.decision_logit(self.logits).reshape(target.shape)
+        # O was asked at one or more points per bin and keeps the bin when any is kept: the bin's logit is their max
+        logit = self.decision_logit(self.logits).reshape(*target.shape, -1).amax(dim=-1)
         nll = F.binary_cross_entropy_with_logits(logit, target, reduction="none")
         self.logits = None
         return (nll * mask).sum() / mask.sum().clamp(min=1)

@@ -78,6 +78,29 @@ class GuidedConfig(Frozen):
     online_surface: float = Field(0.05, gt=0, lt=1)  # ... a kept bin with this share of its ray's weight is a surface
     online_warmup: int = Field(500, ge=0, le=10**7)  # ... O starts learning after this many main-phase steps
     online_every: int = Field(1, ge=1, le=1000)  # ... and then learns on every k-th step (its backward is not free)
+    # ... a kept bin is labelled free only on rays whose foreground opacity reaches this: where the foreground is
+    # semi-transparent the background is painting what it misses, and "free" would teach O to drop it (0: off)
+    online_free_opacity: float = Field(0.0, ge=0, le=1)
+    # O is asked at this many points of each coarse bin (stratified, jittered with `jitter`); a bin is kept when
+    # any is. 1: one point per bin (the paper's mid-point)
+    queries_per_bin: int = Field(1, ge=1, le=16)
+    # The main phase's background starts from phase 1's (with warm_start). Phase 1's background learned to paint
+    # what the HMoE's foreground missed (the ground of an aerial scene); False starts it fresh.
+    warm_start_background: bool = True
+    # With `fallback`, a ray with nothing kept gets O's k most likely bins (by its decision logit) instead of one
+    # sample in every coarse bin (0)
+    fallback_topk: int = Field(0, ge=0, le=4096)
+    # O places the samples (model/placement.py): a one-unit density head on O, trained by the interlevel loss
+    # against the main network's detached weights, and exactly `main_samples` per hit ray drawn by inverse CDF
+    # over the kept (dilated) bins, in place of `split` stratified samples per kept bin
+    placement: bool = False
+    main_samples: int = Field(21, ge=1, le=4096)
+    placement_loss_weight: float = Field(1.0, ge=0, le=1e4)
+    placement_padding: float = Field(0.01, ge=0, le=1)  # added to every kept bin's weight (nerfstudio's padding)
+    placement_anneal_steps: int = Field(500, ge=0, le=MAX_STEPS)  # uniform -> O's weights (nerfstudio's anneal)
+    # ... and the head already learns in phase 1, against the HMoE's own detached weights, so the main phase
+    # starts with a histogram that knows the scene
+    placement_in_phase1: bool = False
 
     def online_learns(self, main_step: int) -> bool:
         """Whether O learns at this main-phase step (0-based), given `online`, its warm-up and its period."""
@@ -145,11 +168,12 @@ PROFILES: dict[str, Profile] = {
         name="cpu",
         network=NetworkConfig(width=64, num_experts=8, expert_layers=4),
         background=BackgroundConfig(width=32, layers=2, samples=16),
-        # Issue 16's measured settings (docs/BENCHMARKS.md, ablation ladder); bench/variants.py PAPER_FORMULATION
-        # undoes them.
+        # Measured settings beyond the paper (docs/BENCHMARKS.md, ablation ladder); bench/variants.py
+        # PAPER_FORMULATION undoes them.
         occupancy=OccupancyPhaseConfig(samples_per_ray=64, steps=1500, lr=2e-3, w_g=5e-2, empty_gate_grad=False),
         guided=GuidedConfig(coarse_samples=16, split=4, dilate=2, jitter=True, fallback=True, warm_start=True,
-                            empty_threshold=0.9, online=True),
+                            empty_threshold=0.9, online=True, warm_start_background=False, online_free_opacity=0.5,
+                            fallback_topk=2, placement=True, placement_in_phase1=True, main_samples=21),
         vanilla=VanillaConfig(coarse_samples=32, fine_samples=64),
         grid=GridConfig(resolution=128, march_steps=256),
         # LeCO's main samples per ray on the city at this profile: 21.2 (8-minute benchmark, docs/BENCHMARKS.md).

@@ -26,12 +26,14 @@ def module_pairs(field: SwitchNeRF, hmoe: HMoE) -> list[tuple[str, nn.Module, nn
 
 @torch.no_grad()
 def warm_start_main(field: SwitchNeRF, background: BackgroundField, hmoe: HMoE,
-                    occupancy_background: BackgroundField) -> list[str]:
+                    occupancy_background: BackgroundField | None) -> list[str]:
     """Copy phase 1's weights into the main phase's networks where shapes match; returns what was copied.
     The gate projection takes O's scene-expert logits (O's last row is E_e's), so every point starts with the
-    expert that rendered it in phase 1."""
+    expert that rendered it in phase 1. Without `occupancy_background` the main background starts fresh: phase 1's
+    learned to paint what the HMoE's foreground missed (guided.warm_start_background)."""
     copied = []
-    for name, target, source in module_pairs(field, hmoe) + [("background", background, occupancy_background)]:
+    behind = [] if occupancy_background is None else [("background", background, occupancy_background)]
+    for name, target, source in module_pairs(field, hmoe) + behind:
         src, dst = source.state_dict(), target.state_dict()
         if src.keys() == dst.keys() and all(src[k].shape == dst[k].shape for k in src):
             target.load_state_dict(src)

@@ -4,6 +4,8 @@ Every option must keep the packed invariants: samples grouped by ray in increasi
 import pytest
 import torch
 
+from model.fields.hmoe import OccupancyNetwork
+from model.occupancy import OccupancyQuery
 from model.samplers import dilate_bins, guided_samples
 
 SLAB = (2.0, 2.2)  # a thin wall at x in [2, 2.2]: between the mid-points 1.5 and 2.5 of unit coarse bins
@@ -25,6 +27,17 @@ def wall(points):
 
 def nothing(points):
     return torch.zeros(len(points), dtype=torch.bool)
+
+
+class KeepEverything(OccupancyQuery):
+    """An O that keeps every point (its decision logit is 1 everywhere)."""
+
+    def __init__(self):
+        super().__init__(OccupancyNetwork(2, 8, 2), None)
+
+    def occupied(self, points):
+        self.logits = torch.tensor([[1.0, 0.0, 0.0]]).expand(len(points), 3)
+        return torch.ones(len(points), dtype=torch.bool)
 
 
 def check_invariants(samples, near, far):
@@ -65,6 +78,19 @@ def test_jittered_queries_find_a_wall_between_mid_points():
     a, _ = guided_samples(*rays(), wall, 8, 4, None, jitter=True)
     b, _ = guided_samples(*rays(), wall, 8, 4, None)
     assert torch.equal(a.starts, b.starts) and torch.equal(a.ray_index, b.ray_index)
+
+
+def test_several_queries_per_bin_find_a_ground_that_fills_the_far_end_of_the_last_bin():
+    # The ground fills x > 7.7 of a [0, 8] segment in 8 bins: the last bin's mid-point (7.5) is in the air above it.
+    near, far, origins, dirs = rays()
+    near, far = torch.zeros_like(near), torch.full_like(far, 8.0)
+    dirs = torch.tensor([1.0, 0.0, 0.0]).expand(len(near), 3)
+    ground = lambda points: points[:, 0] > 7.7
+    one, _ = guided_samples(near, far, origins, dirs, ground, 8, 4, None)
+    assert len(one) == 0
+    four, ratio = guided_samples(near, far, origins, dirs, ground, 8, 4, None, queries=4)  # 7.125 ... 7.875
+    check_invariants(four, near, far)
+    assert len(four) == len(near) * 4 and (four.starts >= 7.0 - 1e-6).all() and float(ratio) == 1 / 8
 
 
 def test_dilation_keeps_the_neighbours_of_kept_bins():
@@ -134,10 +160,9 @@ def test_transmittance_culling_drops_only_samples_behind_an_opaque_wall():
     from model.main_phase import composite_field, cull_occluded, field_on_packed
 
     rays, field = straight_rays(), WallField()
-    everything = lambda points: torch.ones(len(points), dtype=torch.bool)
-    samples, _ = guided_samples(rays.near, rays.far, rays.origins, rays.directions, everything, 8, 8,
+    samples, _ = guided_samples(rays.near, rays.far, rays.origins, rays.directions, KeepEverything().occupied, 8, 8,
                                 torch.Generator().manual_seed(0))
-    culled = cull_occluded(field, rays, samples, 1e-3)
+    culled = samples.subset(cull_occluded(field, rays, samples, 1e-3))
     check_invariants(culled, rays.near, rays.far)
     assert (culled.starts < SLAB[1]).all(), "nothing behind the wall survives"
     in_front = samples.ends <= SLAB[0]
@@ -153,7 +178,7 @@ def test_transmittance_culling_drops_only_samples_behind_an_opaque_wall():
 def test_transmittance_culling_in_the_guided_render_counts_both_passes():
     from model.fields.background import BackgroundField
     from model.fields.switch_nerf import SwitchNeRF
-    from model.main_phase import render_guided
+    from model.guided_render import render_guided
     from model.profiles import get_profile
 
     torch.manual_seed(0)
@@ -165,7 +190,7 @@ def test_transmittance_culling_in_the_guided_render_counts_both_passes():
     with torch.no_grad():
         field.head.sigma.bias.fill_(8.0)  # opaque from the first samples: most of each ray is hidden
     background = BackgroundField(1, width=8, layers=1, frequencies=2, dir_frequencies=2, appearance_dim=4)
-    everything = lambda points: torch.ones(len(points), dtype=torch.bool)
+    everything = KeepEverything()
     plain = render_guided(field, background, rays, profile, everything, None)
     culled_profile = profile.model_copy(
         update={"guided": profile.guided.model_copy(update={"cull_transmittance": 1e-4})})
@@ -175,7 +200,7 @@ def test_transmittance_culling_in_the_guided_render_counts_both_passes():
     assert evaluated < culled.samples_per_ray < 2 * evaluated  # all once without gradient, the visible again
 
 
-def test_asking_o_about_the_rays_that_hit_the_box_only_gives_the_same_samples_with_fewer_queries():
+def test_o_is_asked_about_the_rays_that_hit_the_box_only():
     near, far, origins, dirs = rays()
     far[: len(far) // 2] = near[: len(far) // 2]  # half the rays miss the box
     asked = []
@@ -185,8 +210,20 @@ def test_asking_o_about_the_rays_that_hit_the_box_only_gives_the_same_samples_wi
         return wall(points)
 
     for options in ({}, {"dilate": 1, "fallback": True}):
-        a, ratio_a = guided_samples(near, far, origins, dirs, counting, 8, 4, None, **options)
-        b, ratio_b = guided_samples(near, far, origins, dirs, counting, 8, 4, None, only_hits=True, **options)
-        assert torch.equal(a.ray_index, b.ray_index) and torch.equal(a.starts, b.starts)
-        assert torch.equal(a.ends, b.ends) and float(ratio_a) == float(ratio_b)
-        assert asked[-2:] == [64 * 8, 32 * 8]
+        samples, ratio = guided_samples(near, far, origins, dirs, counting, 8, 4, None, **options)
+        assert asked[-1] == 32 * 8
+        assert int(samples.ray_index.min()) >= 32
+        assert 0 < float(ratio) < 1  # over the hit rays' bins only
+
+
+def test_the_top_k_fallback_samples_the_bins_o_scores_highest():
+    near, far, origins, dirs = rays()
+    scores = torch.arange(8.0).repeat(len(near), 1) - 100.0  # every bin dropped; the last two score highest
+    samples, _ = guided_samples(near, far, origins, dirs, nothing, 8, 4, None, fallback=True, topk=2,
+                                scores=lambda: scores[4:].reshape(-1))
+    check_invariants(samples, near, far)
+    hits = 60
+    assert len(samples) == hits * 2 * 4  # two bins, each split in 4
+    span = (far - near)[samples.ray_index]
+    position = (samples.mids - near[samples.ray_index]) / span
+    assert (position >= 6 / 8 - 1e-6).all()  # inside the last two coarse bins

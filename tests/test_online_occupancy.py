@@ -1,6 +1,8 @@
 """O learning during the main phase (guided.online, issue 16): which bins teach what, that the signal finds a
 surface O missed, and that a LeCO run with it trains, saves the O it ended with and reports O's loss."""
 
+import json
+
 import torch
 
 from model.fields.hmoe import OccupancyNetwork
@@ -35,6 +37,21 @@ def test_kept_bins_teach_surface_and_seen_through_space_and_nothing_else():
     target, mask = online.bin_targets(samples, weights, rays, num_coarse=4)
     assert target.tolist() == [[0.0, 1.0, 0.0, 0.0]]
     assert mask.tolist() == [[True, True, False, False]]  # bin 2 is hidden behind the surface, bin 3 unseen
+
+
+def test_no_bin_is_free_on_a_ray_whose_foreground_is_semi_transparent():
+    # Ray 0's foreground is opaque (0.9 in bin 1): bin 0 in front of it is free. Ray 1's foreground holds 0.3 in
+    # all (the background paints the rest): with free_opacity 0.5 its empty-looking bin 0 teaches nothing.
+    rays = ray_batch(2)
+    samples = PackedSamples(torch.tensor([0.5, 2.5, 0.5, 2.5]), torch.tensor([1.0, 3.0, 1.0, 3.0]),
+                            torch.tensor([0, 0, 1, 1]))
+    weights = torch.tensor([0.01, 0.89, 0.01, 0.29])
+    loose = OnlineOccupancy(OccupancyNetwork(2, 16, 4), empty_threshold=0.9)
+    strict = OnlineOccupancy(OccupancyNetwork(2, 16, 4), empty_threshold=0.9, free_opacity=0.5)
+    target, mask = loose.bin_targets(samples, weights, rays, num_coarse=4)
+    assert target.tolist() == [[0.0, 1.0, 0.0, 0.0]] * 2 and mask[:, 0].tolist() == [True, True]
+    target, mask = strict.bin_targets(samples, weights, rays, num_coarse=4)
+    assert mask.tolist() == [[True, True, False, False], [False, True, False, False]]  # ray 1: its surface only
 
 
 def wall_density(points: torch.Tensor) -> torch.Tensor:
@@ -90,6 +107,25 @@ def test_a_leco_run_with_online_o_trains_it_saves_it_and_reports_its_loss(tiny_s
     frozen = final_o[False, 1]
     moved = {key: sum(float((o[k] - frozen[k]).abs().sum()) for k in frozen) for key, o in final_o.items()}
     assert moved[False, 1] == 0 and 0 < moved[True, 3] < moved[True, 1]
+
+
+def test_a_leco_run_where_o_places_the_samples_learns_the_placement_in_both_phases(tiny_scene, tmp_path):
+    cfg = TrainConfig(method="leco", profile="smoke", metrics_every=1, seed=0, overrides={
+        "occupancy.steps": 12, "main_steps": 8, "guided.placement": True, "guided.main_samples": 6,
+        "guided.placement_in_phase1": True, "guided.fallback": True, "guided.fallback_topk": 2,
+        "guided.dilate": 1, "guided.warm_start": True, "guided.warm_start_background": False})
+    run = tmp_path / "run"
+    run_training(cfg, tiny_scene.root, run, backend="local")
+    rows = read_metrics(run / "metrics.jsonl")
+    first = [r for r in rows if r["phase"] == "occupancy"]
+    main = [r for r in rows if r["phase"] == "main"]
+    assert all(r["placement_loss"] >= 0 for r in first)
+    assert all(r["samples_per_hit_ray"] == 6 for r in main)  # a fixed budget per hit ray
+    assert all(0 < r["occupancy_ratio"] <= 1 and 0 <= r["fallback_fraction"] <= 1 for r in main)
+    saved = OccupancyPredictor.load(run / "final" / "occupancy.pt")
+    assert saved.network.placement is not None  # the standalone O carries its placement head
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["sampling"]["samples_per_hit_ray"] == 6 and summary["rays"]["samples_per_hit_ray"] == 6
 
 
 def test_the_decision_logit_is_positive_exactly_where_the_sampler_keeps_the_point():

@@ -62,6 +62,16 @@ def test_warm_start_copies_phase_one_into_the_main_network(tiny_scene):
     assert scene.any() and torch.equal(routed[scene], logits[scene].argmax(-1))
 
 
+def test_a_warm_start_without_phase_one_s_background_leaves_the_main_background_fresh(tiny_scene):
+    profile = TrainConfig(method="leco", profile="smoke").resolved_profile()
+    models = build_models(get_method("leco")(profile), tiny_scene.num_images, tiny_scene.bounds.aabb, 0)
+    fresh = {k: v.clone() for k, v in models.background.state_dict().items()}
+    copied = warm_start_main(models.field, models.background, models.hmoe, None)
+    assert "background" not in copied and {"input_layer", "head", "experts.0"} <= set(copied)
+    assert all(torch.equal(fresh[k], v) for k, v in models.background.state_dict().items())
+    assert not torch.equal(models.background.trunk[0].weight, models.occupancy_background.trunk[0].weight)
+
+
 def test_a_wider_occupancy_network_saves_loads_and_warm_starts_what_still_fits(tiny_scene, tmp_path):
     from model.occupancy import OccupancyPredictor
 

@@ -4,6 +4,7 @@ empty-space expert E_e (an identity layer with its own head). A point sent to E_
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from model.fields.encoding import FrequencyEncoding
@@ -17,11 +18,13 @@ class OccupancyNetwork(nn.Module):
     Its input layer's output also feeds the experts, as Switch-NeRF's shared input layer does."""
 
     def __init__(self, num_scene_experts: int = 8, width: int = 256, xyz_frequencies: int = 12,
-                 inner_width: int | None = None, relu_every_layer: bool = False):
+                 inner_width: int | None = None, relu_every_layer: bool = False, placement_head: bool = False):
         """inner_width: O's own layers after the shared input layer (None: `width`, the paper's).
         relu_every_layer: O's path also applies a ReLU after the shared input layer and after its second inner
         layer; without it (the paper's layer list as we read it) the input layer and the first inner layer
-        compose to one linear map, so O has a single hidden nonlinearity. The experts' input is unchanged."""
+        compose to one linear map, so O has a single hidden nonlinearity. The experts' input is unchanged.
+        placement_head: one more output unit, a density that says where along a ray the main network's weight
+        lies (trained by the interlevel loss while O guides the main phase; model/placement.py)."""
         super().__init__()
         inner = inner_width or width
         self.relu_every_layer = relu_every_layer
@@ -30,6 +33,7 @@ class OccupancyNetwork(nn.Module):
         self.inner = nn.Sequential(nn.Linear(width, inner), nn.ReLU(), nn.Linear(inner, inner))
         self.norm = nn.LayerNorm(inner)
         self.output = nn.Linear(inner, num_scene_experts + 1)
+        self.placement = nn.Linear(inner, 1) if placement_head else None
         self.num_scene_experts = num_scene_experts
 
     @property
@@ -37,23 +41,45 @@ class OccupancyNetwork(nn.Module):
         """The constructor's arguments, to rebuild O alone (model/occupancy.py)."""
         return {"num_scene_experts": self.num_scene_experts, "width": self.input_layer.out_features,
                 "xyz_frequencies": len(self.xyz_encoding.freqs), "inner_width": self.norm.normalized_shape[0],
-                "relu_every_layer": self.relu_every_layer}
+                "relu_every_layer": self.relu_every_layer, "placement_head": self.placement is not None}
 
     @property
     def empty_index(self) -> int:
         return self.num_scene_experts
 
-    def features_and_logits(self, xyz: Tensor) -> tuple[Tensor, Tensor]:
+    def trunk(self, xyz: Tensor) -> tuple[Tensor, Tensor]:
+        """The shared input layer's output h (the experts' input) and O's own features z."""
         h = self.input_layer(self.xyz_encoding(xyz))
         if self.relu_every_layer:  # functional, so the state dict's keys do not depend on the setting
-            z = self.norm(torch.relu(self.inner(torch.relu(h))))
-        else:
-            z = self.norm(self.inner(h))
+            return h, self.norm(torch.relu(self.inner(torch.relu(h))))
+        return h, self.norm(self.inner(h))
+
+    def features_and_logits(self, xyz: Tensor) -> tuple[Tensor, Tensor]:
+        h, z = self.trunk(xyz)
         with torch.autocast(device_type=z.device.type, enabled=False):
             return h, self.output(z.float())
 
     def forward(self, xyz: Tensor) -> Tensor:
         return self.features_and_logits(xyz)[1]
+
+    def query(self, xyz: Tensor) -> tuple[Tensor, Tensor | None]:
+        """Gate logits and, with a placement head, its density >= 0 (softplus(x - 1), as the main network's)."""
+        _, z = self.trunk(xyz)
+        with torch.autocast(device_type=z.device.type, enabled=False):
+            z = z.float()
+            sigma = None if self.placement is None else F.softplus(self.placement(z).squeeze(-1) - 1.0)
+            return self.output(z), sigma
+
+    def decision_logit(self, logits: Tensor, empty_threshold: float | None = None) -> Tensor:
+        """A logit that is positive exactly where `decide` keeps the point: log-odds of occupancy (1 - p(E_e))
+        shifted by the threshold (top-1 without one: the best scene expert's logit against E_e's)."""
+        logits = logits.float()
+        empty = self.empty_index
+        scene = torch.cat([logits[:, :empty], logits[:, empty + 1:]], dim=-1)
+        if empty_threshold is None:
+            return scene.max(dim=-1).values - logits[:, empty]
+        occupied = torch.logsumexp(scene, dim=-1) - logits[:, empty]  # log((1 - p_e) / p_e)
+        return occupied - torch.log(torch.tensor((1 - empty_threshold) / empty_threshold))
 
     @torch.no_grad()
     def occupied(self, xyz: Tensor, empty_threshold: float | None = None) -> Tensor:
@@ -85,6 +111,7 @@ class HMoE(nn.Module):
         gate_width: int | None = None,
         gate_relu_every_layer: bool = False,
         empty_expert_layers: int = 0,
+        placement_head: bool = False,
     ):
         """homogeneous=True makes E_e a full expert (the paper's ablation) instead of an identity layer;
         empty_expert_layers=N an N-layer one (Table 9's 4-layer row).
@@ -92,7 +119,8 @@ class HMoE(nn.Module):
         cannot lock a visible surface into E_e by raising that gate; L_g and L_d still train it."""
         super().__init__()
         self.empty_gate_grad = empty_gate_grad
-        self.gate = OccupancyNetwork(num_scene_experts, width, xyz_frequencies, gate_width, gate_relu_every_layer)
+        self.gate = OccupancyNetwork(num_scene_experts, width, xyz_frequencies, gate_width, gate_relu_every_layer,
+                                     placement_head)
         self.dir_encoding = FrequencyEncoding(dir_frequencies)
         self.appearance = nn.Embedding(num_images, appearance_dim)
         self.scene_experts = nn.ModuleList(Expert(width, expert_layers) for _ in range(num_scene_experts))

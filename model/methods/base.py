@@ -151,7 +151,8 @@ class Method:
              progress: float, phase_step: int, seed: int) -> tuple[Tensor, dict]:
         """One training step's loss and its parts (floats). `seed`: the run's, for any draw that must be the
         same on every rank (a replicated estimator's update)."""
-        return main_loss(self.render_main(models, rays, generator, phase_step), rays, self.profile.balance_weight)
+        render = self.render_main(models, rays, generator, phase_step)
+        return main_loss(render, rays, self.profile.balance_weight, self.profile.guided.coarse_samples)
 
     def render_main(self, models: Networks, rays: RayBatch, generator: torch.Generator | None,
                     phase_step: int | None) -> MainRender:
@@ -169,6 +170,11 @@ class Method:
     def final_occupancy(self, models: Networks) -> Occupied | None:
         """The occupancy a finished run scores and exports (Table 1, the point cloud's filter)."""
         return None
+
+    def decision_rules(self, models: Networks) -> dict[str, Occupied]:
+        """Other decisions of the final occupancy to score beside `final_occupancy`, by name (LeCO: O's top-1,
+        the paper's rule, when it samples with a threshold)."""
+        return {}
 
     def point_cloud_samples(self) -> int:
         """Coarse samples per ray of the exported point cloud."""

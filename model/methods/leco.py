@@ -4,6 +4,7 @@ not in the paper (warm start, O learning online, the sampler's options) are chos
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 from typing import Callable
 
@@ -11,7 +12,8 @@ import torch
 from torch import Tensor, nn
 
 from model.fields.hmoe import HMoE
-from model.main_phase import MainRender, render_guided
+from model.guided_render import phase1_placement_loss, render_guided
+from model.main_phase import MainRender
 from model.methods.base import (
     Method,
     Networks,
@@ -23,10 +25,11 @@ from model.methods.base import (
     mean_of,
     switch_nerf,
 )
-from model.occupancy import OccupancyPredictor
+from model.occupancy import OccupancyPredictor, OccupancyQuery
 from model.occupancy_phase import occupancy_step, render_hmoe
 from model.online_occupancy import OnlineOccupancy
 from model.profiles import Profile
+from model.proposal_sampling import anneal_power
 from model.rendering import Rendered
 from model.scenes.rays import RayBatch
 from model.warm_start import warm_start_main
@@ -37,7 +40,8 @@ def hmoe(profile: Profile, num_images: int) -> HMoE:
     return HMoE(num_images, n.width, n.num_experts, n.expert_layers, n.xyz_frequencies, n.dir_frequencies,
                 n.appearance_dim, profile.occupancy.homogeneous, n.density_noise,
                 profile.occupancy.empty_gate_grad, profile.occupancy.gate_width,
-                profile.occupancy.gate_relu_every_layer, profile.occupancy.empty_expert_layers)
+                profile.occupancy.gate_relu_every_layer, profile.occupancy.empty_expert_layers,
+                profile.guided.placement)
 
 
 class LeCOMethod(Method):
@@ -52,7 +56,7 @@ class LeCOMethod(Method):
     def __init__(self, profile: Profile):
         super().__init__(profile)
         self.predictor: OccupancyPredictor | None = None
-        self.online: OnlineOccupancy | None = None
+        self.query: OccupancyQuery | None = None  # O as the main phase's sampler asks it
 
     # ----- static -------------------------------------------------------------------------------------
     def build(self, num_images: int, aabb: Tensor) -> Networks:
@@ -73,7 +77,7 @@ class LeCOMethod(Method):
 
     def main_samples_bound(self) -> int:
         g = self.profile.guided
-        return g.coarse_samples * g.split
+        return g.main_samples if g.placement else g.coarse_samples * g.split
 
     def memory(self, num_images: int) -> dict[str, PhaseMemory]:
         with torch.device("meta"):
@@ -87,6 +91,9 @@ class LeCOMethod(Method):
 
     def sweep(self) -> list[SweepPoint]:
         g = self.profile.guided
+        if g.placement:  # O places a fixed budget per hit ray: the budget is what to sweep
+            return [SweepPoint(tag, f"{n} main samples", {"guided.main_samples": n})
+                    for tag, n in (("lean", max(g.main_samples // 2, 1)), ("rich", 2 * g.main_samples))]
         lean = (SweepPoint("lean", f"dilation {g.dilate - 1}", {"guided.dilate": g.dilate - 1}) if g.dilate > 0
                 else SweepPoint("lean", f"split {max(g.split // 2, 1)}", {"guided.split": max(g.split // 2, 1)}))
         return [lean,
@@ -109,9 +116,13 @@ class LeCOMethod(Method):
             return [models.hmoe, models.occupancy_background]
         return super().trained_modules(models, phase)
 
+    def o_learns(self) -> bool:
+        """Whether O keeps learning in the main phase: its keep/drop decisions (online) or its placement."""
+        return self.profile.guided.online or self.profile.guided.placement
+
     def extra_parameters(self, models: Networks, phase: str) -> list[nn.Parameter]:
-        if phase == "main" and self.profile.guided.online:
-            return list(models.hmoe.gate.parameters())  # O keeps learning (model/online_occupancy.py)
+        if phase == "main" and self.o_learns():
+            return list(models.hmoe.gate.parameters())  # model/online_occupancy.py, model/placement.py
         return []
 
     def start_phase(self, models: Networks, phase: str, fresh: bool, device: torch.device,
@@ -120,16 +131,18 @@ class LeCOMethod(Method):
             return
         g = self.profile.guided
         if fresh and g.warm_start:
-            copied = warm_start_main(models.field, models.background, models.hmoe, models.occupancy_background)
+            behind = models.occupancy_background if g.warm_start_background else None
+            copied = warm_start_main(models.field, models.background, models.hmoe, behind)
             log(f"main phase warm-started from phase 1: {', '.join(copied)}")
         models.hmoe.requires_grad_(False)
-        if g.online:  # O keeps learning, so the predictor shares the live network
+        if self.o_learns():  # O keeps learning, so the predictor shares the live network
             gate = models.hmoe.gate.requires_grad_(True)
-            self.online = OnlineOccupancy(gate, g.empty_threshold, g.online_surface)
+            self.query = OnlineOccupancy(gate, g.empty_threshold, g.online_surface, free_opacity=g.online_free_opacity)
             self.predictor = OccupancyPredictor(gate, empty_threshold=g.empty_threshold, frozen=False)
         else:
             self.predictor = OccupancyPredictor.from_hmoe(models.hmoe, g.empty_threshold)  # frozen O (section 3.4)
             self.predictor.network.to(device)
+            self.query = OccupancyQuery(self.predictor.network, g.empty_threshold)
 
     def lr_ramp_steps(self, phase: str) -> int:
         g = self.profile.guided
@@ -138,22 +151,32 @@ class LeCOMethod(Method):
     def step(self, models: Networks, phase: str, rays: RayBatch, generator: torch.Generator | None,
              progress: float, phase_step: int, seed: int) -> tuple[Tensor, dict]:
         if phase == "occupancy":
+            g = self.profile.guided
+            extra = None
+            if g.placement and g.placement_in_phase1:  # O's placement head learns the HMoE's own weights
+                extra = ("placement_loss", partial(phase1_placement_loss, models.hmoe.gate, rays, g, generator))
             return occupancy_step(models.hmoe, models.occupancy_background, rays, self.profile.occupancy,
-                                  self.profile.background.samples, generator, progress)
+                                  self.profile.background.samples, generator, progress, extra)
         return super().step(models, phase, rays, generator, progress, phase_step, seed)
 
     def render_main(self, models: Networks, rays: RayBatch, generator: torch.Generator | None,
                     phase_step: int | None) -> MainRender:
-        # O learns once the main network has had `online_warmup` steps to fit what its weights will teach.
-        learns = phase_step is not None and self.profile.guided.online_learns(phase_step)
-        online = self.online if learns else None
-        occupied = online.occupied if online else self.frozen_predictor().occupied
-        return render_guided(models.field, models.background, rays, self.profile, occupied, generator, online)
+        g = self.profile.guided
+        query = self.main_query()
+        # O's keep/drop loss starts once the main network has had `online_warmup` steps to fit what its weights
+        # will teach; its placement learns from the first step, its histogram annealed in from uniform.
+        keeps = phase_step is not None and g.online_learns(phase_step)
+        places = phase_step is not None and g.placement
+        query.learn = keeps or places
+        learner = query if keeps and isinstance(query, OnlineOccupancy) else None
+        anneal = anneal_power(phase_step, g.placement_anneal_steps, 10.0)
+        return render_guided(models.field, models.background, rays, self.profile, query, generator, learner,
+                             places, anneal)
 
-    def frozen_predictor(self) -> OccupancyPredictor:
-        if self.predictor is None:
+    def main_query(self) -> OccupancyQuery:
+        if self.query is None:
             raise RuntimeError("LeCO's main phase renders with O's predictor: start_phase('main') makes it")
-        return self.predictor
+        return self.query
 
     def render(self, models: Networks, phase: str, rays: RayBatch) -> Rendered:
         if phase == "occupancy":
@@ -162,7 +185,7 @@ class LeCOMethod(Method):
         return super().render(models, phase, rays)
 
     def occupancy(self, models: Networks, phase: str) -> Occupied | None:
-        if phase != "occupancy":
+        if phase != "occupancy" and not self.o_learns():
             return None  # O is frozen in the main phase: its metrics are those at the end of phase 1
         # A frozen copy of O as it is now, deciding as the main phase will (the final evaluation does the same).
         predictor = OccupancyPredictor.from_hmoe(models.hmoe, self.profile.guided.empty_threshold)
@@ -171,6 +194,12 @@ class LeCOMethod(Method):
 
     def final_occupancy(self, models: Networks) -> Occupied | None:
         return self.predictor.occupied if self.predictor is not None else None
+
+    def decision_rules(self, models: Networks) -> dict[str, Occupied]:
+        if self.predictor is None or self.predictor.empty_threshold is None:
+            return {}
+        top1 = OccupancyPredictor(self.predictor.network, empty_threshold=None, frozen=False)
+        return {"top1": top1.occupied}  # the paper's rule: O's top-1 gate is a scene expert
 
     def point_cloud_samples(self) -> int:
         return self.profile.guided.coarse_samples
@@ -183,6 +212,7 @@ class LeCOMethod(Method):
         if (final / "occupancy.pt").is_file():
             self.predictor = OccupancyPredictor.load(final / "occupancy.pt", self.profile.guided.empty_threshold)
             self.predictor.network.to(device)
+            self.query = OccupancyQuery(self.predictor.network, self.profile.guided.empty_threshold)
 
     def summary_occupancy(self, final: Path, main: list[dict], first: list[dict]) -> dict:
         saved = torch.load(final / "occupancy.pt", weights_only=True)["state_dict"]

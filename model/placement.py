@@ -1,0 +1,67 @@
+"""O places the main network's samples (guided.placement): the part of a proposal network that LeCO lacked.
+
+O decides which coarse bins of a ray may hold a surface (keep/drop, section 3.4). With a placement head it also
+gives each coarse bin a density; composited along the ray, those densities are a histogram of where the ray's
+weight lies. A fixed budget of samples per hit ray is then drawn by inverse CDF over the kept bins only, so a
+bin that holds half of a ray's weight gets about half of its samples, where the split sampler gave every kept
+bin the same `split`. The head learns as mip-NeRF 360's proposals do: its histogram must bound the main network's
+detached weights from above (eq. 13), here at the resolution of the coarse bins.
+
+Kept bins need not be contiguous. Samples are drawn on the kept bins laid end to end (a coordinate s that skips
+dropped bins), so no interval straddles a dropped bin: each sample's mid-point is mapped back to t, and its
+length in s is its delta (dropped bins hold no density, as O says).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from model.sample_accounting import sample_bins
+from model.samplers import PackedSamples, invert_cdf
+
+EPS = 1e-7
+
+
+def placed_samples(edges: Tensor, keep: Tensor, weights: Tensor, n: int,
+                   generator: torch.Generator | None) -> PackedSamples:
+    """Exactly n samples per ray (rows of `edges` (R, B + 1)), sorted along it, inside its kept bins (`keep`
+    (R, B), at least one per row), distributed like `weights` (R, B) (>= 0; padding already added) over them.
+    Deterministic (CDF levels at (j + 0.5) / n) without a generator, stratified and jittered with one."""
+    r, b = keep.shape
+    width = (edges[:, 1:] - edges[:, :-1]) * keep
+    s_edges = torch.cat([torch.zeros_like(width[:, :1]), width.cumsum(-1)], -1)  # kept bins end to end
+    mass = weights.clamp(min=0) * keep
+    mass = torch.where(mass.sum(-1, keepdim=True) > 0, mass, keep.to(mass.dtype) * width)  # no weight: by length
+    cumulative = torch.cat([torch.zeros_like(mass[:, :1]), mass.cumsum(-1)], -1)
+    cdf = cumulative / cumulative[:, -1:].clamp(min=1e-30)
+    if generator is None:
+        u = torch.linspace(0.0, 1.0, n + 1, device=edges.device).expand(r, n + 1).contiguous()
+    else:
+        u = (torch.arange(n + 1, device=edges.device) + torch.rand(r, n + 1, generator=generator,
+                                                                      device=edges.device)) / (n + 1)
+    s = invert_cdf(s_edges, cdf, u.to(cdf.dtype))
+    mid_s, delta = 0.5 * (s[:, 1:] + s[:, :-1]), s[:, 1:] - s[:, :-1]
+    # The kept bin holding each mid-point; ties go to the last bin starting there, which is the kept one
+    # (a dropped bin is zero-long in s, so the kept bin after it starts at the same s).
+    bin_ = (torch.searchsorted(s_edges.contiguous(), mid_s.contiguous(), right=True) - 1).clamp(0, b - 1)
+    t_mid = edges.gather(1, bin_) + (mid_s - s_edges.gather(1, bin_))
+    ray = torch.arange(r, device=edges.device).repeat_interleave(n)
+    t_mid, delta = t_mid.reshape(-1), delta.reshape(-1)
+    return PackedSamples(t_mid - 0.5 * delta, t_mid + 0.5 * delta, ray)
+
+
+def bin_mass(samples: PackedSamples, weights: Tensor, near: Tensor, far: Tensor, bins: int) -> Tensor:
+    """(R, bins) the main network's (detached) render weight summed in each coarse bin of each ray."""
+    flat = samples.ray_index * bins + sample_bins(samples, near, far, bins)
+    mass = torch.zeros(len(near) * bins, dtype=weights.dtype, device=weights.device)
+    return mass.index_add_(0, flat, weights.detach()).reshape(len(near), bins)
+
+
+def placement_loss(proposal: Tensor, samples: PackedSamples, weights: Tensor, near: Tensor, far: Tensor) -> Tensor:
+    """mip-NeRF 360's interlevel loss (eq. 13) on the coarse bins: max(0, w - w_O)^2 / w, where w is the main
+    network's weight in a bin and w_O the placement histogram's (`proposal` (R, B), with gradient), averaged over
+    every bin of every ray. Only O learns from it: the main weights are detached."""
+    main = bin_mass(samples, weights, near, far, proposal.shape[1]).float()
+    excess = (main - proposal.float()).clamp(min=0)
+    return (excess**2 / (main + EPS)).mean()

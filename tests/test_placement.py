@@ -1,0 +1,124 @@
+"""O places the main network's samples (model/placement.py) and what reaches the main network is counted alike
+for every method (model/sample_accounting.py)."""
+
+import pytest
+import torch
+
+from model.fields.hmoe import OccupancyNetwork
+from model.placement import bin_mass, placed_samples, placement_loss
+from model.rendering import batched_weights, packed_weights
+from model.sample_accounting import step_accounting, surface_accounting
+from model.samplers import PackedSamples, guided_samples, stratified_edges
+
+
+def coarse(r=5, bins=8, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    near = torch.rand(r, generator=g)
+    far = near + 4.0 + torch.rand(r, generator=g)
+    return near, far, stratified_edges(near, far, bins, None)
+
+
+@pytest.mark.parametrize("generator", [None, torch.Generator().manual_seed(3)])
+def test_placed_samples_are_exactly_n_per_ray_sorted_and_inside_the_kept_bins(generator):
+    near, far, edges = coarse()
+    keep = torch.zeros(5, 8, dtype=torch.bool)
+    keep[:, [1, 2, 5]] = True  # kept bins need not touch
+    keep[0] = False
+    keep[0, 7] = True  # one ray keeps its last bin only
+    weights = torch.rand(5, 8, generator=torch.Generator().manual_seed(1)) + 0.01
+    samples = placed_samples(edges, keep, weights, 21, generator)
+    assert len(samples) == 5 * 21 and samples.ray_index.tolist() == [r for r in range(5) for _ in range(21)]
+    mids = samples.mids.reshape(5, 21)
+    assert (mids[:, 1:] > mids[:, :-1]).all(), "sorted along each ray"
+    assert (mids >= near[:, None]).all() and (mids <= far[:, None]).all()
+    assert (samples.deltas > 0).all()
+    width = (far - near) / 8
+    bin_of = ((mids - near[:, None]) / width[:, None]).floor().long().clamp(0, 7)
+    assert keep.gather(1, bin_of).all(), "every mid-point inside a kept bin"
+    # The deltas tile the kept length (the first and last intervals stop at the jittered CDF's ends).
+    kept_length = keep.sum(1) * width
+    assert (samples.deltas.reshape(5, 21).sum(1) <= kept_length + 1e-5).all()
+    if generator is None:
+        assert torch.allclose(samples.deltas.reshape(5, 21).sum(1), kept_length, atol=1e-5)
+
+
+def test_placed_samples_follow_the_weights():
+    near, far, edges = coarse(r=1)
+    keep = torch.tensor([[False, True, True, False, False, True, False, False]])
+    weights = torch.tensor([[0.0, 0.1, 0.8, 0.0, 0.0, 0.1, 0.0, 0.0]])
+    samples = placed_samples(edges, keep, weights, 20, None)
+    bin_of = ((samples.mids - near) / ((far - near) / 8)).floor().long()
+    assert torch.bincount(bin_of, minlength=8).tolist() == [0, 2, 16, 0, 0, 2, 0, 0]
+
+
+def test_the_placement_loss_is_the_interlevel_bound_and_trains_only_the_proposal():
+    near, far = torch.zeros(1), torch.full((1,), 4.0)
+    samples = PackedSamples(torch.tensor([0.5, 2.0, 2.5]), torch.tensor([1.0, 2.5, 3.0]),
+                            torch.zeros(3, dtype=torch.long))
+    main = torch.tensor([0.1, 0.3, 0.4], requires_grad=True)
+    assert bin_mass(samples, main, near, far, 4).tolist() == [[pytest.approx(0.1), 0.0, pytest.approx(0.7), 0.0]]
+    bound = torch.tensor([[0.2, 0.0, 0.7, 0.1]])
+    assert float(placement_loss(bound, samples, main, near, far)) == pytest.approx(0.0, abs=1e-6)
+    low = torch.tensor([[0.1, 0.0, 0.35, 0.0]], requires_grad=True)
+    loss = placement_loss(low, samples, main, near, far)
+    assert float(loss) == pytest.approx(0.35**2 / 0.7 / 4, rel=1e-4)  # only bin 2 exceeds its bound
+    loss.backward()
+    assert main.grad is None and float(low.grad[0, 2]) < 0  # the proposal is pushed up where it is short
+
+
+def test_o_s_placement_head_learns_where_a_wall_holds_the_weight():
+    torch.manual_seed(0)
+    network = OccupancyNetwork(num_scene_experts=2, width=32, xyz_frequencies=4, placement_head=True)
+    optimizer = torch.optim.Adam(network.parameters(), lr=1e-2)
+    near, far = torch.zeros(64), torch.full((64,), 8.0)
+    dirs = torch.tensor([1.0, 0.0, 0.0]).expand(64, 3)
+    edges = stratified_edges(near, far, 8, None)
+    mids = 0.5 * (edges[:, 1:] + edges[:, :-1])
+    points = (dirs[:, None] * mids[..., None]).reshape(-1, 3)
+    # The main network's weight: everything in the wall at x in [4.2, 4.8] (coarse bin 4).
+    samples = PackedSamples(torch.full((64,), 4.2), torch.full((64,), 4.8), torch.arange(64))
+    main = torch.ones(64)
+    for _ in range(200):
+        sigma = network.query(points)[1].reshape(64, 8)
+        proposal = batched_weights(sigma, edges[:, 1:] - edges[:, :-1])[0]
+        loss = placement_loss(proposal, samples, main, near, far)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        sigma = network.query(points)[1].reshape(64, 8)
+        proposal = batched_weights(sigma, edges[:, 1:] - edges[:, :-1])[0]
+    assert float(proposal[:, 4].mean()) > 0.9
+    drawn = placed_samples(edges, torch.ones(64, 8, dtype=torch.bool), proposal + 0.01, 21, None)
+    in_wall_bin = ((drawn.mids >= 4.0) & (drawn.mids < 5.0)).float().mean()
+    assert float(in_wall_bin) > 0.6  # the split sampler would give that bin 1/8 of a ray's samples
+
+
+def test_accounting_counts_hit_rays_dilation_and_rays_with_nothing_kept():
+    # Ray 0 keeps bin 3 (dilated to 2..4), ray 1 keeps nothing, ray 2 misses the box.
+    near = torch.tensor([0.0, 0.0, 1.0])
+    far = torch.tensor([8.0, 8.0, 1.0])
+    origins, dirs = torch.zeros(3, 3), torch.tensor([1.0, 0.0, 0.0]).expand(3, 3)
+    occupied = lambda points: (points[:, 0] > 3.0) & (points[:, 0] < 4.0) & (points[:, 1] == 0)
+    dirs = dirs.clone()
+    dirs[1] = torch.tensor([0.0, 1.0, 0.0])  # ray 1 looks along y: O keeps nothing there
+    samples, kept = guided_samples(near, far, origins, dirs, occupied, 8, 2, None, dilate=1)
+    figures = step_accounting(samples, near, far, 8)
+    assert float(kept) == pytest.approx(1 / 16)  # O itself: one bin of the two hit rays' 16
+    assert figures["occupancy_ratio"] == pytest.approx(3 / 16)  # after dilation: three bins reach the main network
+    assert figures["samples_per_hit_ray"] == pytest.approx(6 / 2)
+    assert figures["hit_ray_fraction"] == pytest.approx(2 / 3)
+    with_fallback, _ = guided_samples(near, far, origins, dirs, occupied, 8, 2, None, dilate=1, fallback=True)
+    assert step_accounting(with_fallback, near, far, 8)["occupancy_ratio"] == pytest.approx(11 / 16)
+
+
+def test_surface_accounting_finds_the_surface_bin_and_the_foreground_opacity():
+    near, far = torch.zeros(3), torch.full((3,), 8.0)
+    samples = PackedSamples(torch.tensor([3.0, 3.5, 6.0]), torch.tensor([3.5, 4.0, 6.5]), torch.tensor([0, 0, 1]))
+    sigma = torch.tensor([2.0, 2.0, 0.5])
+    weights, _ = packed_weights(sigma, samples.deltas, samples.ray_index, 3)
+    depth = torch.tensor([3.4, 2.0, torch.inf])  # ray 1's surface lies in bin 2, which it never sampled
+    out = surface_accounting(samples, weights, near, far, depth, 8)
+    assert out["surface"].tolist() == [True, True, False]
+    assert out["kept"].tolist() == [True, False, False]
+    assert float(out["opacity"][0]) == pytest.approx(1 - torch.exp(torch.tensor(-2.0)).item(), rel=1e-5)
