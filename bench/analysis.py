@@ -52,6 +52,34 @@ def per_variant(runs: list[dict], path: str) -> dict[str, tuple[float | None, fl
     return {n: mean_std([get(r["summary"], path) for r in runs if r["variant"] == n]) for n in names}
 
 
+def layer_recalls(runs: list[dict]) -> dict[str, list[dict]]:
+    """Per variant with an occupancy scored by height layer: each layer's z range, reference cells and recall
+    (mean and std over seeds; None where no seed had reference cells there). Summaries without layers: left out."""
+    out: dict[str, list[dict]] = {}
+    for name in dict.fromkeys(r["variant"] for r in runs):
+        scored = [get(r["summary"], "occupancy.layers") for r in runs if r["variant"] == name]
+        scored = [layers for layers in scored if layers]
+        if not scored:
+            continue
+        rows = []
+        for i, layer in enumerate(scored[0]):
+            mean, std = mean_std([layers[i]["recall"] for layers in scored])
+            rows.append({"z_min": layer["z_min"], "z_max": layer["z_max"], "reference_cells": layer["reference_cells"],
+                         "recall": mean, "recall_std": std})
+        out[name] = rows
+    return out
+
+
+def measured_or_blank(runs: list[dict], name: str, path: str, parent: str) -> tuple[float | None, float | None] | str:
+    """A figure's mean over the variant's seeds; where none has it, "–" when the runs measured `parent` (the
+    figure does not apply to this method, e.g. the fallback share of a method without one) and "n/a" when they
+    did not (a summary written before the figure existed)."""
+    value = mean_std([get(r["summary"], path) for r in runs if r["variant"] == name])
+    if value[0] is not None:
+        return value
+    return "–" if any(get(r["summary"], parent) is not None for r in runs if r["variant"] == name) else "n/a"
+
+
 def equal_psnr(runs: list[dict]) -> list[dict]:
     """Per seed: the best validation PSNR every compared method reached, and when each reached it."""
     out = []

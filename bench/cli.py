@@ -59,16 +59,21 @@ def bench_command(args: argparse.Namespace) -> int:
     elif any(v.depth is not None for v in scene.splits.values()):
         reference = "the scene's depth maps of the validation views"
     else:
-        from bench.reference import score_against_vanilla
+        from bench.reference import against_vanilla
 
         for seed in seeds:
             switch = [r for r in runs if r["variant"] == with_role("reference") and r["seed"] == seed]
-            scored = [r for r in runs if METHODS[r["method"]].has_occupancy and r["seed"] == seed]
-            if switch and scored:
-                log(f"[bench] seed {seed}: occupancy against the trained vanilla model's depth (paper's protocol)")
-                metrics = score_against_vanilla(Path(switch[0]["run_dir"]), [Path(r["run_dir"]) for r in scored])
+            same_seed = [r for r in runs if r["seed"] == seed]
+            scored = [r for r in same_seed if METHODS[r["method"]].has_occupancy]
+            if switch:
+                log(f"[bench] seed {seed}: occupancy and surfaces against the trained vanilla model's depth")
+                found = against_vanilla(Path(switch[0]["run_dir"]), [Path(r["run_dir"]) for r in scored],
+                                        [Path(r["run_dir"]) for r in same_seed])
                 for r in scored:
-                    r["summary"]["occupancy"] = {**(r["summary"].get("occupancy") or {}), **metrics[r["run_dir"]]}
+                    r["summary"]["occupancy"] = {**(r["summary"].get("occupancy") or {}),
+                                                 **found["occupancy"][r["run_dir"]]}
+                for r in same_seed:
+                    r["summary"]["rays"] = found["rays"][r["run_dir"]]
                 reference = "depth maps of the validation views rendered by the trained vanilla Switch-NeRF"
 
     equal = analysis.equal_psnr(runs)

@@ -1,6 +1,7 @@
 """The report's figures as PNG (matplotlib, Agg): PSNR against training time (Fig. 9), occupancy F1 and
-empty-expert fraction against occupancy-phase step (Fig. 5), main-network samples per ray, the occupancy point
-clouds of LeCO and the grid side by side (Fig. 7) and validation renders side by side (Fig. 8)."""
+empty-expert fraction against occupancy-phase step (Fig. 5), main-network samples per ray, occupancy recall by
+height layer, the occupancy point clouds of LeCO and the grid side by side (Fig. 7) and validation renders side
+by side (Fig. 8)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from PIL import Image  # noqa: E402
 
-from bench.analysis import main_curve, per_variant  # noqa: E402
+from bench.analysis import layer_recalls, main_curve, per_variant  # noqa: E402
 from model.methods import METHODS  # noqa: E402
 
 # Each method's colour is its own (Method.colour); the ablations' are these; anything else: matplotlib's cycle.
@@ -81,6 +82,29 @@ def samples_per_ray(runs: list[dict], path: Path) -> str:
     ax.bar_label(bars, fmt="%.1f")
     ax.set_ylabel("main-network samples per ray")
     ax.set_title("Main-network samples per ray (mean over the main phase)")
+    return _save(fig, path)
+
+
+def recall_by_layer(runs: list[dict], path: Path) -> str | None:
+    """Each method's occupancy recall per height layer, height upwards (world z is up), the ground's in the
+    legend: a sampler that drops the ground or the roofs shows as a dent at that height."""
+    layers = layer_recalls(runs)
+    if not layers:
+        return None
+    ground = per_variant(runs, "occupancy.ground_recall")
+    labels = {r["variant"]: r["label"] for r in runs}
+    fig, ax = plt.subplots(figsize=(6, 4.2))
+    for name, rows in layers.items():
+        shown = [(r["recall"], 0.5 * (r["z_min"] + r["z_max"])) for r in rows if r["recall"] is not None]
+        if not shown:
+            continue
+        g = ground[name][0]
+        ax.plot(*zip(*shown), marker="o", color=COLOURS.get(name),
+                label=f"{labels[name]} (ground {'n/a' if g is None else f'{g:.2f}'})")
+    ax.set(xlim=(-0.02, 1.02), ylim=(0, 1), xlabel="recall of occupied, observed cells",
+           ylabel="height in the box (z, 0 = bottom)", title="Occupancy recall by height layer")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
     return _save(fig, path)
 
 
@@ -202,6 +226,7 @@ def all_figures(runs: list[dict], out: Path) -> dict[str, str]:
         "psnr_vs_time": psnr_vs_time(main or runs, out / "psnr_vs_time.png"),
         "occupancy_phase": occupancy_phase(runs, out / "occupancy_phase.png"),
         "samples_per_ray": samples_per_ray(runs, out / "samples_per_ray.png"),
+        "recall_by_layer": recall_by_layer(main or runs, out / "recall_by_layer.png"),
         "occupancy_clouds": occupancy_clouds(runs, out / "occupancy_leco_vs_grid.png"),
         "renders": render_grid(runs, out / "renders.png"),
         "speed_vs_error": speed_vs_error(runs, out / "speed_vs_error.png"),

@@ -9,8 +9,9 @@ from pathlib import Path
 
 import torch
 
-from bench.analysis import get, main_curve, mean_std, per_variant, roles, time_to_psnr
+from bench.analysis import get, layer_recalls, main_curve, mean_std, measured_or_blank, per_variant, roles, time_to_psnr
 from bench.variants import ABLATIONS, RUNGS, TABLE_REFERENCES
+from model.methods import METHODS
 
 PAPER_NOTE = ("Paper (Mega-NeRF scenes, 8 GPUs): LeCO ~2.5x faster than Switch-NeRF at equal or better PSNR, "
               "occupancy network 0.15M parameters vs a 2.1M-cell grid, occupancy ratio below the grid's.")
@@ -53,6 +54,71 @@ def occupancy_table(runs: list[dict], names: list[str], labels: dict) -> str:
              cell(stats["recall"][n], ".3f"), cell(stats["f1"][n], ".3f"), cell(stats["params"][n], ",.0f"),
              cell(stats["occupancy_ratio"][n], ".1%")] for n in names]
     return table(["method", "accuracy", "precision", "recall", "F1", "parameters", "occupancy ratio"], rows)
+
+
+# What reaches the main network (columns: header, summary path, format, the block that says it was measured).
+COUNTED_ALIKE = (
+    ("occupancy ratio (validation rays)", "rays.occupancy_ratio", ".1%", "rays"),
+    ("occupancy ratio (training mean)", "sampling.occupancy_ratio", ".1%", "sampling"),
+    ("samples per hit ray (validation)", "rays.samples_per_hit_ray", ".1f", "rays"),
+    ("fallback share", "sampling.fallback_fraction", ".1%", "sampling"),
+    ("surface bin kept", "rays.surface_bin_kept", ".1%", "rays.depth_source"),
+    ("foreground opacity on surface rays", "rays.foreground_opacity", ".3f", "rays.depth_source"),
+    ("recall (its threshold)", "occupancy.recall", ".3f", "occupancy.layers"),
+    ("recall (top-1)", "occupancy.top1_recall", ".3f", "occupancy.layers"),
+    ("ground recall", "occupancy.ground_recall", ".3f", "occupancy.layers"),
+)
+
+
+def counted_cell(runs: list[dict], name: str, path: str, spec: str, parent: str) -> str:
+    method = next((METHODS.get(r["method"]) for r in runs if r["variant"] == name), None)
+    if path.startswith("occupancy.") and method is not None and not method.has_occupancy:
+        return "–"  # vanilla: no occupancy to score
+    value = measured_or_blank(runs, name, path, parent)
+    return value if isinstance(value, str) else cell(value, spec)
+
+
+def counted_alike_table(runs: list[dict], names: list[str], labels: dict) -> str:
+    """Per method, what reaches the main network counted on the same coarse bins, whatever put it there."""
+    rows = [[labels[n]] + [counted_cell(runs, n, path, spec, parent) for _, path, spec, parent in COUNTED_ALIKE]
+            for n in names]
+    return table(["method"] + [header for header, *_ in COUNTED_ALIKE], rows)
+
+
+def counted_alike_notes(runs: list[dict]) -> str:
+    """What the table above counted: which rays, how many bins, and where the surfaces came from."""
+    block = next((r["summary"]["rays"] for r in runs if r["summary"].get("rays")), None)
+    notes = ["Each hit ray's foreground segment is cut into LeCO's coarse bins (every method counted on the same "
+             "bins); a bin reaches the main network when at least one main-network sample lies in it, whatever put "
+             "it there (O, dilation, a fallback, a proposal, a grid cell). Only rays that cross the box count. "
+             "Surface bin kept: the share of rays with a visible surface in the box whose surface bin reaches the "
+             "main network; foreground opacity: the summed render weights of the main samples on those rays. "
+             "Recall (top-1): O's own top-1 rule beside the threshold LeCO samples with. "
+             "Ground recall: each (x, y) column's lowest occupied cell the views observe. "
+             "\"–\": does not apply to the method; \"n/a\": not measured (a run from before these figures)."]
+    if block:
+        notes.append(f"Validation rays: {block.get('selection', 'n/a')}, {block.get('bins', 'n/a')} bins per ray; "
+                     f"surfaces from {block.get('depth_source') or block.get('surface_note') or 'n/a'}.")
+    return "\n\n".join(notes)
+
+
+def layer_table(runs: list[dict], names: list[str], labels: dict) -> str | None:
+    """Recall by height layer, one column per method, the top layer first (as heights read on a page), and the
+    ground's recall below."""
+    layers = layer_recalls(runs)
+    shown = [n for n in names if n in layers]
+    if not shown:
+        return None
+    first = layers[shown[0]]  # every method is scored on the same reference cells
+    rows = []
+    for i in reversed(range(len(first))):
+        recalls = [cell((layers[n][i]["recall"], layers[n][i]["recall_std"]), ".3f") if first[i]["reference_cells"]
+                   else "–" for n in shown]  # nothing stands at that height
+        rows.append([f"{first[i]['z_min']:.3f}–{first[i]['z_max']:.3f}", str(first[i]["reference_cells"])] + recalls)
+    ground = per_variant(runs, "occupancy.ground_recall")
+    cells = get(next(r["summary"] for r in runs if r["variant"] == shown[0]), "occupancy.ground_cells")
+    rows.append(["ground", cell(cells, ",.0f")] + [cell(ground[n], ".3f") for n in shown])
+    return table(["height (box z, 0-1)", "reference cells"] + [labels[n] for n in shown], rows)
 
 
 def quality_table(runs: list[dict], names: list[str], labels: dict) -> str:
@@ -205,6 +271,17 @@ def write_report(results: dict, out: Path) -> None:
     ]
     if main:
         parts += ["## Occupancy (the paper's Table 1)", "", occupancy_table(runs, main, labels), "",
+                  "## What reaches the main network, counted alike", "", counted_alike_table(runs, main, labels), "",
+                  counted_alike_notes(runs), ""]
+        layers = layer_table(runs, main, labels)
+        if layers is not None:
+            parts += ["## Recall by height layer", "", layers, "",
+                      "Occupied cells the views observe, by height in the box (top layer first), and the share each "
+                      "method's occupancy keeps; a sampler that keeps the roofs and drops the ground shows here "
+                      "while its total recall can look fine."
+                      + (f" Figure: `{results['figures']['recall_by_layer']}`."
+                         if results.get("figures", {}).get("recall_by_layer") else ""), ""]
+        parts += [
                   "## Quality, time and memory (the paper's Table 3)", "", quality_table(runs, main, labels), "",
                   "Peak memory is the process's peak RSS on a CPU (runtime, scene and weights included) and "
                   "`torch.cuda.max_memory_allocated` on a GPU; activations are the bytes autograd keeps for one "

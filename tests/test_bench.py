@@ -137,7 +137,7 @@ def test_bench_smoke_on_the_tiny_city(tiny_scene, tmp_path, capsys):
         with Image.open(out / figure) as image:
             assert image.format == "PNG" and image.width > 300
     assert set(results["figures"]) == {"psnr_vs_time", "occupancy_phase", "samples_per_ray", "occupancy_clouds",
-                                       "renders"}
+                                       "renders", "recall_by_layer"}
     report = (out / "report.md").read_text()
     for heading in ("Table 1", "Table 3", "Speed-up of LeCO", "Targets", "Tables 4 and 5"):
         assert heading in report

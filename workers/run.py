@@ -144,6 +144,11 @@ def fit_locally(cfg: TrainConfig, scene_dir: Path, run_dir: Path, store: RunStor
                          store), run_dir)
 
 
+# Per-step figures of the main phase that the summary averages (the methods' own are in their `stats`).
+SAMPLING_KEYS = ("occupancy_ratio", "samples_per_hit_ray", "hit_ray_fraction", "samples_per_ray", "o_kept_ratio",
+                 "fallback_fraction", "proposal_samples_per_ray")
+
+
 def summarise(cfg: TrainConfig, run_dir: Path, evaluation: dict, attempt_s: float) -> dict:
     metrics = read_metrics(run_dir / "metrics.jsonl")
     progress = json.loads((run_dir / "final" / "progress.json").read_text())
@@ -163,7 +168,9 @@ def summarise(cfg: TrainConfig, run_dir: Path, evaluation: dict, attempt_s: floa
         "wall_time_s": {"phases": elapsed, "total": sum(elapsed.values()), "this_attempt": attempt_s},
         "steps": {"total": progress["step"], "phases": progress["steps"]},
         "rays_per_s": mean(main, "rays_per_s"), "samples_per_ray": mean(main, "samples_per_ray"),
-        "occupancy": occupancy or None, "val": evaluation["val"],
+        # What reached the main network while training, counted alike for every method (model/sample_accounting.py)
+        "sampling": {k: mean(main, k) for k in SAMPLING_KEYS if any(r.get(k) is not None for r in main)},
+        "occupancy": occupancy or None, "val": evaluation["val"], "rays": evaluation.get("rays"),
         "peak_memory_mb": max((m.get("peak_memory_mb") or 0.0 for m in metrics), default=None),
         # What autograd keeps for one step of the main network (workers/memory.py): the memory the samplers set.
         "activation_memory_mb": max((m.get("activation_memory_mb") or 0.0 for m in main), default=None),

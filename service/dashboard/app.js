@@ -94,7 +94,7 @@ async function showJobs() {
 }
 
 // ----- one job --------------------------------------------------------------------------------------------
-const jobState = { id: null, series: {}, lastStep: -1, renderId: null, plyId: null, xAxis: "step" };
+const jobState = { id: null, series: {}, lastStep: -1, renderId: null, plyId: null, xAxis: "step", summaryId: null, evaluation: null };
 
 function mergeSeries(fresh) {
   for (const s of fresh) {
@@ -137,6 +137,56 @@ function occupancyStats(job, registry) {
     </dl></div>`;
 }
 
+// ----- a finished job's evaluation (summary.json): recall by height layer, what reached the main network -----
+const pct = v => (v === null || v === undefined ? "–" : `${fmt(100 * v, 1)}%`);
+
+async function loadEvaluation(job, artifacts) {
+  if (job.kind !== "train") return;  // a render job's summary.json describes its video
+  const summary = artifacts.find(a => a.kind === "report" && a.name === "summary.json");
+  if (!summary || jobState.summaryId === summary.id) return;
+  try {
+    const data = await getJson(summary.url);
+    let rays = data.rays || null;
+    if (!rays) {  // a summary without the block: the run's eval.json has it
+      const evaluation = artifacts.find(a => a.kind === "report" && a.name === "eval.json");
+      if (evaluation) rays = (await getJson(evaluation.url)).rays || null;
+    }
+    jobState.evaluation = { occupancy: data.occupancy || null, sampling: data.sampling || null, rays };
+    jobState.summaryId = summary.id;
+  } catch (e) {  // the card waits for the next poll; the rest of the page does not depend on it
+    jobState.evaluation = null;
+  }
+}
+
+function evaluationCard() {
+  const e = jobState.evaluation;
+  if (!e) return null;
+  const occ = e.occupancy || {}, rays = e.rays || {}, sampling = e.sampling || {};
+  const card = document.createElement("div");
+  card.className = "card";
+  card.id = "final-occupancy";
+  const surface = rays.depth_source
+    ? `<dt>surface bin kept</dt><dd id="surface-bin-kept">${pct(rays.surface_bin_kept)} of ${rays.surface_rays?.toLocaleString() ?? "–"} surface rays</dd>
+       <dt>foreground opacity on them</dt><dd>${fmt(rays.foreground_opacity, 3)}</dd>
+       <dt>surfaces from</dt><dd class="wrap">${esc(rays.depth_source)}</dd>`
+    : `<dt>surfaces</dt><dd class="wrap">${esc(rays.surface_note || "not measured")}</dd>`;
+  const top1 = occ.top1_recall === undefined ? "" : `<dt>recall, O's top-1 rule</dt><dd>${fmt(occ.top1_recall, 3)}</dd>`;
+  card.innerHTML = `<h3>What reaches the main network (final evaluation)</h3><dl class="stats">
+    <dt>occupancy ratio, validation rays</dt><dd id="rays-occupancy-ratio">${pct(rays.occupancy_ratio)}</dd>
+    <dt>occupancy ratio, training mean</dt><dd>${pct(sampling.occupancy_ratio)}</dd>
+    <dt>samples per hit ray</dt><dd>${fmt(rays.samples_per_hit_ray, 1)}</dd>
+    <dt>rays that cross the box</dt><dd>${pct(rays.hit_ray_fraction)}</dd>${surface}
+    <dt>recall (its rule)</dt><dd>${fmt(occ.recall, 3)}</dd>${top1}
+    <dt>ground recall</dt><dd id="ground-recall">${fmt(occ.ground_recall, 3)}</dd></dl>
+    <div class="muted wrap">${esc(rays.selection || "no validation rays counted")}; each hit ray cut into ${rays.bins ?? "–"} coarse bins</div>`;
+  if (Array.isArray(occ.layers) && occ.layers.length) {
+    const title = document.createElement("h3");
+    title.textContent = "Recall by height layer";
+    card.append(title, layerChart(occ.layers, occ.ground_recall));
+  }
+  return card;
+}
+
 async function refreshImages(artifacts) {
   const renders = artifacts.filter(a => a.kind === "render").sort((a, b) => (a.step ?? 0) - (b.step ?? 0) || a.id - b.id);
   const latest = renders[renders.length - 1];
@@ -163,7 +213,9 @@ async function refreshImages(artifacts) {
 }
 
 async function showJob(id) {
-  if (jobState.id !== id) Object.assign(jobState, { id, series: {}, lastStep: -1, renderId: null, plyId: null });
+  if (jobState.id !== id) {
+    Object.assign(jobState, { id, series: {}, lastStep: -1, renderId: null, plyId: null, summaryId: null, evaluation: null });
+  }
   const view = document.getElementById("view");
   const [job, artifacts, fresh] = await Promise.all([
     getJson(`/v1/jobs/${id}`), getJson(`/v1/jobs/${id}/artifacts`),
@@ -208,11 +260,14 @@ async function showJob(id) {
     chartCard("Throughput (rays/s)", ["rays_per_s"], phases), chartCard("Main-network samples per ray", ["samples_per_ray"], ["main"]));
   const registry = await methodRegistry();
   if (hasOccupancyPhase(registry, job)) charts.appendChild(chartCard("Fraction of points to the empty expert", ["fraction_empty"], ["occupancy"]));
+  await loadEvaluation(job, artifacts);
   document.getElementById("stats").innerHTML = occupancyStats(job, registry) + `<div class="card" id="throughput"><h3>Throughput</h3><dl class="stats">
     <dt>rays/s (${esc(job.phase || "–")})</dt><dd>${fmt(job.rays_per_s, 0)}</dd>
     <dt>main-network samples per ray</dt><dd>${fmt(latestOf("main", "samples_per_ray"), 1)}</dd>
     <dt>occupancy ratio</dt><dd>${fmt(latestOf("main", "occupancy_ratio"), 3)}</dd>
     <dt>peak memory</dt><dd>${fmt(latestOf(job.phase || "main", "peak_memory_mb"), 0)} MB</dd></dl></div>`;
+  const evaluation = evaluationCard();
+  if (evaluation) document.getElementById("stats").appendChild(evaluation);
   document.querySelector("#artifacts tbody").innerHTML = artifacts.map(a => `<tr><td>${esc(a.kind)}</td><td>${esc(a.name)}</td>
     <td>${a.step ?? ""}</td><td>${bytes(a.size)}</td><td><a href="#" data-url="${esc(a.url)}" data-name="${esc(a.name.split("/").pop())}" class="dl">download</a></td></tr>`).join("");
   document.querySelectorAll("#artifacts a.dl").forEach(a => { a.onclick = e => { e.preventDefault(); download(a.dataset.url, a.dataset.name); }; });
@@ -223,7 +278,8 @@ async function showJob(id) {
     rendering = await refreshRenders();
   }
   setStatus(`job ${id} · updated ${new Date().toLocaleTimeString()}`);
-  if (!TERMINAL.includes(job.state) || !jobState.plyId || rendering) schedule(route);
+  const evaluating = job.kind === "train" && job.state === "succeeded" && !jobState.summaryId;
+  if (!TERMINAL.includes(job.state) || !jobState.plyId || rendering || evaluating) schedule(route);
 }
 
 // ----- a finished training job: renders (videos along a camera path) and the viewer -------------------------

@@ -124,3 +124,33 @@ function drawOccupancy(canvas, points, view) {
   }
   return shown.length;
 }
+
+// Recall by height layer as horizontal bars, the top layer at the top (z is up): layerChart(layers, ground).
+// `layers`: [{z_min, z_max, reference_cells, recall}] bottom first, as summary.json's occupancy.layers.
+function layerChart(layers, ground) {
+  const W = 420, L = 92, R = 46, T = 8, ROW = 20, B = 26;
+  const H = T + ROW * layers.length + B;
+  const svg = document.createElementNS("http://www.w3.org/2000/svg", "svg");
+  svg.setAttribute("viewBox", `0 0 ${W} ${H}`);
+  svg.setAttribute("class", "chart layers");
+  svg.dataset.layers = String(layers.length);
+  const sx = r => L + r * (W - L - R);
+  let body = `<line x1="${L}" y1="${T}" x2="${L}" y2="${H - B}" stroke="#ccc"/><line x1="${L}" y1="${H - B}" x2="${W - R}" y2="${H - B}" stroke="#ccc"/>`;
+  for (const f of [0, 0.5, 1]) {
+    body += `<line x1="${sx(f)}" y1="${T}" x2="${sx(f)}" y2="${H - B}" stroke="#eee"/><text x="${sx(f)}" y="${H - B + 12}" text-anchor="middle">${f}</text>`;
+  }
+  body += `<text x="${(L + W - R) / 2}" y="${H - 3}" text-anchor="middle">recall of occupied, observed cells${ground === null || ground === undefined ? "" : ` · ground ${ground.toFixed(2)}`}</text>`;
+  layers.slice().reverse().forEach((layer, i) => {
+    const y = T + i * ROW, label = `z ${layer.z_min.toFixed(2)}–${layer.z_max.toFixed(2)}`;
+    body += `<text x="${L - 4}" y="${y + ROW / 2 + 3}" text-anchor="end">${label}</text>`;
+    if (layer.recall === null || layer.recall === undefined) {  // no reference cell at that height
+      body += `<text x="${L + 4}" y="${y + ROW / 2 + 3}">–</text>`;
+      return;
+    }
+    const width = Math.max(0.5, sx(layer.recall) - L);
+    body += `<rect x="${L}" y="${y + 3}" width="${width.toFixed(1)}" height="${ROW - 6}" fill="${COLORS[0]}"><title>${label}: ${layer.predicted_cells ?? "?"} of ${layer.reference_cells} cells</title></rect>`;
+    body += `<text x="${(L + width + 4).toFixed(1)}" y="${y + ROW / 2 + 3}" class="layer-recall">${layer.recall.toFixed(2)}</text>`;
+  });
+  svg.innerHTML = body;
+  return svg;
+}
