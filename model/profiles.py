@@ -87,6 +87,8 @@ class GuidedConfig(Frozen):
     # The main phase's background starts from phase 1's (with warm_start). Phase 1's background learned to paint
     # what the HMoE's foreground missed (the ground of an aerial scene); False starts it fresh.
     warm_start_background: bool = True
+    # ... and the main head's density layer starts from phase 1's (False: fresh, the colours still copied)
+    warm_start_density: bool = True
     # With `fallback`, a ray with nothing kept gets O's k most likely bins (by its decision logit) instead of one
     # sample in every coarse bin (0)
     fallback_topk: int = Field(0, ge=0, le=4096)

@@ -26,11 +26,14 @@ def module_pairs(field: SwitchNeRF, hmoe: HMoE) -> list[tuple[str, nn.Module, nn
 
 @torch.no_grad()
 def warm_start_main(field: SwitchNeRF, background: BackgroundField, hmoe: HMoE,
-                    occupancy_background: BackgroundField | None) -> list[str]:
+                    occupancy_background: BackgroundField | None, density: bool = True) -> list[str]:
     """Copy phase 1's weights into the main phase's networks where shapes match; returns what was copied.
     The gate projection takes O's scene-expert logits (O's last row is E_e's), so every point starts with the
     expert that rendered it in phase 1. Without `occupancy_background` the main background starts fresh: phase 1's
-    learned to paint what the HMoE's foreground missed (guided.warm_start_background)."""
+    learned to paint what the HMoE's foreground missed (guided.warm_start_background). With `density` False the
+    head's density layer keeps its fresh initialisation: phase 1 left what its background painted (an aerial
+    scene's ground) semi-transparent (guided.warm_start_density)."""
+    fresh_sigma = {k: v.clone() for k, v in field.head.sigma.state_dict().items()}
     copied = []
     behind = [] if occupancy_background is None else [("background", background, occupancy_background)]
     for name, target, source in module_pairs(field, hmoe) + behind:
@@ -42,4 +45,7 @@ def warm_start_main(field: SwitchNeRF, background: BackgroundField, hmoe: HMoE,
     if proj.shape == logits.shape:
         proj.copy_(logits)
         copied.append("gate.proj")
+    if not density:
+        field.head.sigma.load_state_dict(fresh_sigma)
+        copied = [name if name != "head" else "head (colour only)" for name in copied]
     return copied

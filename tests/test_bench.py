@@ -127,7 +127,9 @@ def test_bench_smoke_on_the_tiny_city(tiny_scene, tmp_path, capsys):
         occupancy = runs[name]["summary"]["occupancy"]
         assert 0.0 <= occupancy["f1"] <= 1.0 and occupancy["params"] > 0
     assert runs["grid"]["summary"]["occupancy"]["params"] == 32**3
-    assert runs["prop"]["summary"]["samples_per_ray"] == 8  # the smoke profile's prop.main_samples
+    # the smoke profile's prop.main_samples on every ray that crosses the box (the others get none)
+    assert runs["prop"]["summary"]["sampling"]["samples_per_hit_ray"] == 8
+    assert runs["prop"]["summary"]["samples_per_ray"] < 8
     assert leco["summary"]["samples_per_ray"] < runs["switch"]["summary"]["samples_per_ray"] == 8 + 8 + 16
     assert leco["summary"]["activation_memory_mb"] < runs["switch"]["summary"]["activation_memory_mb"]
     assert results["speedups"]["switch"]["rays_per_s"] > 0 and results["equal_psnr"][0]["target_psnr"] > 10
@@ -178,7 +180,10 @@ def test_sweep_points_are_leaner_and_richer_than_the_profile():
     from model.profiles import get_profile
 
     cpu = {v.name: v.overrides for v in sweep(["leco", "switch", "grid"], get_profile("cpu"))}
-    assert cpu["leco-sweep-lean"] == {"guided.dilate": 1} and cpu["leco-sweep-rich"] == {"guided.coarse_samples": 32}
+    # LeCO places a fixed budget per hit ray at cpu: the sweep halves and doubles it
+    assert cpu["leco-sweep-lean"] == {"guided.main_samples": 10}
+    assert cpu["leco-sweep-rich"] == {"guided.main_samples": 42}
+    assert cpu["leco-sweep-cull"] == {"guided.cull_transmittance": 1e-3}
     assert cpu["switch-sweep-lean"] == {"vanilla.coarse_samples": 16, "vanilla.fine_samples": 32}
     assert cpu["grid-sweep-rich"] == {"grid.march_steps": 512}
     cpu = {v.name: v.overrides for v in sweep(["prop"], get_profile("cpu"))}

@@ -72,6 +72,17 @@ def test_a_warm_start_without_phase_one_s_background_leaves_the_main_background_
     assert not torch.equal(models.background.trunk[0].weight, models.occupancy_background.trunk[0].weight)
 
 
+def test_a_warm_start_without_phase_one_s_density_copies_the_colours_only(tiny_scene):
+    profile = TrainConfig(method="leco", profile="smoke").resolved_profile()
+    models = build_models(get_method("leco")(profile), tiny_scene.num_images, tiny_scene.bounds.aabb, 0)
+    fresh = {k: v.clone() for k, v in models.field.head.sigma.state_dict().items()}
+    copied = warm_start_main(models.field, models.background, models.hmoe, None, density=False)
+    assert "head (colour only)" in copied and "head" not in copied
+    assert all(torch.equal(fresh[k], v) for k, v in models.field.head.sigma.state_dict().items())
+    assert torch.equal(models.field.head.feature.weight, models.hmoe.scene_head.feature.weight)
+    assert not torch.equal(models.field.head.sigma.weight, models.hmoe.scene_head.sigma.weight)
+
+
 def test_a_wider_occupancy_network_saves_loads_and_warm_starts_what_still_fits(tiny_scene, tmp_path):
     from model.occupancy import OccupancyPredictor
 

@@ -91,15 +91,15 @@ class LeCOMethod(Method):
 
     def sweep(self) -> list[SweepPoint]:
         g = self.profile.guided
+        cull = SweepPoint("cull", "culling T < 1e-3", {"guided.cull_transmittance": 1e-3})
         if g.placement:  # O places a fixed budget per hit ray: the budget is what to sweep
             return [SweepPoint(tag, f"{n} main samples", {"guided.main_samples": n})
-                    for tag, n in (("lean", max(g.main_samples // 2, 1)), ("rich", 2 * g.main_samples))]
+                    for tag, n in (("lean", max(g.main_samples // 2, 1)), ("rich", 2 * g.main_samples))] + [cull]
         lean = (SweepPoint("lean", f"dilation {g.dilate - 1}", {"guided.dilate": g.dilate - 1}) if g.dilate > 0
                 else SweepPoint("lean", f"split {max(g.split // 2, 1)}", {"guided.split": max(g.split // 2, 1)}))
         return [lean,
                 SweepPoint("rich", f"{2 * g.coarse_samples} coarse bins",
-                           {"guided.coarse_samples": 2 * g.coarse_samples}),
-                SweepPoint("cull", "culling T < 1e-3", {"guided.cull_transmittance": 1e-3})]
+                           {"guided.coarse_samples": 2 * g.coarse_samples}), cull]
 
     # ----- a run --------------------------------------------------------------------------------------
     def phase_steps(self, phase: str) -> int:
@@ -132,7 +132,7 @@ class LeCOMethod(Method):
         g = self.profile.guided
         if fresh and g.warm_start:
             behind = models.occupancy_background if g.warm_start_background else None
-            copied = warm_start_main(models.field, models.background, models.hmoe, behind)
+            copied = warm_start_main(models.field, models.background, models.hmoe, behind, g.warm_start_density)
             log(f"main phase warm-started from phase 1: {', '.join(copied)}")
         models.hmoe.requires_grad_(False)
         if self.o_learns():  # O keeps learning, so the predictor shares the live network
