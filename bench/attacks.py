@@ -1,4 +1,4 @@
-"""Hostile uploads for `leco loadtest --attack`: while the pollers run, attackers send what issue 17 says a
+"""Hostile uploads for `leco loadtest --attack`: while the pollers run, attackers send what a
 careless or hostile client sends, over and over. Every answer must be a 4xx naming the problem (nothing stored,
 no 5xx), and the pollers must keep their latency and see no errors."""
 

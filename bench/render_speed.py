@@ -1,4 +1,4 @@
-"""`leco bench-render`: issue 20's measurement. Render the same camera path with several finished runs (LeCO,
+"""`leco bench-render`: render time per method. Render the same camera path with several finished runs (LeCO,
 vanilla, the grid, ... on one scene) and print seconds per frame, rays/s and the main-network samples each
 method spent per ray; also one viewer preview per size. Every k-th frame of the path is timed (the vanilla
 method takes tens of seconds a frame on a CPU; the path and the frames timed are the same for every run), after
@@ -71,8 +71,7 @@ def bench_render_command(args: argparse.Namespace) -> int:
 
 
 def add_commands(commands) -> None:
-    bench = commands.add_parser("bench-render", help="seconds per frame of finished runs along one camera path "
-                                                     "(issue 20)")
+    bench = commands.add_parser("bench-render", help="seconds per frame of finished runs along one camera path")
     bench.add_argument("--run", action="append", required=True, help="a finished run folder; repeat to compare")
     bench.add_argument("--path", default="orbit", choices=["orbit", "flyover", "spiral"])
     bench.add_argument("--frames", type=int, default=120)

@@ -310,11 +310,11 @@ def write_report(results: dict, out: Path) -> None:
         if missed:
             parts += [f"{len(missed)} target(s) missed; docs/BENCHMARKS.md explains why and what would fix it.", ""]
     if any(r.get("ladder") for r in runs):
-        parts += ["## Ablation ladder (issue 16)", "", ladder_table(runs), "",
+        parts += ["## Ablation ladder", "", ladder_table(runs), "",
                   "Each rung adds one change to the one above it; the last is the profile's defaults. Time to "
                   "vanilla's best PSNR is on the tracked validation views, LeCO's phase 1 included.", ""]
     if any(r.get("sweep") for r in runs):
-        parts += ["## Speed against error: sampling budgets (issue 16)", "", sweep_table(runs), "",
+        parts += ["## Speed against error: sampling budgets", "", sweep_table(runs), "",
                   "Each method's own run is its middle point; samples per ray count every main-network "
                   "evaluation (vanilla's coarse pass and LeCO's culling pass included). Figures: "
                   "`speed_vs_error.png` (PSNR against samples per ray and rays/s), `sweep_psnr_vs_time.png`.", ""]

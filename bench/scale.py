@@ -1,4 +1,4 @@
-"""`leco bench-scale`: issue 18's measurement. Train a few steps with N data-parallel Ray workers on each scene
+"""`leco bench-scale`: large scenes measured. Train a few steps with N data-parallel Ray workers on each scene
 given, twice on the first (the first start builds its pixel stores, the second reuses them), and print per run:
 images, training pixels, store build (or open) time, time to first step, each rank's peak RSS, and rays/s.
 
@@ -90,7 +90,7 @@ def add_commands(commands) -> None:
     from model.methods import METHODS
 
     scale = commands.add_parser("bench-scale", help="time to first step, per-rank peak RSS and rays/s on large "
-                                                    "scenes (issue 18); the first scene is started twice")
+                                                    "scenes; the first scene is started twice")
     scale.add_argument("--scene", action="append", required=True,
                        help="scene folder; repeat to compare (the first is started twice)")
     scale.add_argument("--out", required=True, help="folder for the runs and scale.json")

@@ -19,7 +19,7 @@ class Variant:
     label: str  # as the paper's tables name it
     overrides: dict = field(default_factory=dict)
     ablation: bool = False
-    ladder: bool = False  # a rung of the ablation ladder (issue 16); like an ablation, not a compared method
+    ladder: bool = False  # a rung of the ablation ladder; like an ablation, not a compared method
     sweep: bool = False  # another sampling budget of `method` (`--sweep`); like an ablation, not a compared method
     table: str = ""  # the paper's ablation table this variant is a row of
 
@@ -45,7 +45,7 @@ ABLATIONS = {
 TABLE_REFERENCES = {"4/5": ("ours",), "7": ("grid", "ours"), "9": ("ours",)}
 
 
-# The paper's formulation at the profile's sizes: every setting issue 16 added, back at the paper's value.
+# The paper's formulation at the profile's sizes: every setting added beyond it, back at the paper's value.
 PAPER_FORMULATION = {
     "occupancy.lr_final": None, "occupancy.w_g_final": None, "occupancy.w_v": 0.0,
     "occupancy.empty_gate_grad": True, "guided.jitter": False, "guided.dilate": 0, "guided.fallback": False,
@@ -94,7 +94,7 @@ def ladder() -> list[Variant]:
 
 
 def sweep(methods: list[str], profile: Profile) -> list[Variant]:
-    """`--sweep` (issue 16, item 6): each method at the sampling budgets its own file names (Method.sweep),
+    """`--sweep` (item 6): each method at the sampling budgets its own file names (Method.sweep),
     around the profile's, whose own run is the middle point, so PSNR can be read against samples per ray and
     rays/s."""
     return [Variant(f"{m}-sweep-{p.tag}", m, f"{get_method(m).label}, {p.text}", p.overrides, ablation=True,

@@ -1,4 +1,4 @@
-"""Camera paths for videos and views (issue 20): generated ones around a scene's foreground box or along its
+"""Camera paths for videos and views: generated ones around a scene's foreground box or along its
 training cameras, and user paths given as camera-to-world matrices. Everything here is in the normalised
 world frame (model/scenes/scene.py: z up, the foreground box centred at the origin, its longest side spanning
 [-1, 1]) with OpenGL camera axes; `user_path` takes cameras in the dataset's own frame and converts them.

@@ -45,7 +45,7 @@ def density_loss(probs: Tensor, index: Tensor, sigma: Tensor) -> Tensor:
 
 def visibility_loss(probs: Tensor, weights: Tensor) -> Tensor:
     """L_v = -sum_i w_i log(1 - p_e,i) / sum_i w_i, w_i = T_i alpha_i detached: the samples a ray actually
-    shows are sent away from E_e in proportion to how much they show (not in the paper; issue 16)."""
+    shows are sent away from E_e in proportion to how much they show (not in the paper)."""
     w = weights.detach().float().reshape(-1)
     not_empty = (1.0 - probs[:, -1]).clamp(min=EPS)
     return -(w * torch.log(not_empty)).sum() / (w.sum() + EPS)

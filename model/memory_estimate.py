@@ -1,4 +1,4 @@
-"""A job's peak training memory per rank, estimated before it runs (issue 17), so the API can refuse a job that
+"""A job's peak training memory per rank, estimated before it runs, so the API can refuse a job that
 cannot fit where it would run instead of letting a worker be OOM-killed. The networks are built on PyTorch's
 meta device (shapes only, no storage), so the estimate costs nothing whatever sizes a request asks for.
 Activations use the bytes autograd keeps per main-network sample, which matches the measured

@@ -1,4 +1,4 @@
-"""O keeps learning during the main phase (issue 16; the paper freezes O after phase 1).
+"""O keeps learning during the main phase (the paper freezes O after phase 1).
 
 The main network's rendering weights (detached) say, for every coarse bin the guided sampler kept, whether
 the bin holds what the ray sees. Two signals, in the spirit of a proposal network's interlevel loss:

@@ -12,7 +12,7 @@ LR_MAX = 1e6
 
 
 class Frozen(BaseModel):
-    # Every number bounded on both sides and finite (issue 17): a job that asks for more than any machine has
+    # Every number bounded on both sides and finite: a job that asks for more than any machine has
     # is refused at the API, not OOM-killed on a worker.
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
@@ -52,7 +52,7 @@ class OccupancyPhaseConfig(Frozen):
     # E_e's size (the paper's Table 9): 0 is an identity layer (the paper's choice), N an N-layer MLP; homogeneous
     # makes it a scene expert's size instead.
     empty_expert_layers: int = Field(0, ge=0, le=16)
-    # Not in the paper (issue 16, docs/BENCHMARKS.md "ablation ladder"); 0 / True keep the paper's formulation.
+    # Not in the paper (docs/BENCHMARKS.md "ablation ladder"); 0 / True keep the paper's formulation.
     w_v: float = Field(0.0, ge=0, le=1e4)  # visibility loss: visible samples (detached render weights) away from E_e
     empty_gate_grad: bool = True  # False: the rendering loss cannot raise E_e's gate (its value is detached)
     gate_width: int | None = Field(None, ge=8, le=2048)  # O's layers after the shared input layer; None: network.width
@@ -62,7 +62,7 @@ class OccupancyPhaseConfig(Frozen):
 class GuidedConfig(Frozen):
     coarse_samples: int = Field(128, ge=1, le=4096)
     split: int = Field(8, ge=1, le=64)
-    # Not in the paper (issue 16); the defaults keep the paper's sampler and its from-scratch main network.
+    # Not in the paper; the defaults keep the paper's sampler and its from-scratch main network.
     jitter: bool = False  # while training, query O at a random point of each coarse bin, not its mid-point
     dilate: int = Field(0, ge=0, le=64)  # also keep bins up to this many bins before / after a kept bin
     fallback: bool = False  # a ray with no kept bin samples every coarse bin once instead of none

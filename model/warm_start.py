@@ -1,4 +1,4 @@
-"""Warm start of LeCO's main phase from phase 1 (issue 16): the HMoE's scene experts, scene head, appearance
+"""Warm start of LeCO's main phase from phase 1: the HMoE's scene experts, scene head, appearance
 embeddings and O's input layer and body have exactly the shapes of Switch-NeRF's experts, head, embeddings,
 input layer and gate body, and phase 1's background is the main phase's background. The paper starts the
 main network from scratch and so throws phase 1's rendering away; `guided.warm_start` keeps it."""

@@ -45,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
     scene = commands.add_parser("scene", help="generate or inspect scenes").add_subparsers(dest="action", required=True)
     synth = scene.add_parser("synth", help="generate a synthetic city with exact ground truth (Mega-NeRF format + gt/)")
     synth.add_argument("--preset", default="city", help="tiny | city | large | xl (default: city; xl is the 2,000-view "
-                       "scale scene of issue 18: 640x480, about 1 GB on disk and 5 minutes to write)")
+                       "scale scene: 640x480, about 1 GB on disk and 5 minutes to write)")
     synth.add_argument("--seed", type=int, default=0)
     synth.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
     synth.set_defaults(func=scene_synth)

@@ -1,4 +1,4 @@
-"""Render and export jobs (issue 20): work on a finished training job, queued, claimed, leased, fenced and
+"""Render and export jobs: work on a finished training job, queued, claimed, leased, fenced and
 retried exactly like training (service/queue.py), run by the same dispatchers. An attempt loads the training
 job's stored final networks, renders or exports into a folder of its own, and stores its files only at the
 end, by name: a retried attempt replaces them, never adds a second copy."""

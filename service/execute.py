@@ -37,7 +37,7 @@ def job_dir_for(settings: Settings, job_id: int) -> Path:
 
 
 def run_dir_for(settings: Settings, job_id: int, attempt: int) -> Path:
-    """Each attempt trains in a folder of its own (issue 17): an attempt that lost its lease but still runs
+    """Each attempt trains in a folder of its own: an attempt that lost its lease but still runs
     cannot write into the folder its successor resumes in."""
     return job_dir_for(settings, job_id) / f"attempt-{attempt}"
 
@@ -56,7 +56,7 @@ def execute(settings: Settings, job_id: int, attempt: int) -> str:
         scene_path = session.scalar(select(Scene.path).where(Scene.id == job.scene_id)) if job else None
     if job is None or job.state != "running" or job.attempts != attempt:
         return "lost"
-    if job.kind != "train":  # a render or export of a finished training job (issue 20)
+    if job.kind != "train":  # a render or export of a finished training job
         from service.derived import execute_work
 
         return execute_work(settings, job, attempt, scene_path)

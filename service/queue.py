@@ -58,7 +58,7 @@ def submit(session: Session, scene_id: int, cfg: TrainConfig) -> Job:
 
 
 def submit_work(session: Session, parent: Job, kind: str, config: dict, phase: str, steps: int) -> Job:
-    """A render or export of the finished training job `parent` (issue 20): queued like any job, on its scene."""
+    """A render or export of the finished training job `parent`: queued like any job, on its scene."""
     job = Job(kind=kind, parent_id=parent.id, scene_id=parent.scene_id, state="queued", method=parent.method,
               profile=parent.profile, config=config, total_steps=steps, step=0, attempts=0, cancel_requested=False,
               submitted_at=utcnow())

@@ -1,5 +1,5 @@
 """`leco render` and `leco export`: videos along a camera path and geometry in the dataset's frame, from a
-finished run folder (issue 20). The service runs the same code as render and export jobs."""
+finished run folder. The service runs the same code as render and export jobs."""
 
 from __future__ import annotations
 

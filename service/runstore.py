@@ -2,7 +2,7 @@
 (job, phase, metric, step), upserted), its files to the artifact store, and every step boundary asks the
 database whether the job was cancelled or its lease passed to another attempt.
 
-Fencing (issue 17): every write carries the run's attempt and passes queue.hold inside its own transaction,
+Fencing: every write carries the run's attempt and passes queue.hold inside its own transaction,
 so a write from an attempt that lost the job is refused (StaleAttempt) and stores nothing, and each row
 records the attempt that wrote it. While the database is unavailable, writes wait and retry
 (service.db.retrying, for Settings.retry_s) and the stop check lets the run go on; past that budget a write

@@ -38,7 +38,7 @@ class Settings(BaseModel):
     keep_checkpoints: int = Field(2, ge=1)  # checkpoint artifacts kept per job (older ones are deleted)
     poll_cache_s: float = Field(0.5, ge=0)  # how old a polled job view or metrics answer may be (0: no cache)
     backend: Literal["ray", "local"] = "ray"  # local: one in-process worker without Ray (debugging, quick tests)
-    # Where a job runs, for the API's memory check (issue 17): the RAM one job may use (local: all its ranks
+    # Where a job runs, for the API's memory check: the RAM one job may use (local: all its ranks
     # together; cluster: one rank's worker), default this machine's RAM; in cluster mode the most workers and
     # GPUs a job may ask for (unset GPUs: not checked).
     slot_memory_mb: int = Field(default_factory=lambda: machine_memory_mb(), ge=1)
@@ -48,7 +48,7 @@ class Settings(BaseModel):
     @model_validator(mode="after")
     def check_lease_and_retry(self) -> "Settings":
         """A run whose writes wait out an outage longer than its lease could outlive it: another attempt claims
-        the job while the first still trains (issue 17, fencing). The last renewal may be a heartbeat period
+        the job while the first still trains (fencing). The last renewal may be a heartbeat period
         (lease / 4) before the outage begins, so the wait must end within the other three quarters."""
         if self.retry_s >= 0.75 * self.lease_s:
             raise ValueError(

@@ -165,7 +165,7 @@ class ArtifactStore:
     # ----- reading and deleting ----------------------------------------------------------------------
     def verified_path(self, meta: dict) -> Path:
         """The blob's path after checking its size and sha256 against the row. The hash is computed once per
-        file version and process (issue 17: a 1-byte Range request re-hashed a whole checkpoint every time);
+        file version and process (a 1-byte Range request re-hashed a whole checkpoint every time);
         a blob rewritten in place has a new inode or mtime and is hashed again."""
         path = self.blob_path(meta["sha256"])
         what = f"artifact {meta['id']} ({meta['name']})"

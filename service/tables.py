@@ -25,7 +25,7 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 TERMINAL = ("succeeded", "failed", "cancelled")
 SCENE_STATES = ("generating", "ready", "failed")
-# A training job, or work on a finished one (issue 20): a video along a camera path, or an export of its geometry.
+# A training job, or work on a finished one: a video along a camera path, or an export of its geometry.
 JOB_KINDS = ("train", "render", "export")
 ARTIFACT_KINDS = ("checkpoint", "render", "occupancy_model", "pointcloud", "report")
 

@@ -1,4 +1,4 @@
-"""The process side of `POST /v1/jobs/{id}/view` (issue 20): one camera of a finished training job rendered
+"""The process side of `POST /v1/jobs/{id}/view`: one camera of a finished training job rendered
 to PNG in a process of the view pool, never in the API process. Each process keeps the networks of the last
 few jobs it rendered loaded, so the viewer's next frame costs a render, not a load."""
 

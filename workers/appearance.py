@@ -1,4 +1,4 @@
-"""The validation protocol (Mega-NeRF's, issue 16): a validation view's appearance embedding is never trained
+"""The validation protocol (Mega-NeRF's): a validation view's appearance embedding is never trained
 by the run, so scoring it with that embedding colours the view with a random vector. Instead each validation
 view's right half is scored, and its embeddings (of every network the phase renders with) are first set to the
 mean of the training views' embeddings and then fitted on pixels of its left half, with the networks frozen.

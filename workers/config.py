@@ -17,7 +17,7 @@ MAX_WORKERS = 8
 
 
 class TrainConfig(BaseModel):
-    # Bounded on both sides and finite (issue 17), like the profile it overrides.
+    # Bounded on both sides and finite, like the profile it overrides.
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     # Validated against the registry (model/methods/registry.py) when the config is made, so a method

@@ -1,4 +1,4 @@
-"""Geometry of a finished run in the dataset's own frame and units (issue 20): `leco export` and the service's
+"""Geometry of a finished run in the dataset's own frame and units: `leco export` and the service's
 export jobs. Each export writes its file and `transform.json` beside it, which says how the normalised world
 the networks live in maps to that frame (world = (axes @ source - origin) / scale).
 

@@ -1,4 +1,4 @@
-"""Rendering whole frames from any camera with a finished run's own sampler (issue 20): the frames of a video,
+"""Rendering whole frames from any camera with a finished run's own sampler: the frames of a video,
 a viewer's preview, the depth an exported point cloud is made of. Each method renders as it does in
 validation (LeCO through its occupancy, the grid through its cells, vanilla with its full sample budget), so
 a method's sampling cost shows in its render time as it does in training."""

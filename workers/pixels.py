@@ -1,4 +1,4 @@
-"""Where a worker's scene pixels come from: each split's memory-mapped pixel store (issue 18), built on first
+"""Where a worker's scene pixels come from: each split's memory-mapped pixel store, built on first
 use in the cache folder and attached to the scene's views, so training, validation and renders all read the
 same file and no process decodes or holds a whole split."""
 

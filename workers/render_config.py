@@ -1,4 +1,4 @@
-"""What a render, a view or an export of a finished run asks for (issue 20): one pydantic schema each, from the
+"""What a render, a view or an export of a finished run asks for: one pydantic schema each, from the
 API request down to the worker that renders (like workers/config.py for training). Bounded on both sides and
 finite; a field that is wrong is named by its path (`path.cameras.3.c2w`, `frames`, `width`)."""
 
@@ -207,7 +207,7 @@ class ViewRequest(BaseModel):
 
 
 class ExportConfig(BaseModel):
-    """Geometry of a finished run in the dataset's own frame and units (issue 20)."""
+    """Geometry of a finished run in the dataset's own frame and units."""
 
     model_config = STRICT
 

@@ -1,4 +1,4 @@
-"""A video of a finished run along a camera path (issue 20): `leco render` and the service's render jobs.
+"""A video of a finished run along a camera path: `leco render` and the service's render jobs.
 Frames are rendered one at a time with the method's own sampler and encoded as they come; the store (the
 service's, or none) gets each frame's progress and is asked between frames whether to stop."""
 

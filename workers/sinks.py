@@ -1,4 +1,4 @@
-"""Where per-step metrics go: a small sink interface. The CLI writes JSON lines; the service (issue 5)
+"""Where per-step metrics go: a small sink interface. The CLI writes JSON lines; the service
 writes the database. Writes are idempotent per (run, metric, step): after a restart from a checkpoint the
 replayed steps overwrite what the lost attempt wrote, never duplicate it."""
 

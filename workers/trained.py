@@ -1,5 +1,5 @@
 """A finished run's networks, ready to render: what evaluation, `leco render` / `leco export` and the service's
-render, export and view workers all load (issue 20). A run folder written by `leco train` knows its scene
+render, export and view workers all load. A run folder written by `leco train` knows its scene
 (run.json); the service knows it from the database and hands over the stored `final/` files."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """What a method is: the one place that knows how a run of it builds its networks, what each phase trains and
 samples, and what it exports. The training loop, evaluation, benchmark, API and dashboard talk to this interface
-and never compare method names (issue 19).
+and never compare method names.
 
 A method object is made from the resolved profile (`method = get_method(name)(profile)`); that alone is cheap
 and answers the static questions (phases, parameter counts, memory needs, benchmark sweep). `build` makes the
@@ -206,5 +206,5 @@ def mean_of(rows: list[dict], key: str) -> float | None:
 
 def method_state(saved: dict) -> dict | None:
     """A checkpoint's non-network method state (Method.state_dict). Checkpoints written before the methods
-    had a home (issue 19) kept the only such state, the grid's, under "grid"; they still load."""
+    had a home kept the only such state, the grid's, under "grid"; they still load."""
     return saved["method"] if "method" in saved else saved.get("grid")

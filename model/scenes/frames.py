@@ -1,5 +1,5 @@
 """A split's images (or depth maps) as a sequence that decodes an item when it is indexed, so that loading a
-scene of thousands of photos holds their sizes and cameras, not their pixels (issue 18)."""
+scene of thousands of photos holds their sizes and cameras, not their pixels."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""A seeded pseudo-random permutation of [0, n) that is evaluated, not stored (issue 18).
+"""A seeded pseudo-random permutation of [0, n) that is evaluated, not stored.
 
 `torch.randperm(n)` holds 8 bytes for every training pixel on every rank: 15 GB for the Mega-NeRF Building
 scene at 1/4 scale. Here position i of the epoch's order is computed from i alone: a balanced Feistel network

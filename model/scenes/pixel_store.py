@@ -1,4 +1,4 @@
-"""Decoded training pixels on disk, built once per (scene, split, downscale) and memory-mapped (issue 18).
+"""Decoded training pixels on disk, built once per (scene, split, downscale) and memory-mapped.
 
 Every rank used to hold a concatenated copy of all decoded pixels of its split. A store is one raw file of
 uint8 RGB (`pixels.u8`, 3 bytes a pixel, image after image in the PixelTable's id order) and a manifest:

@@ -1,4 +1,4 @@
-"""Security headers on every answer (issue 17): no MIME sniffing, no framing (clickjacking), no referrer; and on
+"""Security headers on every answer: no MIME sniffing, no framing (clickjacking), no referrer; and on
 the dashboard a Content-Security-Policy that allows only its own files, so an injected `<script>` or
 `onerror=` in any text it shows cannot run (it has no inline script; charts set inline styles). Pictures and
 videos it fetched with the token are shown through blob: URLs (img-src, media-src)."""

@@ -44,7 +44,7 @@ def ray_status(settings: Settings) -> tuple[bool, str]:
 
 @router.get("/readyz")
 def readyz(settings: Settings = Depends(settings_of)):
-    """Up or down per dependency and nothing more (issue 17: it used to show the database URL or path);
+    """Up or down per dependency and nothing more (it used to show the database URL or path);
     why a dependency is down goes to the log. With LECO_BACKEND=local no Ray is needed."""
     checks, ready = {}, True
     try:

@@ -308,7 +308,7 @@ async def metrics(job_id: RowId, request: Request, phase: str | None = None, nam
 
 def metrics_json(settings: Settings, job_id: int, phase: str | None, name: list[str] | None, after_step: int,
                  max_points: int) -> bytes:
-    # Downsampled in SQL (issue 17): a long job has hundreds of thousands of rows, and only max_points a series
+    # Downsampled in SQL: a long job has hundreds of thousands of rows, and only max_points a series
     # leave the database. Row i of a series of n is kept when (i * a) mod (n - 1) < a, a = max_points - 1: the
     # first row at or after each of a + 1 evenly spaced positions, so the first and the last always.
     series = (Metric.phase, Metric.name)

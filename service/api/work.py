@@ -1,4 +1,4 @@
-"""Work on a finished training job (issue 20): render jobs (a video along a camera path) and export jobs
+"""Work on a finished training job: render jobs (a video along a camera path) and export jobs
 (geometry in the dataset's frame), queued and run by the dispatchers like training; and single views,
 rendered to PNG by the view pool's processes with a concurrency limit and a small cache."""
 

@@ -21,7 +21,7 @@ class CityPreset:
     cell_size: float  # ground-truth occupancy cell, metres
     supersample: int = 2  # per-axis samples per pixel
     val_every: int = 10  # every n-th view in capture order is held out
-    # A scale scene (issue 18) reuses each render for several views: a render `render_margin` times the image
+    # A scale scene reuses each render for several views: a render `render_margin` times the image
     # size, cut into `crops_per_render` images at seeded offsets. A crop is an exact image of the same camera
     # with its principal point shifted, so the scene stays consistent while rendering costs a fraction.
     crops_per_render: int = 1

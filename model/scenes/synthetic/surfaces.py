@@ -1,5 +1,5 @@
 """Distances to the synthetic city's true surfaces (its boxes and the ground plane z = 0), for checking exported
-geometry in metres (issue 20). Points come in the scene's source frame (Mega-NeRF's down-right-back metres,
+geometry in metres. Points come in the scene's source frame (Mega-NeRF's down-right-back metres,
 as `leco export` writes them)."""
 
 from __future__ import annotations
