@@ -13,12 +13,13 @@ missed in phase 1 can be found and learned.
 
 from __future__ import annotations
 
-import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from model.fields.hmoe import OccupancyNetwork
 from model.occupancy import OccupancyQuery
+from model.placement import bin_mass
+from model.sample_accounting import reached_bins
 from model.samplers import PackedSamples
 from model.scenes.rays import RayBatch
 
@@ -35,17 +36,8 @@ class OnlineOccupancy(OccupancyQuery):
     def bin_targets(self, samples: PackedSamples, weights: Tensor, rays: RayBatch,
                     num_coarse: int) -> tuple[Tensor, Tensor]:
         """(R, n) target (1 occupied, 0 free) and mask (bins that teach) from the packed render weights."""
-        r = len(rays)
-        span = (rays.far - rays.near).clamp(min=1e-12)
-        mids = samples.mids
-        index = samples.ray_index
-        bins = ((mids - rays.near[index]) / span[index] * num_coarse).long().clamp(0, num_coarse - 1)
-        flat = index * num_coarse + bins
-        mass = torch.zeros(r * num_coarse, dtype=weights.dtype, device=weights.device)
-        mass = mass.index_add_(0, flat, weights.detach()).reshape(r, num_coarse)
-        sampled = torch.zeros(r * num_coarse, dtype=torch.bool, device=weights.device)
-        sampled[flat] = True
-        sampled = sampled.reshape(r, num_coarse)
+        mass = bin_mass(samples, weights, rays.near, rays.far, num_coarse)
+        sampled = reached_bins(samples, rays.near, rays.far, num_coarse)
         after = 1.0 - mass.cumsum(dim=1)  # transmittance left after each bin (skipped bins hold no mass)
         surface = mass >= self.surface_weight
         free = sampled & ~surface & (after > self.seen_through)

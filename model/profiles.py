@@ -3,7 +3,7 @@ later stages (training config, API, benchmark) embed rather than copy. See docs/
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 MAX_STEPS = 10_000_000  # per phase; `leco bench --budget-min` uses this as "until the clock stops"
 # Far past any rate that trains (Adam's steps are ~lr), low enough to stay finite in every product of the loop;
@@ -103,6 +103,17 @@ class GuidedConfig(Frozen):
     # ... and the head already learns in phase 1, against the HMoE's own detached weights, so the main phase
     # starts with a histogram that knows the scene
     placement_in_phase1: bool = False
+
+    @model_validator(mode="after")
+    def options_need_their_switch(self) -> "GuidedConfig":
+        # A setting that would be silently ignored is refused, naming the switch it needs.
+        if self.fallback_topk > 0 and not self.fallback:
+            raise ValueError("guided.fallback_topk needs guided.fallback=true (it picks the fallback's bins); "
+                             "with guided.fallback=false set guided.fallback_topk=0 too")
+        if self.placement_in_phase1 and not self.placement:
+            raise ValueError("guided.placement_in_phase1 needs guided.placement=true (it trains O's placement head); "
+                             "with guided.placement=false set guided.placement_in_phase1=false too")
+        return self
 
     def online_learns(self, main_step: int) -> bool:
         """Whether O learns at this main-phase step (0-based), given `online`, its warm-up and its period."""

@@ -122,3 +122,15 @@ def test_surface_accounting_finds_the_surface_bin_and_the_foreground_opacity():
     assert out["surface"].tolist() == [True, True, False]
     assert out["kept"].tolist() == [True, False, False]
     assert float(out["opacity"][0]) == pytest.approx(1 - torch.exp(torch.tensor(-2.0)).item(), rel=1e-5)
+
+
+def test_a_guided_option_without_its_switch_is_refused_naming_both():
+    from pydantic import ValidationError
+
+    from model.profiles import GuidedConfig
+
+    with pytest.raises(ValidationError, match="guided.fallback_topk needs guided.fallback=true"):
+        GuidedConfig(fallback_topk=2)
+    with pytest.raises(ValidationError, match="guided.placement_in_phase1 needs guided.placement=true"):
+        GuidedConfig(placement_in_phase1=True)
+    assert GuidedConfig(fallback=True, fallback_topk=2, placement=True, placement_in_phase1=True).fallback_topk == 2
