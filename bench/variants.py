@@ -51,7 +51,8 @@ PAPER_FORMULATION = {
     "occupancy.empty_gate_grad": True, "guided.jitter": False, "guided.dilate": 0, "guided.fallback": False,
     "guided.warm_start": False, "guided.split": 8, "guided.empty_threshold": None, "guided.online": False,
     "guided.warm_start_background": True, "guided.online_free_opacity": 0.0, "guided.fallback_topk": 0,
-    "guided.placement": False, "guided.placement_in_phase1": False,
+    "guided.placement": False, "guided.placement_in_phase1": False, "guided.placement_padding": 0.01,
+    "occupancy.budget_share": 0.25,
 }
 
 # The ablation ladder: from the paper's formulation, one change at a time (cumulative) up to the `cpu`
@@ -73,8 +74,11 @@ RUNGS: list[tuple[str, str, dict]] = [
     ("leco-rung-free-opacity", "+ no bin called free behind a semi-transparent foreground",
      {"guided.online_free_opacity": 0.5}),
     ("leco-rung-topk", "+ O's 2 best bins for a ray with nothing kept", {"guided.fallback_topk": 2}),
-    ("leco", "+ O places 21 samples per hit ray, learnt in both phases (the cpu defaults)",
+    ("leco-rung-placement", "+ O places 21 samples per hit ray, learnt in both phases",
      {"guided.placement": True, "guided.placement_in_phase1": True, "guided.main_samples": 21}),
+    ("leco-rung-placement-dilate-1", "+ dilation back to 1 bin under placement", {"guided.dilate": 1}),
+    ("leco-rung-padding", "+ placement padding 0.001, not 0.01", {"guided.placement_padding": 0.001}),
+    ("leco", "+ phase 1 stops at 15% of a budget, not 25% (the cpu defaults)", {"occupancy.budget_share": 0.15}),
 ]
 
 

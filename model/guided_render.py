@@ -28,6 +28,19 @@ def histogram(sigma: Tensor, edges: Tensor) -> Tensor:
     return batched_weights(sigma, edges[:, 1:] - edges[:, :-1])[0]
 
 
+def confident_bins(keep: Tensor, weights: Tensor, min_share: float) -> Tensor:
+    """The kept bins (R, B) holding at least `min_share` of their ray's kept histogram `weights` (R, B); a ray
+    where none does keeps its heaviest kept bin, and a ray without any weight keeps them all, so every ray that
+    had a bin still has one."""
+    if min_share <= 0:
+        return keep
+    mass = weights * keep
+    total = mass.sum(-1, keepdim=True)
+    share = torch.where(total > 0, mass / total.clamp(min=1e-30), torch.ones_like(mass))  # no weight: keep all
+    heaviest = torch.zeros_like(keep).scatter_(1, mass.argmax(-1, keepdim=True), True) & keep
+    return (keep & (share >= min_share)) | heaviest
+
+
 def placer(profile: Profile, query: OccupancyQuery, anneal: float,
            generator: torch.Generator | None) -> Callable[[Tensor, Tensor, Tensor], PackedSamples]:
     """draw_guided's `place`: `guided.main_samples` per ray over its kept bins, by O's annealed, padded histogram
@@ -38,8 +51,9 @@ def placer(profile: Profile, query: OccupancyQuery, anneal: float,
         if query.sigma is None:
             raise ValueError("guided.placement needs O's placement head: the HMoE is built with one when it is set")
         sigma = query.sigma.detach().reshape(-1, edges.shape[1] - 1, g.queries_per_bin).mean(dim=-1)[rows]
-        return placed_samples(edges, keep, histogram(sigma, edges) ** anneal + g.placement_padding, g.main_samples,
-                              generator)
+        weights = histogram(sigma, edges) ** anneal
+        return placed_samples(edges, confident_bins(keep, weights, g.placement_min_share),
+                              weights + g.placement_padding, g.main_samples, generator)
 
     return place
 

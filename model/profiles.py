@@ -57,6 +57,9 @@ class OccupancyPhaseConfig(Frozen):
     empty_gate_grad: bool = True  # False: the rendering loss cannot raise E_e's gate (its value is detached)
     gate_width: int | None = Field(None, ge=8, le=2048)  # O's layers after the shared input layer; None: network.width
     gate_relu_every_layer: bool = False  # O's path: a ReLU after every hidden layer, not only between its inner two
+    # Under a wall-clock budget phase 1 stops at this share of it (or at `steps`, whichever comes first); the main
+    # phase gets the rest
+    budget_share: float = Field(0.25, gt=0, lt=1)
 
 
 class GuidedConfig(Frozen):
@@ -100,6 +103,9 @@ class GuidedConfig(Frozen):
     placement_loss_weight: float = Field(1.0, ge=0, le=1e4)
     placement_padding: float = Field(0.01, ge=0, le=1)  # added to every kept bin's weight (nerfstudio's padding)
     placement_anneal_steps: int = Field(500, ge=0, le=MAX_STEPS)  # uniform -> O's weights (nerfstudio's anneal)
+    # A kept bin whose share of O's (annealed) histogram on its ray is below this gets no sample: O expects almost
+    # none of the ray's weight there (0: every kept bin may get one, by its padded share)
+    placement_min_share: float = Field(0.0, ge=0, lt=1)
     # ... and the head already learns in phase 1, against the HMoE's own detached weights, so the main phase
     # starts with a histogram that knows the scene
     placement_in_phase1: bool = False
@@ -183,10 +189,12 @@ PROFILES: dict[str, Profile] = {
         background=BackgroundConfig(width=32, layers=2, samples=16),
         # Measured settings beyond the paper (docs/BENCHMARKS.md, ablation ladder); bench/variants.py
         # PAPER_FORMULATION undoes them.
-        occupancy=OccupancyPhaseConfig(samples_per_ray=64, steps=1500, lr=2e-3, w_g=5e-2, empty_gate_grad=False),
-        guided=GuidedConfig(coarse_samples=16, split=4, dilate=2, jitter=True, fallback=True, warm_start=True,
+        occupancy=OccupancyPhaseConfig(samples_per_ray=64, steps=1500, lr=2e-3, w_g=5e-2, empty_gate_grad=False,
+                                       budget_share=0.15),
+        guided=GuidedConfig(coarse_samples=16, split=4, dilate=1, jitter=True, fallback=True, warm_start=True,
                             empty_threshold=0.9, online=True, warm_start_background=False, online_free_opacity=0.5,
-                            fallback_topk=2, placement=True, placement_in_phase1=True, main_samples=21),
+                            fallback_topk=2, placement=True, placement_in_phase1=True, main_samples=21,
+                            placement_padding=0.001),
         vanilla=VanillaConfig(coarse_samples=32, fine_samples=64),
         grid=GridConfig(resolution=128, march_steps=256),
         # LeCO's main samples per ray on the city at this profile: 21.2 (8-minute benchmark, docs/BENCHMARKS.md).

@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from model.fields.hmoe import OccupancyNetwork
+from model.guided_render import confident_bins
 from model.placement import bin_mass, placed_samples, placement_loss
 from model.rendering import batched_weights, packed_weights
 from model.sample_accounting import step_accounting, surface_accounting
@@ -49,6 +50,22 @@ def test_placed_samples_follow_the_weights():
     samples = placed_samples(edges, keep, weights, 20, None)
     bin_of = ((samples.mids - near) / ((far - near) / 8)).floor().long()
     assert torch.bincount(bin_of, minlength=8).tolist() == [0, 2, 16, 0, 0, 2, 0, 0]
+
+
+def test_bins_below_the_minimum_share_get_no_sample_and_every_ray_keeps_one():
+    keep = torch.tensor([[True, True, True, False], [True, True, False, False], [True, True, False, False]])
+    weights = torch.tensor([[0.01, 0.5, 0.49, 0.9], [0.001, 0.002, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    kept = confident_bins(keep, weights, 0.03)
+    # Row 0: the bin with 1% of the kept mass goes (the unkept bin's weight does not count); row 1: shares are
+    # relative (33% and 67%), both stay; row 2: no weight to judge by, all stay.
+    assert kept.tolist() == [[False, True, True, False], [True, True, False, False], [True, True, False, False]]
+    assert confident_bins(keep, weights, 0.5).tolist() == [[False, True, False, False], [False, True, False, False],
+                                                           [True, True, False, False]]  # the heaviest survives
+    assert torch.equal(confident_bins(keep, weights, 0.0), keep)
+    near, far, edges = coarse(r=3, bins=4)
+    samples = placed_samples(edges, kept, weights + 0.01, 9, torch.Generator().manual_seed(0))
+    bin_of = ((samples.mids - near[samples.ray_index]) / ((far - near) / 4)[samples.ray_index]).floor().long()
+    assert kept[samples.ray_index, bin_of.clamp(0, 3)].all() and not (bin_of[samples.ray_index == 0] == 0).any()
 
 
 def test_the_placement_loss_is_the_interlevel_bound_and_trains_only_the_proposal():

@@ -175,6 +175,15 @@ def test_budget_stops_the_run_early(tiny_scene, tmp_path):
     assert 0.2 <= summary["wall_time_s"]["total"] < 0.2 + 1.0  # stops at the first step past the budget
 
 
+def test_phase_one_stops_at_its_share_of_the_budget(tiny_scene, tmp_path):
+    budget = 2.0
+    cfg = TrainConfig(method="leco", profile="smoke", budget_min=budget / 60,
+                      overrides={"occupancy.steps": 100_000, "main_steps": 100_000, "occupancy.budget_share": 0.1})
+    wall = run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")["wall_time_s"]["phases"]
+    assert 0.1 * budget <= wall["occupancy"] < 0.1 * budget + 0.5  # stops at the first step past its share
+    assert wall["occupancy"] + wall["main"] == pytest.approx(budget, abs=0.5)  # the main phase gets the rest
+
+
 def test_leco_eval_command_reevaluates_a_finished_run(tiny_scene, tmp_path, capsys):
     from service.cli import main
 

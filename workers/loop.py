@@ -171,7 +171,7 @@ class RankRun:
             return True
         budget = self.cfg.budget_min * 60
         spent = sum(self.progress["elapsed"].values())
-        share = self.method.budget_share.get(phase)
+        share = self.method.budget_share(phase)
         if share is not None:
             return self.progress["elapsed"].get(phase, 0.0) < share * budget
         return spent < budget
@@ -184,7 +184,7 @@ class RankRun:
         allotted = None
         if self.cfg.budget_min is not None:
             budget = self.cfg.budget_min * 60
-            share = self.method.budget_share.get(phase)
+            share = self.method.budget_share(phase)
             before = self.method.phases[: self.method.phases.index(phase)]
             allotted = share * budget if share is not None else budget - sum(elapsed.get(p, 0.0) for p in before)
         return phase_progress(self.progress["phase_step"], self.method.phase_steps(phase), elapsed.get(phase, 0.0),

@@ -79,8 +79,6 @@ class Method:
     # target and time ratios are measured against; "baseline": every other method.
     role: ClassVar[str] = "baseline"
     phases: ClassVar[tuple[str, ...]] = ("main",)
-    # A share of a wall-clock budget a phase stops at (the last phase gets whatever is left).
-    budget_share: ClassVar[dict[str, float]] = {}
     # Whether the method has an occupancy to score (the paper's Table 1 and the point cloud's filter).
     has_occupancy: ClassVar[bool] = False
     colour: ClassVar[str | None] = None  # in the benchmark's figures
@@ -126,6 +124,10 @@ class Method:
 
     def phase_steps(self, phase: str) -> int:
         return self.profile.main_steps
+
+    def budget_share(self, phase: str) -> float | None:
+        """The share of a wall-clock budget the phase stops at; None: whatever the phases before it left."""
+        return None
 
     def phase_lr(self, phase: str) -> tuple[float, float | None]:
         """(start, final) learning rate of the phase; the schedule decays log-linearly between them."""

@@ -50,7 +50,6 @@ class LeCOMethod(Method):
     colour = "#d62728"
     role = "ours"
     phases = ("occupancy", "main")
-    budget_share = {"occupancy": 0.25}  # with a wall-clock budget, phase 1 stops at this share of it
     has_occupancy = True
 
     def __init__(self, profile: Profile):
@@ -104,6 +103,9 @@ class LeCOMethod(Method):
     # ----- a run --------------------------------------------------------------------------------------
     def phase_steps(self, phase: str) -> int:
         return self.profile.occupancy.steps if phase == "occupancy" else self.profile.main_steps
+
+    def budget_share(self, phase: str) -> float | None:
+        return self.profile.occupancy.budget_share if phase == "occupancy" else None
 
     def phase_lr(self, phase: str) -> tuple[float, float | None]:
         # Phase 1 at the occupancy lr, constant as in the paper unless occupancy.lr_final is set.
