@@ -4,19 +4,18 @@ main Switch-NeRF renders samples in them in front of the background, and, while 
 
 from __future__ import annotations
 
-from typing import Callable
-
 import torch
 from torch import Tensor
 
 from model.fields.background import BackgroundField
 from model.fields.hmoe import OccupancyNetwork
 from model.fields.switch_nerf import SwitchNeRF
+from model.fine_placement import FineDraw, fine_placement_loss, fine_samples
 from model.main_phase import MainRender, composite_field, cull_occluded, field_on_packed
 from model.occupancy import OccupancyQuery
 from model.occupancy_phase import render_background
 from model.online_occupancy import OnlineOccupancy
-from model.placement import placed_samples, placement_loss
+from model.placement import confident_bins, placed_samples, placement_loss
 from model.profiles import GuidedConfig, Profile
 from model.rendering import Rendered, batched_weights
 from model.samplers import PackedSamples, draw_guided, pack_edges, stratified_edges
@@ -28,34 +27,36 @@ def histogram(sigma: Tensor, edges: Tensor) -> Tensor:
     return batched_weights(sigma, edges[:, 1:] - edges[:, :-1])[0]
 
 
-def confident_bins(keep: Tensor, weights: Tensor, min_share: float) -> Tensor:
-    """The kept bins (R, B) holding at least `min_share` of their ray's kept histogram `weights` (R, B); a ray
-    where none does keeps its heaviest kept bin, and a ray without any weight keeps them all, so every ray that
-    had a bin still has one."""
-    if min_share <= 0:
-        return keep
-    mass = weights * keep
-    total = mass.sum(-1, keepdim=True)
-    share = torch.where(total > 0, mass / total.clamp(min=1e-30), torch.ones_like(mass))  # no weight: keep all
-    heaviest = torch.zeros_like(keep).scatter_(1, mass.argmax(-1, keepdim=True), True) & keep
-    return (keep & (share >= min_share)) | heaviest
-
-
-def placer(profile: Profile, query: OccupancyQuery, anneal: float,
-           generator: torch.Generator | None) -> Callable[[Tensor, Tensor, Tensor], PackedSamples]:
+class Placer:
     """draw_guided's `place`: `guided.main_samples` per ray over its kept bins, by O's annealed, padded histogram
-    (the anneal's exponent 0 spreads them evenly over the kept bins, which are all one length)."""
-    g = profile.guided
+    (the anneal's exponent 0 spreads them evenly over the kept bins, which are all one length); with
+    `guided.placement_fine`, in two passes (model/fine_placement.py), the last draw kept for its loss."""
 
-    def place(rows: Tensor, edges: Tensor, keep: Tensor) -> PackedSamples:
+    def __init__(self, profile: Profile, query: OccupancyQuery, rays: RayBatch, anneal: float,
+                 generator: torch.Generator | None):
+        self.g, self.query, self.rays, self.anneal, self.generator = profile.guided, query, rays, anneal, generator
+        self.fine: FineDraw | None = None
+
+    def __call__(self, rows: Tensor, edges: Tensor, keep: Tensor) -> PackedSamples:
+        g, query = self.g, self.query
         if query.sigma is None:
             raise ValueError("guided.placement needs O's placement head: the HMoE is built with one when it is set")
         sigma = query.sigma.detach().reshape(-1, edges.shape[1] - 1, g.queries_per_bin).mean(dim=-1)[rows]
-        weights = histogram(sigma, edges) ** anneal
-        return placed_samples(edges, confident_bins(keep, weights, g.placement_min_share),
-                              weights + g.placement_padding, g.main_samples, generator)
+        weights = histogram(sigma, edges) ** self.anneal
+        keep = confident_bins(keep, weights, g.placement_min_share)
+        if not g.placement_fine:
+            return placed_samples(edges, keep, weights + g.placement_padding, g.main_samples, self.generator)
+        samples, self.fine = fine_samples(edges, keep, weights + g.placement_padding, g.placement_fine,
+                                          g.main_samples, lambda t: self.density(rows, t, grad=False), self.generator,
+                                          self.anneal, g.placement_padding)
+        self.fine.rows = rows
+        return samples
 
-    return place
+    def density(self, rows: Tensor, t: Tensor, grad: bool = True) -> Tensor:
+        """O's placement density at depths t (R, M) along the given rows of the hit rays (`grad`: with gradient
+        while O learns; placing needs none)."""
+        points = self.rays.origins[rows, None] + self.rays.directions[rows, None] * t[..., None]
+        return self.query.density(points.reshape(-1, 3), grad).reshape(t.shape)
 
 
 def render_guided(field: SwitchNeRF, background: BackgroundField, rays: RayBatch, profile: Profile,
@@ -68,7 +69,7 @@ def render_guided(field: SwitchNeRF, background: BackgroundField, rays: RayBatch
     hit = torch.nonzero(rays.far > rays.near)[:, 0]
     sub = rays.subset(hit)  # only rays that cross the box have bins to keep
     with torch.no_grad():
-        place = placer(profile, query, anneal, generator) if g.placement else None
+        place = Placer(profile, query, sub, anneal, generator) if g.placement else None
         draw = draw_guided(sub.near, sub.far, sub.origins, sub.directions, query.occupied, g.coarse_samples,
                            g.split, generator, g.jitter, g.dilate, g.fallback, g.fallback_topk, query.scores, place,
                            g.queries_per_bin)
@@ -86,6 +87,11 @@ def render_guided(field: SwitchNeRF, background: BackgroundField, rays: RayBatch
     if learn_placement and query.sigma is not None and len(sub):
         proposal = histogram(query.sigma.reshape(len(sub), g.coarse_samples, -1).mean(dim=-1), draw.edges)
         losses.append(g.placement_loss_weight * placement_loss(proposal, local, rendered.weights, sub.near, sub.far))
+        if place is not None and place.fine is not None and len(place.fine.rows):
+            fine = place.fine
+            sigma = place.density(fine.rows, fine.t_mid)
+            main = rendered.weights.reshape(len(fine.rows), g.main_samples)
+            losses.append(g.placement_loss_weight * fine_placement_loss(fine, sigma, main))
     stats = {"o_kept_ratio": float(draw.occupied_bins.float().mean()) if len(sub) else 0.0,
              "fallback_fraction": float(draw.lost.float().mean()) if len(sub) else 0.0}
     # Culled samples still ran the network once (without gradient), so they count, as vanilla's coarse ones do.

@@ -74,6 +74,15 @@ class OccupancyQuery:
             self.sigma = torch.cat(sigmas) if sigmas else None
         return self.network.decide(self.logits, self.empty_threshold)
 
+    def density(self, points: Tensor, grad: bool = True) -> Tensor:
+        """The placement head's density at points (N, 3), with gradient while `learn` is set (and `grad`); the
+        decisions and logits of the last `occupied` call are left as they are."""
+        with torch.set_grad_enabled(self.learn and grad):
+            sigma = self.network.query(points)[1]
+        if sigma is None:
+            raise ValueError("guided.placement_fine asks O's placement head: set guided.placement=true")
+        return sigma
+
     def scores(self) -> Tensor:
         """The last call's decision logits, detached: positive exactly where it kept the point."""
         if self.logits is None:

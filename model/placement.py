@@ -51,6 +51,19 @@ def placed_samples(edges: Tensor, keep: Tensor, weights: Tensor, n: int,
     return PackedSamples(t_mid - 0.5 * delta, t_mid + 0.5 * delta, ray)
 
 
+def confident_bins(keep: Tensor, weights: Tensor, min_share: float) -> Tensor:
+    """The kept bins (R, B) holding at least `min_share` of their ray's kept histogram `weights` (R, B); a ray
+    where none does keeps its heaviest kept bin, and a ray without any weight keeps them all, so every ray that
+    had a bin still has one."""
+    if min_share <= 0:
+        return keep
+    mass = weights * keep
+    total = mass.sum(-1, keepdim=True)
+    share = torch.where(total > 0, mass / total.clamp(min=1e-30), torch.ones_like(mass))  # no weight: keep all
+    heaviest = torch.zeros_like(keep).scatter_(1, mass.argmax(-1, keepdim=True), True) & keep
+    return (keep & (share >= min_share)) | heaviest
+
+
 def bin_mass(samples: PackedSamples, weights: Tensor, near: Tensor, far: Tensor, bins: int) -> Tensor:
     """(R, bins) the main network's (detached) render weight summed in each coarse bin of each ray."""
     flat = samples.ray_index * bins + sample_bins(samples, near, far, bins)

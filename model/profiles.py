@@ -109,6 +109,10 @@ class GuidedConfig(Frozen):
     # ... and the head already learns in phase 1, against the HMoE's own detached weights, so the main phase
     # starts with a histogram that knows the scene
     placement_in_phase1: bool = False
+    # ... in two passes (model/fine_placement.py): the coarse histogram places this many intermediate intervals, O's
+    # head is asked at their mid-points, and the main samples follow that finer histogram (0: one pass, the main
+    # samples spread evenly inside each kept bin's share)
+    placement_fine: int = Field(0, ge=0, le=1024)
 
     @model_validator(mode="after")
     def options_need_their_switch(self) -> "GuidedConfig":
@@ -119,6 +123,12 @@ class GuidedConfig(Frozen):
         if self.placement_in_phase1 and not self.placement:
             raise ValueError("guided.placement_in_phase1 needs guided.placement=true (it trains O's placement head); "
                              "with guided.placement=false set guided.placement_in_phase1=false too")
+        if self.placement_fine and not self.placement:
+            raise ValueError("guided.placement_fine needs guided.placement=true (it refines O's placement); "
+                             "with guided.placement=false set guided.placement_fine=0 too")
+        if self.placement_fine and self.cull_transmittance is not None:
+            raise ValueError("guided.placement_fine and guided.cull_transmittance cannot be combined: the fine "
+                             "pass's loss needs every placed sample's weight; unset one of them")
         return self
 
     def online_learns(self, main_step: int) -> bool:

@@ -3,6 +3,7 @@ surface O missed, and that a LeCO run with it trains, saves the O it ended with 
 
 import json
 
+import pytest
 import torch
 
 from model.fields.hmoe import OccupancyNetwork
@@ -109,9 +110,11 @@ def test_a_leco_run_with_online_o_trains_it_saves_it_and_reports_its_loss(tiny_s
     assert moved[False, 1] == 0 and 0 < moved[True, 3] < moved[True, 1]
 
 
-def test_a_leco_run_where_o_places_the_samples_learns_the_placement_in_both_phases(tiny_scene, tmp_path):
+@pytest.mark.parametrize("fine", [0, 12])  # one pass; two (model/fine_placement.py)
+def test_a_leco_run_where_o_places_the_samples_learns_the_placement_in_both_phases(tiny_scene, tmp_path, fine):
     cfg = TrainConfig(method="leco", profile="smoke", metrics_every=1, seed=0, overrides={
         "occupancy.steps": 12, "main_steps": 8, "guided.placement": True, "guided.main_samples": 6,
+        "guided.placement_fine": fine,
         "guided.placement_in_phase1": True, "guided.fallback": True, "guided.fallback_topk": 2,
         "guided.dilate": 1, "guided.warm_start": True, "guided.warm_start_background": False})
     run = tmp_path / "run"

@@ -5,8 +5,7 @@ import pytest
 import torch
 
 from model.fields.hmoe import OccupancyNetwork
-from model.guided_render import confident_bins
-from model.placement import bin_mass, placed_samples, placement_loss
+from model.placement import bin_mass, confident_bins, placed_samples, placement_loss
 from model.rendering import batched_weights, packed_weights
 from model.sample_accounting import step_accounting, surface_accounting
 from model.samplers import PackedSamples, guided_samples, stratified_edges

@@ -28,8 +28,10 @@ def test_cpu_profile_keeps_the_papers_sampling_ratios():
     vanilla = p.vanilla.coarse_samples + p.vanilla.fine_samples
     assert p.vanilla.fine_samples == 2 * p.vanilla.coarse_samples  # coarse:fine = 1:2
     assert vanilla == 6 * p.guided.coarse_samples  # 768 : 128 in the paper
-    # Split 4 instead of the paper's 8 because each kept bin's neighbours are kept too (issue 16, measured).
-    assert p.guided.split == 4 and p.guided.dilate == 2 and p.guided.empty_threshold == 0.9
+    # Under placement the main samples are a fixed budget per hit ray (S+Prop's 21); split no longer applies, and
+    # dilation keeps one bin either side of a kept one (docs/BENCHMARKS.md, measured).
+    assert p.guided.placement and p.guided.main_samples == p.prop.main_samples == 21
+    assert p.guided.dilate == 1 and p.guided.empty_threshold == 0.9
     assert p.grid.resolution == 128 and p.occupancy.v == 80.0 and p.occupancy.w_d == 0.1
 
 
