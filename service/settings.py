@@ -25,6 +25,12 @@ class Settings(BaseModel):
     max_scene_pixels: int = Field(400_000_000, gt=0)
     scene_workers: int = Field(2, ge=1)
     scene_queue: int = Field(4, ge=0)
+    # Upload bodies are received before a registration takes a place above: at most this many at once (more: 429),
+    # each cut off (408) when it sends nothing for upload_idle_s or, past its first upload_idle_s, averages under
+    # upload_min_bytes_per_s.
+    upload_receivers: int = Field(8, ge=1)
+    upload_idle_s: float = Field(30.0, gt=0)
+    upload_min_bytes_per_s: float = Field(16 * 1024, ge=0)
     # The dashboard viewer's renders (POST /v1/jobs/{id}/view): processes rendering at once, and requests that may
     # wait for one (more: 429). One process keeps the last few jobs' networks loaded.
     view_workers: int = Field(1, ge=1)
@@ -107,7 +113,9 @@ class Settings(BaseModel):
                           ("cluster_max_workers", "LECO_CLUSTER_MAX_WORKERS"),
                           ("cluster_gpus", "LECO_CLUSTER_GPUS"), ("max_scene_pixels", "LECO_MAX_SCENE_PIXELS"),
                           ("scene_workers", "LECO_SCENE_WORKERS"), ("scene_queue", "LECO_SCENE_QUEUE"),
-                          ("view_workers", "LECO_VIEW_WORKERS"), ("view_queue", "LECO_VIEW_QUEUE")):
+                          ("view_workers", "LECO_VIEW_WORKERS"), ("view_queue", "LECO_VIEW_QUEUE"),
+                          ("upload_receivers", "LECO_UPLOAD_RECEIVERS"), ("upload_idle_s", "LECO_UPLOAD_IDLE_S"),
+                          ("upload_min_bytes_per_s", "LECO_UPLOAD_MIN_BYTES_PER_S")):
             if env.get(name):
                 values[key] = env[name]
         try:

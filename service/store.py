@@ -194,6 +194,16 @@ class ArtifactStore:
             self._collect(sha)
         return len(shas)
 
+    def shas_of(self, session, job_ids: list[int]) -> set[str]:
+        """The blobs the jobs' artifacts point at, read in the caller's transaction (before it deletes the jobs,
+        whose artifact rows go with them by ON DELETE CASCADE)."""
+        return set(session.scalars(select(Artifact.sha256).where(Artifact.job_id.in_(job_ids))))
+
+    def collect(self, shas: set[str]) -> None:
+        """Unlinks each blob no row references any more (after the rows that did were deleted)."""
+        for sha in shas:
+            self._collect(sha)
+
     def delete_job(self, job_id: int) -> int:
         with transaction(self.db_url) as session:
             ids = list(session.scalars(select(Artifact.id).where(Artifact.job_id == job_id)))

@@ -126,6 +126,7 @@ def test_what_is_not_a_camera_is_refused_naming_its_field():
     ({"fps": float("inf")}, ("fps",)),
     ({"appearance": "median"}, ("appearance",)),
     ({"path": {"kind": "orbit", "pitch_deg": 95}}, ("path", "orbit", "pitch_deg")),
+    ({"path": {"kind": "orbit", "pitch_deg": 0, "altitude": 2.0}}, ("path", "orbit")),  # altitude / sin(0)
 ])
 def test_bad_render_settings_are_refused_naming_the_field(body, field):
     with pytest.raises(ValidationError) as refused:

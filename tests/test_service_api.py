@@ -3,17 +3,20 @@ idempotency, listing, cancel, metrics downsampling, artifact download (ETag, Ran
 
 import io
 import tarfile
+import threading
 import time
 
 import pytest
 from fastapi.testclient import TestClient
 
+from service import queue
 from service.api.app import create_app
 from service.db import transaction
 from service.runstore import DatabaseRunStore
 from service.settings import Settings
-from service.tables import IdempotencyKey, utcnow
+from service.tables import IdempotencyKey, Job, Scene, utcnow
 from tests.test_bad_input import png_claiming
+from workers.config import TrainConfig
 
 TOKEN = "test-token-123"
 
@@ -152,6 +155,15 @@ def spoil_file_path(root, target):
     data = json.loads(path.read_text())
     data["frames"][1]["file_path"] = target
     path.write_text(json.dumps(data))
+
+
+def test_a_scene_name_of_digits_alone_is_refused_so_it_never_reads_as_another_scene_s_id(api, tiny_scene):
+    for answer in (api.post("/v1/scenes/synthetic", json={"name": "46", "preset": "tiny"}),
+                   api.post("/v1/scenes/upload", params={"name": "0"}, content=tar_of(tiny_scene.root))):
+        assert answer.status_code == 422 and "reads as a scene id" in answer.text, answer.text
+    assert api.get("/v1/scenes").json() == []  # nothing stored, nothing half-written
+    ok = api.post("/v1/scenes/synthetic", json={"name": "46a", "preset": "tiny"})
+    assert ok.status_code == 202 and ok.json()["name"] == "46a"
 
 
 @pytest.mark.parametrize("spoil, message", [
@@ -373,6 +385,32 @@ def test_the_token_is_checked_and_the_body_capped_before_the_body_is_read(api):
     assert api.get("/v1/jobs").status_code == 200  # and a proper request still goes through
 
 
+def test_a_render_body_of_the_documented_maximum_of_cameras_passes_the_body_cap(api):
+    import json
+    import math
+
+    from service.api.gate import MAX_PATH_BODY, PATH_CAMERAS
+    from workers.render_config import MAX_FRAMES
+
+    assert PATH_CAMERAS == MAX_FRAMES
+    cameras = []
+    for i in range(MAX_FRAMES):  # full-precision floats, as a client serialising float64 poses sends them
+        a = 0.1 + i * 1e-3
+        c, s = math.cos(a), math.sin(a)
+        cameras.append({"c2w": [[c, -s, 0.0, 1.0 / 3 + i], [s, c, 0.0, -2.0 / 7], [0.0, 0.0, 1.0, math.pi],
+                                [0.0, 0.0, 0.0, 1.0]], "intrinsics": [111.11111111111111, 111.11111111111111,
+                                                                      63.999999999999999, 47.123456789012345]})
+    body = json.dumps({"frames": MAX_FRAMES, "width": 64, "height": 48, "path": {"kind": "cameras",
+                                                                                "cameras": cameras}}).encode()
+    assert len(body) > 300_000
+    answer = api.post("/v1/jobs/999999/renders", content=body, headers={"content-type": "application/json"})
+    assert answer.status_code == 404, answer.text  # read and parsed whole: the job is what is missing
+    too_big = api.post("/v1/jobs/999999/renders", content=b" " * (MAX_PATH_BODY + 1),
+                       headers={"content-type": "application/json"})
+    assert too_big.status_code == 413
+    assert api.post("/v1/jobs", content=body, headers={"content-type": "application/json"}).status_code == 413
+
+
 @pytest.mark.parametrize("field, value, named", [
     ("overrides", {"network.width": 100000}, "network.width"),
     ("overrides", {"occupancy.samples_per_ray": 1e6}, "occupancy.samples_per_ray"),
@@ -510,3 +548,61 @@ def test_an_idempotent_job_and_its_recorded_answer_commit_together(api, monkeypa
     again = api.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k1"})
     assert first.status_code == 201 and again.json()["id"] == first.json()["id"]
     assert again.headers["Idempotent-Replayed"] == "true" and api.get("/v1/jobs").json()["total"] == 1
+
+
+# A delete and a submit on the same training job at the same time: a render or export that was accepted (201) is
+# never deleted by the delete that raced it; the delete is refused instead.
+def succeeded_training_job(url: str, scene_id: int) -> int:
+    with transaction(url) as session:
+        job = queue.submit(session, scene_id, TrainConfig(method="switch", profile="smoke"))
+        session.flush()
+        job.state = "succeeded"
+        return job.id
+
+
+def submit_until_gone(api, job: int, body: dict, go: threading.Barrier, accepted: list[int],
+                      other: list[int]) -> None:
+    go.wait()
+    while len(accepted) < 3:
+        answer = api.post(f"/v1/jobs/{job}/renders", json=body)
+        if answer.status_code != 201:
+            other.append(answer.status_code)
+            return
+        accepted.append(answer.json()["id"])
+
+
+def test_a_render_accepted_while_its_training_job_is_deleted_survives(api):
+    url = api.settings.db_url
+    with transaction(url) as session:
+        scene = Scene(name="race", source="upload", state="ready", path="/nowhere", format="meganerf",
+                      info={"cameras": 4, "splits": {"train": {"images": 4}}})
+        session.add(scene)
+        session.flush()
+        scene_id = scene.id
+    body = {"frames": 2, "width": 16, "height": 16, "path": {"kind": "orbit"}}
+    deleted = refused = 0
+    for _ in range(12):
+        job = succeeded_training_job(url, scene_id)
+        accepted: list[int] = []
+        other: list[int] = []  # answers other than 201 (asserted here: a thread's failed assert is only a warning)
+        go = threading.Barrier(2)
+        submitter = threading.Thread(target=submit_until_gone, args=(api, job, body, go, accepted, other))
+        submitter.start()
+        go.wait()
+        answer = api.delete(f"/v1/jobs/{job}")
+        submitter.join()
+        assert set(other) <= {404}, other  # a submit that lost the race finds no job
+        assert answer.status_code in (204, 409), answer.text
+        if answer.status_code == 204:
+            deleted += 1
+            assert not accepted, "a render was accepted and then deleted with its training job"
+        else:
+            refused += 1
+            assert "cancel it" in answer.json()["detail"]
+        for render in accepted:  # every accepted render is still there, its parent with it
+            assert api.get(f"/v1/jobs/{render}").status_code == 200
+            assert api.get(f"/v1/jobs/{job}").status_code == 200
+    assert deleted + refused == 12
+    with transaction(url) as session:  # nothing orphaned: every render's parent exists
+        renders = session.query(Job).filter(Job.kind == "render").all()
+        assert all(session.get(Job, r.parent_id) is not None for r in renders)

@@ -240,3 +240,14 @@ def test_leco_serve_refuses_an_unmigrated_database_and_says_what_to_run(database
     assert main(["db", "upgrade"]) == 0
     assert head_revision() in capsys.readouterr().out
     check_schema(database_url)
+
+
+def test_scene_names_of_digits_alone_are_renamed_so_they_never_read_as_ids(database_url):
+    from alembic import command
+
+    command.upgrade(alembic_config(database_url), "0005")
+    plain, digits, clash, taken = (add_scene(database_url, n) for n in ("city", "46", "7", "scene-7"))
+    upgrade(database_url)
+    with transaction(database_url) as session:
+        names = {i: session.get(Scene, i).name for i in (plain, digits, clash, taken)}
+    assert names == {plain: "city", digits: "scene-46", clash: f"scene-7-{clash}", taken: "scene-7"}

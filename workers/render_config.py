@@ -7,7 +7,7 @@ from __future__ import annotations
 from typing import Annotated, Literal, Union
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from model.camera_paths import PathError, check_rotation
 
@@ -17,6 +17,7 @@ MAX_FRAME_PIXELS = 1920 * 1080
 MAX_VIDEO_PIXELS = 60_000_000  # frames x pixels of one render job: 780 frames of 320x240, 195 of 640x480
 MAX_VIEW_SIDE = 640  # a view is a preview (POST /v1/jobs/{id}/view)
 MAX_VIEW_PIXELS = 640 * 480
+MIN_ALTITUDE_PITCH_DEG = 1.0  # an orbit at an altitude is at most 57x that altitude from the box
 
 Finite = Annotated[float, Field(ge=-1e9, le=1e9)]
 STRICT = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
@@ -52,6 +53,15 @@ class OrbitPath(BaseModel):
                                    "dataset's units (metres where it has them); default: the box fills the view")
     turns: float = Field(1.0, gt=0, le=10)
     fov_deg: float = Field(50.0, gt=1, lt=170, description="vertical field of view")
+
+    @model_validator(mode="after")
+    def altitude_needs_a_pitch(self) -> "OrbitPath":
+        # The orbit's distance is altitude / sin(pitch): at a level pitch no distance reaches that altitude.
+        if self.altitude is not None and self.pitch_deg < MIN_ALTITUDE_PITCH_DEG:
+            raise ValueError(f"an orbit at an altitude needs pitch_deg >= {MIN_ALTITUDE_PITCH_DEG:g} (the camera looks "
+                             f"down at the box from altitude / sin(pitch)); got pitch_deg={self.pitch_deg:g} with "
+                             f"altitude={self.altitude:g}: raise the pitch or leave the altitude out")
+        return self
 
 
 class FlyoverPath(BaseModel):

@@ -16,6 +16,7 @@ from service.api import artifacts, dashboard, health, jobs, methods, scenes, wor
 from service.api.gate import Gatekeeper
 from service.api.headers import SecurityHeaders
 from service.api.poll_cache import PollCache
+from service.api.receiving import ReceivingSlots
 from service.db import check_schema, first_line
 from service.settings import Settings
 from service.workpool import RETRY_AFTER_S, Busy, WorkerLost, WorkPool
@@ -66,6 +67,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.http_stats = {"count": Counter(), "seconds": 0.0, "started": time.monotonic()}
     app.state.poll_cache = PollCache(settings.poll_cache_s)
     app.state.scene_pool = WorkPool(settings.scene_workers, settings.scene_queue, "scene registrations")
+    app.state.upload_slots = ReceivingSlots(settings.upload_receivers)
     app.state.view_pool = WorkPool(settings.view_workers, settings.view_queue, "view renders")
     app.state.view_cache = work.ViewCache(work.VIEW_CACHE)
 

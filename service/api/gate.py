@@ -8,10 +8,17 @@ from __future__ import annotations
 
 import hmac
 import json
+import re
 
 from service.workpool import RETRY_AFTER_S
 
 MAX_JSON_BODY = 64 * 1024  # a job request with every override is a few KiB
+# A render's body may carry a camera path of up to workers/render_config.py's MAX_FRAMES (1,200) cameras, each a
+# 4x4 matrix and intrinsics at full float precision (about 600 bytes in JSON, 1 KiB with room for a nerfstudio
+# frame's extra keys). Not imported from there: that module loads torch, the API does not.
+PATH_CAMERAS, CAMERA_JSON_BYTES = 1200, 1024
+MAX_PATH_BODY = MAX_JSON_BODY + PATH_CAMERAS * CAMERA_JSON_BYTES
+CARRIES_A_PATH = re.compile(r"^/v1/jobs/[^/]+/renders$")
 STREAMED = {("POST", "/v1/scenes/upload")}  # the route streams its body and caps it at LECO_MAX_UPLOAD_BYTES
 REGISTERS = {("POST", "/v1/scenes/upload"), ("POST", "/v1/scenes/synthetic")}  # take a place in the scene pool
 
@@ -52,22 +59,25 @@ class Gatekeeper:
             busy = scope["app"].state.scene_pool.busy()
             return await answer(send, 429, str(busy), {"retry-after": str(RETRY_AFTER_S)})
         streamed = route in STREAMED
-        limit = settings.max_upload_bytes if streamed else MAX_JSON_BODY
+        limit = (settings.max_upload_bytes if streamed
+                 else MAX_PATH_BODY if scope["method"] == "POST" and CARRIES_A_PATH.match(scope["path"])
+                 else MAX_JSON_BODY)
         declared = headers.get("content-length", "")
         if declared and (not declared.isdigit() or int(declared) > limit):
             return await answer(send, 413, f"request body is {declared} bytes; the limit here is {limit}")
         if streamed:
             return await self.app(scope, receive, send)
-        body, more = b"", True
+        chunks, size, more = [], 0, True
         while more:  # small bodies only: read to the end (or past the limit) before the route sees any of it
             message = await receive()
             if message["type"] == "http.disconnect":
                 return
-            body += message.get("body", b"")
+            chunks.append(message.get("body", b""))
+            size += len(chunks[-1])
             more = message.get("more_body", False)
-            if len(body) > limit:
+            if size > limit:
                 return await answer(send, 413, f"request body exceeds the limit of {limit} bytes here")
-        replayed = False
+        body, replayed = b"".join(chunks), False
 
         async def replay():
             nonlocal replayed

@@ -272,22 +272,26 @@ def cancel_job(job_id: RowId, request: Request) -> Response:
     **links(204, deleted_job_links()), 409: {"description": "the job has not ended"}})
 def delete_job(job_id: RowId, request: Request) -> None:
     settings = request.app.state.settings
-    with reading(settings.db_url) as session:
-        job = get_job(session, job_id)
+    store = ArtifactStore(settings.db_url, settings.artifacts)
+    # One transaction under the job's row lock: a render or export submitted meanwhile (which locks the same row)
+    # is either seen here, and refused with the delete, or comes after it and finds no job. Never both.
+    with transaction(settings.db_url) as session:
+        job = session.get(Job, job_id, with_for_update=True)
+        if job is None:
+            raise not_found("job", job_id)
         if job.state not in TERMINAL:
             raise HTTPException(409, f"job {job_id} is {job.state}: cancel it and wait for it to stop first")
-        works = session.execute(select(Job.id, Job.kind, Job.state).where(Job.parent_id == job_id)).all()
-    for work_id, kind, state in works:  # its renders and exports go with it (the rows by ON DELETE CASCADE)
-        if state not in TERMINAL:
-            raise HTTPException(409, f"job {job_id}'s {kind} job {work_id} is {state}: cancel it and wait for it to "
-                                     "stop first")
-    store = ArtifactStore(settings.db_url, settings.artifacts)
-    for ident in [w[0] for w in works] + [job_id]:
-        store.delete_job(ident)
-    with transaction(settings.db_url) as session:
-        session.execute(delete(Job).where(Job.id.in_([w[0] for w in works] + [job_id]), Job.state.in_(TERMINAL)),
-                        execution_options={"synchronize_session": False})
-    for ident in [w[0] for w in works] + [job_id]:
+        works = session.execute(select(Job.id, Job.kind, Job.state).where(Job.parent_id == job_id)
+                                .with_for_update()).all()  # no dispatcher claims one of them meanwhile
+        for work_id, kind, state in works:  # its renders and exports go with it (the rows by ON DELETE CASCADE)
+            if state not in TERMINAL:
+                raise HTTPException(409, f"job {job_id}'s {kind} job {work_id} is {state}: cancel it and wait for "
+                                         "it to stop first")
+        gone = [w[0] for w in works] + [job_id]
+        shas = store.shas_of(session, gone)
+        session.execute(delete(Job).where(Job.id.in_(gone)), execution_options={"synchronize_session": False})
+    store.collect(shas)  # blobs after their rows: a crash in between leaves orphans that collect_orphans removes
+    for ident in gone:
         poll_cache_of(request).forget(ident)
         shutil.rmtree(job_dir_for(settings, ident), ignore_errors=True)
 

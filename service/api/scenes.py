@@ -11,7 +11,8 @@ from sqlalchemy import func, select
 from service import scenes as registry
 from service.api.deps import MAX_INT, not_found, scene_pool_of, settings_of
 from service.api.links import deleted_scene_links, links, scene_links
-from service.api.schemas import NAME, SceneOut, SyntheticSceneRequest
+from service.api.receiving import receive_body
+from service.api.schemas import NAME, SceneOut, SyntheticSceneRequest, id_like_name
 from service.db import reading, transaction
 from service.settings import Settings
 from service.tables import Job, Scene
@@ -64,37 +65,37 @@ def create_synthetic(body: SyntheticSceneRequest, settings: Settings = Depends(s
                  "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}})
 async def upload(request: Request, name: str = Query(..., pattern=NAME),
                  settings: Settings = Depends(settings_of), pool: WorkPool = Depends(scene_pool_of)) -> SceneOut:
+    if reason := id_like_name(name):
+        raise HTTPException(422, reason)
     declared = request.headers.get("content-length")
     if declared and declared.isdigit() and int(declared) > settings.max_upload_bytes:
         raise HTTPException(413, f"upload is {int(declared)} bytes; the limit is {settings.max_upload_bytes}")
-    with pool.admitted():  # Busy -> 429 before the body is read: a flood of uploads cannot fill the disk
-        scene_id = await _receive_and_register(request, name, settings, pool)
-    return _created_scene(settings, scene_id)
-
-
-async def _receive_and_register(request: Request, name: str, settings: Settings, pool: WorkPool) -> int:
-    from starlette.concurrency import run_in_threadpool
-
     settings.scenes_dir.mkdir(parents=True, exist_ok=True)
     with tempfile.NamedTemporaryFile(dir=settings.scenes_dir, prefix=".archive-") as tmp:
-        size = 0
-        async for chunk in request.stream():
-            size += len(chunk)
-            if size > settings.max_upload_bytes:
-                raise HTTPException(413, f"upload exceeds the limit of {settings.max_upload_bytes} bytes")
-            tmp.write(chunk)
+        # The body first, in a receiving slot under deadlines (service/api/receiving.py); only then a place in
+        # the scene pool (Busy -> 429), so a slow client holds no place another registration could use.
+        with request.app.state.upload_slots.slot():
+            size = await receive_body(request.stream(), tmp, settings.max_upload_bytes, settings.upload_idle_s,
+                                      settings.upload_min_bytes_per_s)
         tmp.flush()
         if size == 0:
             raise HTTPException(422, "empty upload: send the archive's bytes as the request body")
-        try:
-            return await run_in_threadpool(_register_when_running, pool, settings, name, Path(tmp.name))
-        except registry.SceneConflict as error:
-            raise HTTPException(409, str(error)) from None
-        except WorkerLost as error:  # killed while reading it: the same archive would be killed again
-            raise HTTPException(422, f"archive refused: {error}") from None
-        except (ValueError, OSError) as error:  # ArchiveError, SceneError, unreadable images: the user's archive
-            raise HTTPException(422, f"archive refused: {error}".replace(str(settings.scenes_dir),
-                                                                         "<upload>")) from None
+        with pool.admitted():
+            scene_id = await _register(settings, name, Path(tmp.name), pool)
+    return _created_scene(settings, scene_id)
+
+
+async def _register(settings: Settings, name: str, archive: Path, pool: WorkPool) -> int:
+    from starlette.concurrency import run_in_threadpool
+
+    try:
+        return await run_in_threadpool(_register_when_running, pool, settings, name, archive)
+    except registry.SceneConflict as error:
+        raise HTTPException(409, str(error)) from None
+    except WorkerLost as error:  # killed while reading it: the same archive would be killed again
+        raise HTTPException(422, f"archive refused: {error}") from None
+    except (ValueError, OSError) as error:  # ArchiveError, SceneError, unreadable images: the user's archive
+        raise HTTPException(422, f"archive refused: {error}".replace(str(settings.scenes_dir), "<upload>")) from None
 
 
 def _register_when_running(pool: WorkPool, settings: Settings, name: str, archive: Path) -> int:

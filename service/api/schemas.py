@@ -6,11 +6,20 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from workers.config import TrainConfig
 
 NAME = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$"
+
+
+def id_like_name(name: str) -> str | None:
+    """Why a scene name is refused though it matches NAME: digits alone read as an id wherever a scene is
+    referenced (`/v1/scenes/46`, `{"scene": "46"}`), so such a name would reach, or delete, another scene."""
+    if name.isascii() and name.isdigit():
+        return (f"scene name {name!r} is all digits, which reads as a scene id wherever scenes are referenced: "
+                "add a letter or a dash (e.g. 'scene-" + name + "')")
+    return None
 
 
 class SyntheticSceneRequest(BaseModel):
@@ -19,6 +28,14 @@ class SyntheticSceneRequest(BaseModel):
     name: str | None = Field(None, pattern=NAME, description="default: <preset>-<seed>")
     preset: Literal["tiny", "city", "large"] = "city"
     seed: int = Field(0, ge=0, le=2**31 - 1)
+
+    @field_validator("name")
+    @classmethod
+    def not_an_id(cls, name: str | None) -> str | None:
+        reason = id_like_name(name) if name is not None else None
+        if reason:
+            raise ValueError(reason)
+        return name
 
 
 class SceneOut(BaseModel):

@@ -36,10 +36,11 @@ def refuse(field: list, msg: str) -> HTTPException:
     return HTTPException(422, [{"loc": field, "type": "value_error", "msg": msg}])
 
 
-def finished_training_job(session, job_id: int) -> Job:
+def finished_training_job(session, job_id: int, lock: bool = False) -> Job:
     """The job a render, export or view is made of: it must exist (404), be a training job and have succeeded
-    (422 naming `job_id`)."""
-    job = session.get(Job, job_id)
+    (422 naming `job_id`). `lock`: its row is locked until the transaction ends, so a delete of it waits for a
+    submit (and sees the new child) or goes first (and the submit finds no job)."""
+    job = session.get(Job, job_id, with_for_update=lock)
     if job is None:
         raise not_found("job", job_id)
     if job.kind != "train":
@@ -65,7 +66,7 @@ def check_appearance(appearance, images: int, field: list) -> None:
 def submit(request: Request, job_id: int, kind: str, cfg: RenderConfig | ExportConfig) -> JSONResponse:
     settings: Settings = request.app.state.settings
     with transaction(settings.db_url) as session:
-        parent = finished_training_job(session, job_id)
+        parent = finished_training_job(session, job_id, lock=True)
         images = training_images(session, parent)
         if isinstance(cfg, RenderConfig):
             check_appearance(cfg.appearance, images, ["body", "appearance"])
