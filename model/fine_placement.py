@@ -46,10 +46,11 @@ class FineDraw:
     main: Tensor  # (R, n + 1) the main samples' edges in s
 
 
-def fine_samples(edges: Tensor, keep: Tensor, weights: Tensor, intermediate: int, n: int,
+def fine_samples(rows: Tensor, edges: Tensor, keep: Tensor, weights: Tensor, intermediate: int, n: int,
                  density: Callable[[Tensor], Tensor], generator: torch.Generator | None, anneal: float,
                  padding: float) -> tuple[PackedSamples, FineDraw]:
-    """Exactly n samples per row of `edges` (R, B + 1) inside its kept bins, drawn in two levels: `intermediate`
+    """Exactly n samples per row of `edges` (R, B + 1) inside its kept bins (`rows`: which hit rays those are,
+    kept for the loss), drawn in two levels: `intermediate`
     intervals by the coarse histogram `weights` (R, B) (padding added), then n by O's densities at their
     mid-points (`density`: (R, M) t -> (R, M) sigma, no gradient needed here)."""
     s_edges = kept_axis(edges, keep)
@@ -64,7 +65,6 @@ def fine_samples(edges: Tensor, keep: Tensor, weights: Tensor, intermediate: int
     t = to_t(mid, s_edges, edges).reshape(-1)
     delta = delta.reshape(-1)
     ray = torch.arange(len(edges), device=edges.device).repeat_interleave(n)
-    rows = torch.arange(len(edges), device=edges.device)
     return PackedSamples(t - 0.5 * delta, t + 0.5 * delta, ray), FineDraw(rows, s_edges, coarse, t_mid, main)
 
 

@@ -46,10 +46,9 @@ class Placer:
         keep = confident_bins(keep, weights, g.placement_min_share)
         if not g.placement_fine:
             return placed_samples(edges, keep, weights + g.placement_padding, g.main_samples, self.generator)
-        samples, self.fine = fine_samples(edges, keep, weights + g.placement_padding, g.placement_fine,
+        samples, self.fine = fine_samples(rows, edges, keep, weights + g.placement_padding, g.placement_fine,
                                           g.main_samples, lambda t: self.density(rows, t, grad=False), self.generator,
                                           self.anneal, g.placement_padding)
-        self.fine.rows = rows
         return samples
 
     def density(self, rows: Tensor, t: Tensor, grad: bool = True) -> Tensor:

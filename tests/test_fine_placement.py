@@ -34,7 +34,8 @@ def test_fine_samples_are_n_per_ray_sorted_inside_kept_bins_and_gather_at_o_s_su
     keep = torch.zeros(4, 8, dtype=torch.bool)
     keep[:, [2, 3, 6]] = True
     weights = torch.tensor([[0, 0, 0.1, 0.8, 0, 0, 0.1, 0.0]]).expand(4, 8)
-    samples, draw = fine_samples(edges, keep, weights + 0.01, 32, 21, wall_at(3.3), generator, 1.0, 0.01)
+    samples, draw = fine_samples(torch.arange(4), edges, keep, weights + 0.01, 32, 21, wall_at(3.3), generator,
+                                 1.0, 0.01)
     assert len(samples) == 4 * 21 and draw.main.shape == (4, 22) and draw.coarse.shape == (4, 33)
     mids = samples.mids.reshape(4, 21)
     assert (mids[:, 1:] >= mids[:, :-1]).all() and (samples.deltas >= 0).all()
@@ -48,7 +49,7 @@ def test_fine_samples_are_n_per_ray_sorted_inside_kept_bins_and_gather_at_o_s_su
 def test_the_fine_loss_is_the_interlevel_bound_and_trains_only_o():
     edges = rows(2)
     keep = torch.ones(2, 8, dtype=torch.bool)
-    _, draw = fine_samples(edges, keep, torch.ones(2, 8), 16, 8, wall_at(4.0), None, 1.0, 0.01)
+    _, draw = fine_samples(torch.arange(2), edges, keep, torch.ones(2, 8), 16, 8, wall_at(4.0), None, 1.0, 0.01)
     raw = torch.zeros(2, 16, requires_grad=True)  # O's densities at the intermediate mid-points
     main = torch.zeros(2, 8)
     main[:, 4] = 0.9  # the main network's weight sits where O says nothing: the bound is violated
