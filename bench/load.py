@@ -30,6 +30,7 @@ import numpy as np
 
 from bench.attacks import attack_bodies as build_attack_bodies
 from bench.attacks import attack_tasks, scene_archive, verdict
+from bench.slow_clients import fit_open_files, slow_client_tasks
 
 ROOT = Path(__file__).resolve().parents[1]
 STEP = re.compile(rb'"step":(\d+)')
@@ -171,7 +172,7 @@ async def poller(url: str, token: str, job: int, start: float, until: float, int
 
 
 async def poll_all(url: str, token: str, job: int, pollers: int, seconds: float, interval: float,
-                   attack_bodies: dict | None = None, flood_pause: float = 0.0) -> dict:
+                   attack_bodies: dict | None = None, flood_pause: float = 0.0, slow_connections: int = 0) -> dict:
     # Answer times (ms) per route, the routes of failed requests, and attack_tasks' results.
     samples: dict[str, Any] = {"job": [], "metrics": [], "errors": [], "attacks": {}}
     # Nothing slow may run between `begin` and the gather: pollers whose first due times have passed fire
@@ -182,6 +183,8 @@ async def poll_all(url: str, token: str, job: int, pollers: int, seconds: float,
              for i in range(pollers)]
     if attack_bodies is not None:
         tasks += attack_tasks(url, token, attack_bodies, begin + seconds, samples["attacks"], flood_pause=flood_pause)
+    if slow_connections:
+        tasks += slow_client_tasks(url, token, job, slow_connections, begin + seconds, samples)
     await asyncio.gather(*tasks)
     return samples
 
@@ -215,8 +218,10 @@ def poll_cache_counts(api: httpx.Client) -> dict:
 
 def run_loadtest(database_url: str | None, pollers: int = 200, seconds: float = 30.0, interval: float = 1.0,
                  profile: str = "cpu", overrides: dict | None = None, data_dir: Path | None = None,
-                 baseline_s: float = 10.0, attack: bool = False, flood_pause: float = 0.0) -> dict:
+                 baseline_s: float = 10.0, attack: bool = False, flood_pause: float = 0.0,
+                 slow_connections: int = 0) -> dict:
     bodies = build_attack_bodies(scene_archive()) if attack else None  # seconds of CPU: before any clock
+    fit_open_files(pollers + slow_connections)
     with tempfile.TemporaryDirectory() as tmp:
         with Service(Path(data_dir or tmp) / "data", database_url) as service, service.client() as api:
             job = start_job(api, profile, overrides)
@@ -225,7 +230,7 @@ def run_loadtest(database_url: str | None, pollers: int = 200, seconds: float = 
             gc.freeze()  # this process's own full collections would stall its pollers, not the server
             step_before = api.get(f"/v1/jobs/{job}").json()["step"]
             samples = asyncio.run(poll_all(service.url, service.token, job, pollers, seconds, interval, bodies,
-                                           flood_pause))
+                                           flood_pause, slow_connections))
             elapsed = time.perf_counter() - started
             after = api.get(f"/v1/jobs/{job}").json()
             cache_after = poll_cache_counts(api)
@@ -241,7 +246,18 @@ def run_loadtest(database_url: str | None, pollers: int = 200, seconds: float = 
         "training_steps_during_test": after["step"] - step_before, "job_state_after": after["state"],
         "training_steps_per_s": {"alone": rate_alone, "polled": (after["step"] - step_before) / elapsed},
         **({"attacks": verdict(samples["attacks"]), "flood_pause_s": flood_pause} if attack else {}),
+        **({"slow_connections": slow_report(samples, slow_connections)} if slow_connections else {}),
     }
+
+
+def slow_report(samples: dict, connections: int) -> dict:
+    """What the slow clients held and what new clients saw meanwhile."""
+    slow, held = samples["slow"], samples["slow"]["held"]
+    return {"connections": connections, "opened": slow["opened"], "closed_by_server": slow["closed_by_server"],
+            "connect_failures": slow["connect_failures"],
+            "held_mean": float(np.mean(held)) if held else 0.0, "held_max": max(held, default=0),
+            "healthz_fresh_connection": percentiles(samples["healthz"]),
+            "job_poll_fresh_connection": percentiles(samples["fresh_poll"])}
 
 
 @contextmanager
@@ -296,7 +312,9 @@ def loadtest_command(args) -> int:
     if args.pollers < 1 or args.seconds <= 0 or args.interval <= 0 or args.flood_pause < 0:
         raise SystemExit("leco loadtest: --pollers must be at least 1, --seconds and --interval above 0, "
                          "--flood-pause at least 0")
-    attack = {"attack": args.attack, "flood_pause": args.flood_pause}
+    if args.slow_connections < 0:
+        raise SystemExit("leco loadtest: --slow-connections must be at least 0")
+    attack = {"attack": args.attack, "flood_pause": args.flood_pause, "slow_connections": args.slow_connections}
     if args.postgres:
         with throwaway_database(args.postgres) as url:
             result = run_loadtest(url, args.pollers, args.seconds, args.interval, args.profile, **attack)
@@ -326,4 +344,7 @@ def add_commands(commands) -> None:
     load.add_argument("--flood-pause", type=float, default=0.0, metavar="S",
                       help="with --attack: each of the 8 flooding clients waits S seconds after an answer "
                            "(default 0: back to back, as fast as this machine can send)")
+    load.add_argument("--slow-connections", type=int, default=0, metavar="N",
+                      help="meanwhile hold N connections without a token whose request head never ends (slowloris), "
+                           "and probe /healthz and a job poll on fresh connections (bench/slow_clients.py)")
     load.set_defaults(func=loadtest_command)

@@ -127,8 +127,11 @@ def serve(args: argparse.Namespace) -> int:
     # or each full collection (hundreds of thousands of objects: torch, SQLAlchemy, pydantic) stalls every
     # request in flight for ~100 ms.
     gc.freeze()
-    server = releasing_server(uvicorn.Config(app, host=args.host, port=args.port, log_level="warning"),
-                    on_exit=dispatcher.release_all if dispatcher else None)
+    from service.api.connections import connection_budget, guarded_protocol
+
+    protocol = guarded_protocol(settings.header_timeout_s, connection_budget(settings.max_connections))
+    config = uvicorn.Config(app, host=args.host, port=args.port, log_level="warning", http=protocol)
+    server = releasing_server(config, on_exit=dispatcher.release_all if dispatcher else None)
     try:
         server.run()
     except KeyboardInterrupt:

@@ -31,6 +31,11 @@ class Settings(BaseModel):
     upload_receivers: int = Field(8, ge=1)
     upload_idle_s: float = Field(30.0, gt=0)
     upload_min_bytes_per_s: float = Field(16 * 1024, ge=0)
+    # `leco serve` without a proxy (service/api/connections.py): a connection whose request headers are not in
+    # this many seconds after it opened (or after its last response) is closed, and connections beyond
+    # max_connections are closed as they arrive.
+    header_timeout_s: float = Field(10.0, gt=0, le=3600)
+    max_connections: int = Field(2048, ge=16, le=1_000_000)
     # The dashboard viewer's renders (POST /v1/jobs/{id}/view): processes rendering at once, and requests that may
     # wait for one (more: 429). One process keeps the last few jobs' networks loaded.
     view_workers: int = Field(1, ge=1)
@@ -115,7 +120,8 @@ class Settings(BaseModel):
                           ("scene_workers", "LECO_SCENE_WORKERS"), ("scene_queue", "LECO_SCENE_QUEUE"),
                           ("view_workers", "LECO_VIEW_WORKERS"), ("view_queue", "LECO_VIEW_QUEUE"),
                           ("upload_receivers", "LECO_UPLOAD_RECEIVERS"), ("upload_idle_s", "LECO_UPLOAD_IDLE_S"),
-                          ("upload_min_bytes_per_s", "LECO_UPLOAD_MIN_BYTES_PER_S")):
+                          ("upload_min_bytes_per_s", "LECO_UPLOAD_MIN_BYTES_PER_S"),
+                          ("header_timeout_s", "LECO_HEADER_TIMEOUT_S"), ("max_connections", "LECO_MAX_CONNECTIONS")):
             if env.get(name):
                 values[key] = env[name]
         try:

@@ -40,7 +40,7 @@ def compose() -> dict:
 
 def test_compose_has_the_whole_topology(compose):
     services = compose["services"]
-    assert set(services) == {"postgres"} | LECO_SERVICES
+    assert set(services) == {"postgres", "proxy"} | LECO_SERVICES
     depends = {name: s.get("depends_on", {}) for name, s in services.items()}
     assert depends["migrate"] == {"postgres": {"condition": "service_healthy"}}
     for name in ("api", "dispatcher"):
@@ -89,7 +89,7 @@ def test_compose_mounts_the_lpips_weights_read_only(compose):
 
 def commands(compose):
     for name, service in compose["services"].items():
-        if name == "postgres":
+        if name in ("postgres", "proxy"):
             continue
         words = service["command"]
         if words[:2] == ["sh", "-c"]:
@@ -122,6 +122,36 @@ def test_every_command_the_compose_file_runs_exists(compose):
         else:
             raise AssertionError(f"{name} runs {program}, which this test does not know")
     assert seen == {"leco", "ray", "python"}
+
+
+NGINX_DEADLINES = ("client_header_timeout 10s;", "client_body_timeout 30s;", "limit_conn leco_per_client 64;",
+                   "limit_conn_status 429;", "proxy_request_buffering off;", "proxy_pass http://${LECO_API_UPSTREAM};")
+
+
+def test_clients_reach_the_api_through_nginx_only(compose):
+    """docker-compose publishes the proxy's port, never the API's; the proxy renders deploy/nginx.conf.template,
+    which holds the deadlines and limits docs/SERVICE.md and deploy/README.md promise."""
+    services = compose["services"]
+    assert "ports" not in services["api"] and services["api"]["expose"] == ["8765"]
+    proxy = services["proxy"]
+    assert re.fullmatch(r"nginx:\d+\.\d+\.\d+-bookworm", proxy["image"])  # pinned
+    assert proxy["ports"] == [f"{env_example().get('LECO_PORT', '8765')}:8080"]
+    assert proxy["environment"]["LECO_API_UPSTREAM"] == "api:8765"
+    assert proxy["volumes"] == ["./deploy/nginx.conf.template:/etc/nginx/templates/default.conf.template:ro"]
+    assert proxy["depends_on"] == {"api": {"condition": "service_healthy"}}
+    template = (ROOT / "deploy" / "nginx.conf.template").read_text()
+    for directive in NGINX_DEADLINES:
+        assert directive in template, directive
+    assert "listen 8080;" in template and template.count("{") == template.count("}")
+    documents = list(yaml.safe_load_all((ROOT / "deploy" / "kuberay" / "service.yaml").read_text()))
+    (api,) = [d for d in documents if d["metadata"]["name"] == "leco-api" and d["kind"] == "Deployment"]
+    sidecar = api["spec"]["template"]["spec"]["containers"][1]
+    assert sidecar["image"] == proxy["image"] and sidecar["env"] == [{"name": "LECO_API_UPSTREAM",
+                                                                     "value": "127.0.0.1:8765"}]
+    (service,) = [d for d in documents if d["kind"] == "Service"]
+    assert service["spec"]["ports"][0]["targetPort"] == 8080
+    assert "kubectl create configmap leco-nginx --from-file=deploy/nginx.conf.template" in (
+        ROOT / "deploy" / "README.md").read_text()
 
 
 def test_dockerfiles_are_pinned_and_copy_what_exists():

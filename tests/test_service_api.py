@@ -157,6 +157,28 @@ def spoil_file_path(root, target):
     path.write_text(json.dumps(data))
 
 
+def spoil_translation(root):
+    import json
+
+    path = root / "transforms_train.json"
+    data = json.loads(path.read_text())
+    data["frames"][1]["transform_matrix"][0][3] = 1e308  # finite, rigid, and an overflow in any bound
+    path.write_text(json.dumps(data))
+
+
+def test_error_details_are_bounded_and_never_a_dump(api):
+    from service.api.app import MAX_DETAIL_CHARS, bounded
+
+    assert bounded("x" * 10_000) == "x" * MAX_DETAIL_CHARS + "... (9,000 more characters)"
+    assert bounded("short") == "short" and bounded(["a"]) == ["a"]
+    cameras = [{"c2w": "not a matrix"}] * 500  # one error each, and more for their missing fields
+    answer = api.post("/v1/jobs/1/renders", json={"path": {"kind": "cameras", "cameras": cameras}})
+    assert answer.status_code == 422
+    detail = answer.json()["detail"]
+    assert len(detail) == 21 and detail[-1]["type"] == "too_many_errors", detail[-1]
+    assert len(answer.content) < 8_000 and "not a matrix" not in answer.text
+
+
 def test_a_scene_name_of_digits_alone_is_refused_so_it_never_reads_as_another_scene_s_id(api, tiny_scene):
     for answer in (api.post("/v1/scenes/synthetic", json={"name": "46", "preset": "tiny"}),
                    api.post("/v1/scenes/upload", params={"name": "0"}, content=tar_of(tiny_scene.root))):
@@ -176,7 +198,10 @@ def test_a_scene_name_of_digits_alone_is_refused_so_it_never_reads_as_another_sc
      "file_path (frame 1) '/proc/self/environ' points outside the scene folder"),
     (lambda root: spoil_file_path(root, "../../../../../../etc/hostname"),
      "file_path (frame 1) '../../../../../../etc/hostname' points outside the scene folder"),
-], ids=["nan-pose", "huge-image-header", "truncated-image", "absolute-file-path", "climbing-file-path"])
+    (lambda root: spoil_file_path(root, 5), "file_path (frame 1) must be a string"),
+    (spoil_translation, "camera position (frame 1) is beyond +-1e+09 source units"),
+], ids=["nan-pose", "huge-image-header", "truncated-image", "absolute-file-path", "climbing-file-path",
+        "file-path-a-number", "translation-1e308"])
 def test_hostile_scene_contents_are_refused_with_the_file_named(api, lego_dir, spoil, message):
     answer = api.post("/v1/scenes/upload", params={"name": "hostile"}, content=lego_upload(lego_dir, spoil))
     assert answer.status_code == 422 and message in answer.json()["detail"], answer.text

@@ -127,6 +127,8 @@ def foreground_aabb(source: SourceScene) -> tuple[Tensor, str, int]:
         share = coverage(points, source.splits["train"].cameras)
         keep &= share >= COVERAGE_RATIO * share.median()
     points = points[keep]
+    if len(points) == 0:
+        raise SceneError(source.root, f"cannot find the foreground: no {kind} evidence point is near the cameras")
     if exact:
         lo, hi = points.amin(0), points.amax(0)
     else:
@@ -134,6 +136,9 @@ def foreground_aabb(source: SourceScene) -> tuple[Tensor, str, int]:
         sample = points[:: max(1, len(points) // 1_000_000)]  # torch.quantile has an input-size limit
         lo, hi = torch.quantile(sample, q, dim=0)
     extent = hi - lo
+    if not bool(torch.isfinite(extent).all()) or float(extent.max()) <= 0:
+        raise SceneError(source.root, f"cannot find the foreground: its {len(points):,} {kind} evidence point(s) "
+                                      "span no volume (a single point, or all in one place)")
     lo, hi = lo - MARGIN * extent, hi + MARGIN * extent
     pad = (MIN_SIDE * (hi - lo).max() - (hi - lo)).clamp(min=0) / 2
     return torch.stack([lo - pad, hi + pad]), kind, len(points)  # float64: source coordinates can be large

@@ -23,7 +23,10 @@ def inside(root: Path, path: Path, source: Path, what: str) -> Path:
 
 def named_file(root: Path, named: object, source: Path, what: str) -> Path:
     """root / named for a path the dataset file `source` names in field `what` (relative to root)."""
-    text = str(named)
+    if not isinstance(named, str):
+        kind = type(named).__name__ if named is not None else "null"
+        raise SceneError(source, f"{what} must be a string (a path relative to the scene), got {kind}")
+    text = named
     return inside(root, root / text, source, f"{what} {text[:200]!r}")
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from model.scenes import values
 from model.scenes.cameras import Cameras, make_cameras, rotation_error
 from model.scenes.errors import SceneError
 from model.scenes.frames import frames
@@ -42,11 +43,13 @@ POSE_TOLERANCE = 1e-3
 
 
 def check_pose(path: Path, c2w: Tensor, where: str = "") -> None:
-    """Refuse non-finite or non-rigid camera-to-world matrices, naming the file (and frame) they came from."""
+    """Refuse non-finite, far-off or non-rigid camera-to-world matrices, naming the file (and frame)."""
     if c2w.shape[-2:] != (3, 4):
         raise SceneError(path, f"camera pose{where} must be 3x4 (or 4x4), got shape {tuple(c2w.shape)}")
     if not torch.isfinite(c2w).all():
         raise SceneError(path, f"camera pose{where} has non-finite values (NaN or Inf)")
+    if bool((c2w[..., 3].abs() > values.MAX_COORDINATE).any()):
+        raise SceneError(path, f"camera position{where} is beyond +-{values.MAX_COORDINATE:g} source units")
     err = float(rotation_error(c2w.reshape(1, 3, 4))[0])
     if err > POSE_TOLERANCE:
         raise SceneError(
@@ -54,12 +57,8 @@ def check_pose(path: Path, c2w: Tensor, where: str = "") -> None:
         )
 
 
-def check_intrinsics(path: Path, intrinsics: Tensor, width: int, height: int) -> None:
-    if not torch.isfinite(intrinsics).all() or bool((intrinsics[:2] <= 0).any()):
-        raise SceneError(path, "camera intrinsics must be finite with positive focal lengths, "
-                               f"got {intrinsics.tolist()}")
-    if width <= 0 or height <= 0:
-        raise SceneError(path, f"image size must be positive, got {width}x{height}")
+def check_intrinsics(path: Path, intrinsics: Tensor, width: int, height: int, where: str = "") -> None:
+    values.check_intrinsics(path, intrinsics, width, height, where)
 
 
 Frame = Tensor | Callable[[], Tensor]  # a decoded tensor, or a loader that decodes it when called
@@ -79,17 +78,25 @@ class SplitBuilder:
         self._distortion: list[Tensor] = []
 
     def add(self, name: str, image: Frame, intrinsics: Tensor, c2w: Tensor, distortion: Tensor | None = None,
-            depth: Frame | None = None, size: tuple[int, int] | None = None) -> None:
-        self.names.append(name)
-        self.images.append(image)
+            depth: Frame | None = None, size: tuple[int, int] | None = None, *, source: Path,
+            where: str = "") -> None:
+        """One view; `source` is the file that describes its camera (and `where` the frame or row in it), named
+        when the camera is refused: every view's camera is checked here, whatever format it came from."""
         if size is None:
             if not isinstance(image, Tensor):  # a loader's size is known only by decoding it
                 raise TypeError(f"view {name!r}: an image given as a loader needs its decoded size")
             size = (image.shape[0], image.shape[1])
+        intrinsics = torch.as_tensor(intrinsics, dtype=torch.float64).reshape(4)
+        c2w = torch.as_tensor(c2w, dtype=torch.float64).reshape(3, 4)
+        check_intrinsics(source, intrinsics, size[1], size[0], where)
+        check_pose(source, c2w, where)
+        distortion = torch.zeros(4) if distortion is None else values.distortion(source, distortion, where)
+        self.names.append(name)
+        self.images.append(image)
         self._sizes.append(size)
-        self._intrinsics.append(torch.as_tensor(intrinsics, dtype=torch.float64).reshape(4))
-        self._c2w.append(torch.as_tensor(c2w, dtype=torch.float64).reshape(3, 4))
-        self._distortion.append(torch.zeros(4) if distortion is None else torch.as_tensor(distortion).reshape(4))
+        self._intrinsics.append(intrinsics)
+        self._c2w.append(c2w)
+        self._distortion.append(distortion.float())
         if depth is not None:
             self.depth.append(depth)
 

@@ -9,8 +9,9 @@ from contextlib import asynccontextmanager
 
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from sqlalchemy.exc import InterfaceError, OperationalError
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.api import artifacts, dashboard, health, jobs, methods, scenes, work
 from service.api.gate import Gatekeeper
@@ -20,6 +21,17 @@ from service.api.receiving import ReceivingSlots
 from service.db import check_schema, first_line
 from service.settings import Settings
 from service.workpool import RETRY_AFTER_S, Busy, WorkerLost, WorkPool
+
+# An error's detail is a sentence: a message that quotes a user's file or body is cut here, whatever built it.
+MAX_DETAIL_CHARS = 1000
+MAX_VALIDATION_ERRORS = 20
+
+
+def bounded(detail: object) -> object:
+    if isinstance(detail, str) and len(detail) > MAX_DETAIL_CHARS:
+        return detail[:MAX_DETAIL_CHARS] + f"... ({len(detail) - MAX_DETAIL_CHARS:,} more characters)"
+    return detail
+
 
 log = logging.getLogger("leco.api")
 
@@ -101,7 +113,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.exception_handler(RequestValidationError)
     async def invalid_request(request: Request, error: RequestValidationError):
         # FastAPI's own shape ({"detail": [{"loc", "msg", "type"}]}) without echoing the input back.
-        detail = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in error.errors()]
+        errors = error.errors()
+        detail: list[dict] = [{"loc": [bounded(part) for part in e["loc"]], "msg": bounded(e["msg"]),
+                               "type": e["type"]} for e in errors[:MAX_VALIDATION_ERRORS]]
+        if len(errors) > MAX_VALIDATION_ERRORS:
+            detail.append({"loc": [], "msg": f"and {len(errors) - MAX_VALIDATION_ERRORS:,} more errors",
+                           "type": "too_many_errors"})
         return JSONResponse({"detail": detail}, 422)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, error: StarletteHTTPException):
+        if error.status_code in (204, 304):  # no body allowed, as Starlette's own handler does
+            return Response(status_code=error.status_code, headers=error.headers)
+        return JSONResponse({"detail": bounded(error.detail)}, error.status_code, headers=error.headers)
 
     return app

@@ -38,7 +38,7 @@ def load_blender(root: Path, downscale: int, background: tuple[float, float, flo
             c2w = opengl_pose(path, frame, where)
             image = ImageFile(image_path, w, h, downscale, background)
             intrinsics = scale_intrinsics(torch.tensor([focal, focal, w / 2, h / 2]), image.size, w, h)
-            builder.add(Path(image_path).stem, image, intrinsics, c2w, size=image.size)
+            builder.add(Path(image_path).stem, image, intrinsics, c2w, size=image.size, source=path, where=where)
         if not builder.names:
             raise SceneError(path, "split has no frames")
         splits[split] = builder.build()

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from model.scenes import values
 from model.scenes.errors import SceneError
 from model.scenes.limits import MAX_JSON_BYTES, check_file_size
 from model.scenes.source import check_pose
@@ -34,16 +34,9 @@ def field(path: Path, obj: dict, key: str, where: str = "") -> object:
 
 
 def number(path: Path, obj: dict, key: str, where: str = "", default: float | None = None) -> float:
+    """A numeric field (`default` when absent, if given): finite and within the coordinate bound."""
     raw = obj.get(key, default) if default is not None else field(path, obj, key, where)
-    try:
-        if not isinstance(raw, (int, float, str)):  # JSON's null, lists and objects, which float() refuses too
-            raise TypeError
-        value = float(raw)
-    except (TypeError, ValueError):
-        raise SceneError(path, f"field '{key}'{where} must be a number, got {raw!r}") from None
-    if not math.isfinite(value):
-        raise SceneError(path, f"field '{key}'{where} must be finite, got {value}")
-    return value
+    return values.number(path, raw, f"field '{key}'{where}")
 
 
 def frames(path: Path, data: dict) -> list[dict]:

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from model.scenes import values
 from model.scenes.cameras import pixel_rays
 from model.scenes.errors import SceneError
 from model.scenes.formats.points import read_colmap_points
@@ -68,12 +69,17 @@ def load_llff(root: Path, downscale: int | None) -> SourceScene:
 
     poses = torch.from_numpy(array[:, :15].reshape(-1, 3, 5)).double()
     depth_bounds = torch.from_numpy(array[:, 15:17]).double()
+    bad = torch.nonzero((depth_bounds[:, 0] <= 0) | (depth_bounds[:, 1] < depth_bounds[:, 0]))[:, 0]
+    if len(bad):
+        raise SceneError(path, f"near/far depth bounds must satisfy 0 < near <= far, not in row(s) {bad[:10].tolist()}")
     builders = {"train": SplitBuilder(), "val": SplitBuilder()}
     for i, image_path in enumerate(files):
+        where = f" (row {i})"
         h_full, w_full, focal = poses[i, :, 4].tolist()
+        values.image_size(path, round(w_full), round(h_full), where)
         down, right, back, t = poses[i, :, 0], poses[i, :, 1], poses[i, :, 2], poses[i, :, 3]
         c2w = torch.stack([right, -down, back, t], dim=1)  # LLFF [down, right, back] -> OpenGL [right, up, back]
-        check_pose(path, c2w, f" (row {i})")
+        check_pose(path, c2w, where)
         w, h = probe_image(image_path)
         if abs(w * factor - w_full) > factor or abs(h * factor - h_full) > factor:
             raise SceneError(
@@ -84,12 +90,12 @@ def load_llff(root: Path, downscale: int | None) -> SourceScene:
         s = small_w / w_full
         intrinsics = torch.tensor([focal * s, focal * s, small_w / 2, small_h / 2])
         split = "val" if i % VAL_EVERY == 0 else "train"
-        builders[split].add(image_path.stem, image, intrinsics, c2w, size=image.size)
+        builders[split].add(image_path.stem, image, intrinsics, c2w, size=image.size, source=path, where=where)
     splits = {name: b.build() for name, b in builders.items() if b.names}
 
     sparse = root / "sparse" / "0" / "points3D.bin"
     if sparse.is_file():
-        points, kind = read_colmap_points(scene_file(root, sparse)), "sparse_points"
+        points, kind = read_colmap_points(scene_file(root, sparse)), "sparse_points"  # checked by the reader
     else:
         points, kind = bound_points(splits, depth_bounds, files), "llff_bounds"
     source = SourceScene(

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from model.scenes import values
 from model.scenes.errors import SceneError
 from model.scenes.images import ImageFile, check_image_size, downscale_depth, find_image, probe_image
 from model.scenes.limits import MAX_METADATA_BYTES, check_file_size, read_npy, read_npy_header, read_npz
@@ -33,11 +34,8 @@ def read_coordinates(root: Path) -> tuple[Tensor, float]:
     data = load_pt(path)
     if not isinstance(data, dict) or "origin_drb" not in data or "pose_scale_factor" not in data:
         raise SceneError(path, "must be a dict with 'origin_drb' and 'pose_scale_factor'")
-    origin = torch.as_tensor(data["origin_drb"], dtype=torch.float64).reshape(-1)
-    scale = float(data["pose_scale_factor"])
-    if origin.shape != (3,) or not torch.isfinite(origin).all() or not np.isfinite(scale) or scale <= 0:
-        raise SceneError(path, "origin_drb must be 3 finite numbers and pose_scale_factor > 0, "
-                               f"got {origin.tolist()}, {scale}")
+    origin = values.array(path, data["origin_drb"], "origin_drb", ((3,),))
+    scale = values.number(path, data["pose_scale_factor"], "pose_scale_factor", lo=1e-9)
     return origin, scale
 
 
@@ -48,18 +46,13 @@ def read_metadata(path: Path) -> dict:
     missing = [k for k in ("W", "H", "intrinsics", "c2w") if k not in meta]
     if missing:
         raise SceneError(path, f"metadata is missing field(s): {', '.join(missing)}")
-    intrinsics = torch.as_tensor(meta["intrinsics"], dtype=torch.float64).reshape(-1)
-    if intrinsics.shape != (4,):
-        raise SceneError(path, f"intrinsics must be [fx, fy, cx, cy], got {intrinsics.numel()} values")
-    c2w = torch.as_tensor(meta["c2w"], dtype=torch.float64)
-    if c2w.shape == (4, 4):
-        c2w = c2w[:3]
+    width, height = values.image_size(path, meta["W"], meta["H"])
+    intrinsics = values.array(path, meta["intrinsics"], "intrinsics [fx, fy, cx, cy]", ((4,),))
+    c2w = values.array(path, meta["c2w"], "c2w", ((3, 4), (4, 4)))[:3]
     check_pose(path, c2w)
-    width, height = int(meta["W"]), int(meta["H"])
     check_intrinsics(path, intrinsics, width, height)
-    distortion = meta.get("distortion")
-    distortion = (torch.zeros(4) if distortion is None
-                  else torch.as_tensor(distortion, dtype=torch.float64).reshape(-1)[:4])
+    raw = meta.get("distortion")
+    distortion = torch.zeros(4) if raw is None else values.distortion(path, raw)
     return {"W": width, "H": height, "intrinsics": intrinsics, "c2w": c2w, "distortion": distortion}
 
 
@@ -109,7 +102,8 @@ def read_split(root: Path, split: str, origin: Tensor, scale: float, downscale: 
             check_depth_file(depth_path, meta["H"], meta["W"])
             depth = DepthFile(depth_path, meta["H"], meta["W"], downscale)
         intrinsics = scale_intrinsics(meta["intrinsics"], image.size, meta["W"], meta["H"])
-        builder.add(meta_path.stem, image, intrinsics, DRB_TO_ZUP @ c2w, meta["distortion"], depth, image.size)
+        builder.add(meta_path.stem, image, intrinsics, DRB_TO_ZUP @ c2w, meta["distortion"], depth, image.size,
+                    source=meta_path)
     return builder.build()
 
 
@@ -136,6 +130,52 @@ def read_occupancy(path: Path) -> tuple[Tensor, Tensor]:
     return occupied, torch.stack([corners.amin(0), corners.amax(0)])
 
 
+MAX_GENERATOR_TEXT = 64
+MAX_PRESET_FIELDS = 64
+
+
+def short_text(path: Path, raw: object, name: str) -> str:
+    if not isinstance(raw, str) or len(raw) > MAX_GENERATOR_TEXT:
+        raise SceneError(path, f"{name} must be a string of at most {MAX_GENERATOR_TEXT} characters, "
+                               f"got {values.describe(raw)}")
+    return raw
+
+
+def setting(path: Path, raw: object, name: str) -> object:
+    """One generator setting: a boolean, a finite number or a short string."""
+    if isinstance(raw, bool):
+        return raw
+    if isinstance(raw, str):
+        return short_text(path, raw, name)
+    value = values.number(path, raw, name)
+    return int(value) if isinstance(raw, int) else value
+
+
+def read_generator(path: Path) -> dict:
+    """Which generator made a synthetic scene (generator, preset, seed), from its gt/scene.json: the only part
+    of that file a scene's record keeps, typed and short."""
+    check_file_size(path, MAX_METADATA_BYTES, "gt/scene.json")
+    try:
+        info = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise SceneError(path, f"malformed JSON ({exc})") from None
+    if not isinstance(info, dict):
+        raise SceneError(path, f"must hold a JSON object, got {values.describe(info)}")
+    generator: dict = {}
+    if "generator" in info:
+        generator["generator"] = short_text(path, info["generator"], "field 'generator'")
+    if "preset" in info:
+        preset = info["preset"]
+        if not isinstance(preset, dict) or len(preset) > MAX_PRESET_FIELDS:
+            raise SceneError(path, f"field 'preset' must be an object of at most {MAX_PRESET_FIELDS} settings, "
+                                   f"got {values.describe(preset)}")
+        generator["preset"] = {short_text(path, k, "a 'preset' key"): setting(path, v, f"field 'preset.{k}'")
+                               for k, v in preset.items()}
+    if "seed" in info:
+        generator["seed"] = values.integer(path, info["seed"], "field 'seed'", 0, 2**63 - 1)
+    return generator
+
+
 def load_meganerf(root: Path, downscale: int) -> SourceScene:
     origin, scale = read_coordinates(root)
     gt = root / "gt"
@@ -148,11 +188,7 @@ def load_meganerf(root: Path, downscale: int) -> SourceScene:
     if (gt / "occupancy.npz").is_file():
         occupied, aabb = read_occupancy(scene_file(root, gt / "occupancy.npz"))
     if (gt / "scene.json").is_file():
-        try:
-            info = json.loads(scene_file(root, gt / "scene.json").read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise SceneError(gt / "scene.json", f"malformed JSON ({exc})") from None
-        extras["generator"] = {k: info[k] for k in ("generator", "preset", "seed") if k in info}
+        extras["generator"] = read_generator(scene_file(root, gt / "scene.json"))
     return SourceScene(
         format="meganerf",
         root=root,

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import torch
 
+from model.scenes import values
 from model.scenes.errors import SceneError
 from model.scenes.formats.jsonfile import field, frames, number, opengl_pose, read_json
 from model.scenes.formats.points import read_ply_points
@@ -14,13 +15,13 @@ from model.scenes.paths import named_file, scene_file
 from model.scenes.source import (
     SourceScene,
     SplitBuilder,
-    check_intrinsics,
     rotate_source,
     scale_intrinsics,
     up_alignment,
 )
 
 SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
+DISTORTION = ("k1", "k2", "p1", "p2")
 VAL_EVERY = 8  # without explicit split lists, every 8th frame is held out (the LLFF/nerfstudio habit)
 
 
@@ -33,23 +34,24 @@ def frame_camera(path: Path, data: dict, frame: dict, where: str) -> tuple[torch
                                f"(use one of {', '.join(SUPPORTED_MODELS)})")
     fx = number(path, merged, "fl_x", where)
     fy = number(path, merged, "fl_y", where, default=fx)
-    w, h = int(number(path, merged, "w", where)), int(number(path, merged, "h", where))
+    w, h = values.image_size(path, field(path, merged, "w", where), field(path, merged, "h", where), where)
     cx = number(path, merged, "cx", where, default=w / 2)
     cy = number(path, merged, "cy", where, default=h / 2)
     for extra in ("k3", "k4"):
-        if abs(float(merged.get(extra, 0.0))) > 0:
+        if abs(number(path, merged, extra, where, default=0.0)) > 0:
             raise SceneError(path, f"distortion term {extra}{where} is not supported (OPENCV k1, k2, p1, p2 only)")
-    distortion = torch.tensor([float(merged.get(k, 0.0)) for k in ("k1", "k2", "p1", "p2")], dtype=torch.float64)
+    distortion = values.distortion(path, [number(path, merged, k, where, default=0.0) for k in DISTORTION], where)
     if model != "OPENCV" and bool(distortion.any()):
         raise SceneError(path, f"camera_model {model}{where} has distortion terms; declare it OPENCV")
-    intrinsics = torch.tensor([fx, fy, cx, cy], dtype=torch.float64)
-    check_intrinsics(path, intrinsics, w, h)
-    return intrinsics, w, h, distortion
+    return torch.tensor([fx, fy, cx, cy], dtype=torch.float64), w, h, distortion
 
 
-def split_of(data: dict, file_path: str, index: int) -> str:
+def split_of(path: Path, data: dict, file_path: str, index: int) -> str:
     """The split from nerfstudio's {train,val,test}_filenames lists when present, else every 8th is val."""
     lists = {s: data[f"{s}_filenames"] for s in ("train", "val", "test") if f"{s}_filenames" in data}
+    for split, listed in lists.items():
+        if not isinstance(listed, list) or not all(isinstance(p, str) for p in listed):
+            raise SceneError(path, f"'{split}_filenames' must be a list of file paths, got {values.describe(listed)}")
     if not lists:
         return "val" if index % VAL_EVERY == 0 else "train"
     key = Path(file_path).as_posix()
@@ -65,19 +67,20 @@ def load_nerfstudio(root: Path, downscale: int) -> SourceScene:
     builders: dict[str, SplitBuilder] = {}
     for i, frame in enumerate(frames(path, data)):
         where = f" (frame {i})"
-        file_path = str(field(path, frame, "file_path", where))
+        named = field(path, frame, "file_path", where)
         intrinsics, w, h, distortion = frame_camera(path, data, frame, where)
         c2w = opengl_pose(path, frame, where)
-        image_path = named_file(root, file_path, path, f"file_path{where}")
+        image_path = named_file(root, named, path, f"file_path{where}")  # refuses anything but a string
+        file_path = str(named)
         if not image_path.is_file():
             raise SceneError(image_path, f"image is missing (listed in {path.name}{where})")
         check_image_size(image_path, probe_image(image_path), w, h)
         image = ImageFile(image_path, w, h, downscale)
-        split = split_of(data, file_path, i)
+        split = split_of(path, data, file_path, i)
         if split != "unlisted":
             builders.setdefault(split, SplitBuilder()).add(
                 Path(file_path).stem, image, scale_intrinsics(intrinsics, image.size, w, h), c2w, distortion,
-                size=image.size,
+                size=image.size, source=path, where=where,
             )
     if "train" not in builders:
         raise SceneError(path, "no training frames: 'frames' is empty or no frame is in the train split")

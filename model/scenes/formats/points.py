@@ -9,6 +9,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from model.scenes import values
 from model.scenes.errors import SceneError
 from model.scenes.limits import MAX_POINTS_BYTES, check_file_size
 
@@ -37,7 +38,7 @@ def read_colmap_points(path: Path) -> Tensor:
         raise SceneError(path, "truncated or malformed COLMAP points3D.bin") from None
     if offset != len(data):
         raise SceneError(path, f"malformed COLMAP points3D.bin: {len(data) - offset} trailing bytes")
-    return torch.from_numpy(xyz)
+    return values.points(path, torch.from_numpy(xyz), "COLMAP points")
 
 
 def read_ply_points(path: Path) -> Tensor:
@@ -51,19 +52,23 @@ def read_ply_points(path: Path) -> Tensor:
     fmt, count, props, in_vertex = None, 0, [], False
     for line in header:
         words = line.split()
-        if words[:1] == ["format"]:
+        if words[:1] == ["format"] and len(words) >= 2:
             fmt = words[1]
         elif words[:1] == ["element"]:
+            if len(words) != 3 or not words[2].isdigit():
+                raise SceneError(path, f"malformed PLY element line {line.strip()[:80]!r} (element <name> <count>)")
             in_vertex = words[1] == "vertex"
             if in_vertex:
                 count = int(words[2])
         elif words[:1] == ["property"] and in_vertex:
-            if words[1] == "list" or words[1] not in PLY_TYPES:
-                raise SceneError(path, f"unsupported PLY vertex property: {line.strip()}")
+            if len(words) != 3 or words[1] not in PLY_TYPES:
+                raise SceneError(path, f"unsupported PLY vertex property: {line.strip()[:80]!r}")
             props.append((words[2], PLY_TYPES[words[1]]))
     names = [p[0] for p in props]
     if not {"x", "y", "z"} <= set(names):
         raise SceneError(path, "PLY vertices need x, y and z properties")
+    if count == 0:
+        raise SceneError(path, "PLY file has no vertices (element vertex 0)")
     body = data[end + len(b"end_header\n") :]
     try:
         if fmt == "binary_little_endian":
@@ -76,4 +81,6 @@ def read_ply_points(path: Path) -> Tensor:
             raise SceneError(path, f"unsupported PLY format {fmt!r} (ascii or binary_little_endian)")
     except ValueError as exc:
         raise SceneError(path, f"truncated or malformed PLY vertex data ({exc})") from None
-    return torch.from_numpy(np.ascontiguousarray(xyz))
+    if len(xyz) < count:
+        raise SceneError(path, f"PLY file declares {count:,} vertices but holds {len(xyz):,}")
+    return values.points(path, torch.from_numpy(np.ascontiguousarray(xyz)), "PLY vertices")
