@@ -52,7 +52,7 @@ PAPER_FORMULATION = {
     "guided.warm_start": False, "guided.split": 8, "guided.empty_threshold": None, "guided.online": False,
     "guided.warm_start_background": True, "guided.online_free_opacity": 0.0, "guided.fallback_topk": 0,
     "guided.placement": False, "guided.placement_in_phase1": False, "guided.placement_padding": 0.01,
-    "occupancy.budget_share": 0.25,
+    "occupancy.budget_share": 0.25, "occupancy.gate_relu_every_layer": False,
 }
 
 # The ablation ladder: from the paper's formulation, one change at a time (cumulative) up to the `cpu`
@@ -78,7 +78,8 @@ RUNGS: list[tuple[str, str, dict]] = [
      {"guided.placement": True, "guided.placement_in_phase1": True, "guided.main_samples": 21}),
     ("leco-rung-placement-dilate-1", "+ dilation back to 1 bin under placement", {"guided.dilate": 1}),
     ("leco-rung-padding", "+ placement padding 0.001, not 0.01", {"guided.placement_padding": 0.001}),
-    ("leco", "+ phase 1 stops at 15% of a budget, not 25% (the cpu defaults)", {"occupancy.budget_share": 0.15}),
+    ("leco-rung-budget-15", "+ phase 1 stops at 15% of a budget, not 25%", {"occupancy.budget_share": 0.15}),
+    ("leco", "+ a ReLU after every hidden layer of O (the cpu defaults)", {"occupancy.gate_relu_every_layer": True}),
 ]
 
 
