@@ -26,30 +26,45 @@ class SceneConflict(ValueError):
 
 
 # ----- the heavy parts: module-level functions of plain data, run in the scene pool's processes -----------
-def load_within_budget(path: Path, max_pixels: int):
+def load_within_budget(path: Path, max_pixels: int, source: str = "LECO_MAX_SCENE_PIXELS"):
     """The scene at `path`, read from its image headers (nothing is decoded), its pixels counted against the
-    per-scene budget (LECO_MAX_SCENE_PIXELS): a registration is as fast for 2,000 photos as for 20."""
+    per-scene budget (`source` names it): a registration is as fast for 2,000 photos as for 20."""
     from model.scenes import load_scene
     from model.scenes.limits import pixel_budget
 
-    with pixel_budget(max_pixels):
+    with pixel_budget(max_pixels, source):
         return load_scene(path)
 
 
-def describe_folder(path: Path, max_pixels: int) -> tuple[dict, dict]:
+def describe_folder(path: Path, max_pixels: int, source: str = "LECO_MAX_SCENE_PIXELS") -> tuple[dict, dict]:
     """The scene's summary for its row and its camera layout (for /cameras), from one load."""
     from model.scenes.info import describe
 
-    scene = load_within_budget(path, max_pixels)
+    scene = load_within_budget(path, max_pixels, source)
     return describe(scene), camera_layout(scene)
+
+
+# Real captures and renders hold at most a few decoded pixels per byte of PNG or JPEG (lego 1.0, fern 0.6, the
+# synthetic city 0.5): an archive may declare at most this many, so a small upload cannot register a scene that
+# later decodes to gigabytes (1 MB: at most 64 million pixels, 192 MB as RGB).
+MAX_PIXELS_PER_UPLOAD_BYTE = 64
+
+
+def upload_pixel_budget(max_scene_pixels: int, archive_bytes: int) -> tuple[int, str]:
+    """The pixels an upload of `archive_bytes` may decode, and what sets that budget."""
+    by_size = MAX_PIXELS_PER_UPLOAD_BYTE * archive_bytes
+    if by_size < max_scene_pixels:
+        return by_size, f"{MAX_PIXELS_PER_UPLOAD_BYTE} pixels per byte of the {archive_bytes:,}-byte upload"
+    return max_scene_pixels, "LECO_MAX_SCENE_PIXELS"
 
 
 def read_upload(archive: Path, dest: Path, max_pixels: int) -> tuple[Path, dict, dict]:
     """Extracts the archive into `dest` and loads the scene: its root folder, summary and camera layout."""
     from service.archives import extract_archive
 
+    budget, source = upload_pixel_budget(max_pixels, archive.stat().st_size)
     root = extract_archive(archive, dest)
-    return (root, *describe_folder(root, max_pixels))
+    return (root, *describe_folder(root, budget, source))
 
 
 def generate_folder(preset: str, seed: int, path: Path, max_pixels: int) -> tuple[dict, dict]:

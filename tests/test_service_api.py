@@ -166,6 +166,26 @@ def spoil_translation(root):
     path.write_text(json.dumps(data))
 
 
+def flat_giants(root):
+    """Every image a real, valid 4000 x 4000 PNG of one colour: about 50 KB each, 16 million pixels."""
+    from PIL import Image
+
+    for path in root.rglob("*.png"):
+        Image.new("RGB", (4000, 4000), (200, 30, 30)).save(path)
+
+
+def test_a_small_upload_may_declare_only_so_many_pixels(api, lego_dir):
+    from service.scenes import MAX_PIXELS_PER_UPLOAD_BYTE
+
+    body = lego_upload(lego_dir, flat_giants)
+    assert len(body) < 1 << 20 and 3 * 16_000_000 > MAX_PIXELS_PER_UPLOAD_BYTE * len(body)
+    answer = api.post("/v1/scenes/upload", params={"name": "giants"}, content=body)
+    assert answer.status_code == 422, answer.text
+    assert f"{MAX_PIXELS_PER_UPLOAD_BYTE} pixels per byte of the {len(body):,}-byte upload" in answer.text
+    ok = api.post("/v1/scenes/upload", params={"name": "lego"}, content=lego_upload(lego_dir, lambda root: None))
+    assert ok.status_code == 201, ok.text  # real renders hold about one pixel per byte
+
+
 def test_error_details_are_bounded_and_never_a_dump(api):
     from service.api.app import MAX_DETAIL_CHARS, bounded
 
@@ -200,8 +220,9 @@ def test_a_scene_name_of_digits_alone_is_refused_so_it_never_reads_as_another_sc
      "file_path (frame 1) '../../../../../../etc/hostname' points outside the scene folder"),
     (lambda root: spoil_file_path(root, 5), "file_path (frame 1) must be a string"),
     (spoil_translation, "camera position (frame 1) is beyond +-1e+09 source units"),
+    (flat_giants, "exceed the budget of"),
 ], ids=["nan-pose", "huge-image-header", "truncated-image", "absolute-file-path", "climbing-file-path",
-        "file-path-a-number", "translation-1e308"])
+        "file-path-a-number", "translation-1e308", "flat-16-megapixel-pngs"])
 def test_hostile_scene_contents_are_refused_with_the_file_named(api, lego_dir, spoil, message):
     answer = api.post("/v1/scenes/upload", params={"name": "hostile"}, content=lego_upload(lego_dir, spoil))
     assert answer.status_code == 422 and message in answer.json()["detail"], answer.text

@@ -111,14 +111,15 @@ def read_npz(path: Path, max_bytes: int = MAX_ARRAY_BYTES) -> dict[str, np.ndarr
         raise SceneError(path, f"not a readable .npz archive ({exc.__class__.__name__}: {exc})") from None
 
 
-_pixels_left: contextvars.ContextVar[list[int] | None] = contextvars.ContextVar("leco_pixels_left", default=None)
+_pixels_left: contextvars.ContextVar[list | None] = contextvars.ContextVar("leco_pixels_left", default=None)
 
 
 @contextlib.contextmanager
-def pixel_budget(max_pixels: int | None) -> Iterator[None]:
+def pixel_budget(max_pixels: int | None, source: str = "LECO_MAX_SCENE_PIXELS") -> Iterator[None]:
     """Within this block (in this thread), images may decode at most `max_pixels` pixels in all; None: no
-    budget. The service registers uploads under one, so a few MB of PNGs cannot decode to gigabytes."""
-    token = _pixels_left.set(None if max_pixels is None else [max_pixels, max_pixels])
+    budget. The service registers uploads under one, so a few MB of PNGs cannot decode to gigabytes; `source`
+    says in the refusal where the budget comes from."""
+    token = _pixels_left.set(None if max_pixels is None else [max_pixels, max_pixels, source])
     try:
         yield
     finally:
@@ -132,5 +133,5 @@ def spend_pixels(path: Path, pixels: int) -> None:
         return
     if pixels > budget[0]:
         raise SceneError(path, f"the scene's images exceed the budget of {budget[1]:,} decoded pixels for one "
-                               f"scene (LECO_MAX_SCENE_PIXELS); this image alone has {pixels:,}")
+                               f"scene ({budget[2]}); this image alone has {pixels:,}")
     budget[0] -= pixels

@@ -1,10 +1,10 @@
 """Connection hygiene for `leco serve` when no reverse proxy stands in front (docker-compose and KubeRay put nginx
 there, deploy/nginx.conf.template): uvicorn has no deadline for a request's headers and no cap on connections,
 so a client that opens connections and never finishes their headers holds them, and file descriptors, for as
-long as it likes. This protocol closes a connection whose request head is not complete within `header_timeout_s`
-(randomly between half of it and all of it) after it opened or after its previous response, and holds at most `max_connections`, keeping the process clear of its
-open-file limit (which Ray raises to the hard limit) however many slow clients come. Bodies have their own
-deadlines (service/api/receiving.py)."""
+long as it likes. This protocol closes a connection whose request head is not complete within
+`header_timeout_s` (drawn between half of it and all of it) after it opened or after its previous response,
+and holds at most `max_connections`, keeping the process clear of its open-file limit (which Ray raises to the
+hard limit) however many slow clients come. Bodies have their own deadlines (service/api/receiving.py)."""
 
 from __future__ import annotations
 
