@@ -78,8 +78,7 @@ RUNGS: list[tuple[str, str, dict]] = [
      {"guided.placement": True, "guided.placement_in_phase1": True, "guided.main_samples": 21}),
     ("leco-rung-placement-dilate-1", "+ dilation back to 1 bin under placement", {"guided.dilate": 1}),
     ("leco-rung-padding", "+ placement padding 0.001, not 0.01", {"guided.placement_padding": 0.001}),
-    ("leco-rung-budget-15", "+ phase 1 stops at 15% of a budget, not 25%", {"occupancy.budget_share": 0.15}),
-    ("leco", "+ a ReLU after every hidden layer of O (the cpu defaults)", {"occupancy.gate_relu_every_layer": True}),
+    ("leco", "+ phase 1 stops at 15% of a budget, not 25% (the cpu defaults)", {"occupancy.budget_share": 0.15}),
 ]
 
 

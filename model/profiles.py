@@ -200,7 +200,7 @@ PROFILES: dict[str, Profile] = {
         # Measured settings beyond the paper (docs/BENCHMARKS.md, ablation ladder); bench/variants.py
         # PAPER_FORMULATION undoes them.
         occupancy=OccupancyPhaseConfig(samples_per_ray=64, steps=1500, lr=2e-3, w_g=5e-2, empty_gate_grad=False,
-                                       budget_share=0.15, gate_relu_every_layer=True),
+                                       budget_share=0.15),
         guided=GuidedConfig(coarse_samples=16, split=4, dilate=1, jitter=True, fallback=True, warm_start=True,
                             empty_threshold=0.9, online=True, warm_start_background=False, online_free_opacity=0.5,
                             fallback_topk=2, placement=True, placement_in_phase1=True, main_samples=21,
