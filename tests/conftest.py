@@ -2,6 +2,9 @@
 the service's databases (SQLite, and the machine's PostgreSQL)."""
 
 import itertools
+import threading
+import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -109,3 +112,23 @@ def service_settings(database_url, tmp_path):
 
     upgrade(database_url)
     return Settings(data_dir=tmp_path / "data", database_url=database_url, local_cpus=2, lease_s=5.0)
+
+
+@contextmanager
+def uvicorn_in_thread(app, **config):
+    """A real uvicorn server for `app` on a free loopback port, in a thread; yields the port."""
+    import uvicorn
+
+    port = free_port()
+    runner = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, **config))
+    thread = threading.Thread(target=runner.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 20
+    while not runner.started and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert runner.started
+    try:
+        yield port
+    finally:
+        runner.should_exit = True
+        thread.join(10)

@@ -5,15 +5,13 @@ every connection is inside a request), and the open-file limit is raised to fit 
 
 import resource
 import socket
-import threading
 import time
 
 import pytest
-import uvicorn
 
 from service.api.connections import RESERVED_FDS, connection_budget, guarded_protocol
 
-from .conftest import free_port
+from .conftest import uvicorn_in_thread
 
 DEADLINE_S = 0.5
 CAP = 8
@@ -32,19 +30,9 @@ async def app(scope, receive, send):
 
 @pytest.fixture(scope="module")
 def server():
-    port = free_port()
     protocol = guarded_protocol(DEADLINE_S, CAP)
-    runner = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="critical", http=protocol,
-                                           timeout_keep_alive=30))
-    thread = threading.Thread(target=runner.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 20
-    while not runner.started and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert runner.started
-    yield port, protocol
-    runner.should_exit = True
-    thread.join(10)
+    with uvicorn_in_thread(app, log_level="critical", http=protocol, timeout_keep_alive=30) as port:
+        yield port, protocol
 
 
 def closed_within(sock: socket.socket, seconds: float) -> float | None:

@@ -3,17 +3,15 @@ place in the scene pool, so other registrations go on; past the receiving slots 
 body that stalls is answered 408 and its slot comes back."""
 
 import socket
-import threading
 import time
 
 import httpx
 import pytest
-import uvicorn
 
 from service.api.app import create_app
 from service.settings import Settings
 
-from .conftest import free_port
+from .conftest import uvicorn_in_thread
 
 TOKEN = "slow-token"
 
@@ -22,18 +20,9 @@ TOKEN = "slow-token"
 def server(service_settings):
     settings = Settings(**{**service_settings.model_dump(), "api_tokens": (TOKEN,), "scene_workers": 1,
                            "scene_queue": 0, "upload_receivers": 3, "upload_idle_s": 1.5})
-    port = free_port()
     app = create_app(settings)
-    runner = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=runner.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 20
-    while not runner.started and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert runner.started
-    yield port, app
-    runner.should_exit = True
-    thread.join(10)
+    with uvicorn_in_thread(app, log_level="warning") as port:
+        yield port, app
 
 
 def slow_upload(port: int, name: str) -> socket.socket:
