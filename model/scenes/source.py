@@ -57,10 +57,6 @@ def check_pose(path: Path, c2w: Tensor, where: str = "") -> None:
         )
 
 
-def check_intrinsics(path: Path, intrinsics: Tensor, width: int, height: int, where: str = "") -> None:
-    values.check_intrinsics(path, intrinsics, width, height, where)
-
-
 Frame = Tensor | Callable[[], Tensor]  # a decoded tensor, or a loader that decodes it when called
 
 
@@ -88,7 +84,7 @@ class SplitBuilder:
             size = (image.shape[0], image.shape[1])
         intrinsics = torch.as_tensor(intrinsics, dtype=torch.float64).reshape(4)
         c2w = torch.as_tensor(c2w, dtype=torch.float64).reshape(3, 4)
-        check_intrinsics(source, intrinsics, size[1], size[0], where)
+        values.check_intrinsics(source, intrinsics, size[1], size[0], where)
         check_pose(source, c2w, where)
         distortion = torch.zeros(4) if distortion is None else values.distortion(source, distortion, where)
         self.names.append(name)

@@ -15,7 +15,7 @@ from model.scenes.formats.points import read_colmap_points
 from model.scenes.images import IMAGE_SUFFIXES, ImageFile, probe_image
 from model.scenes.limits import read_npy
 from model.scenes.paths import scene_file
-from model.scenes.source import SourceScene, SplitBuilder, check_pose, rotate_source, up_alignment
+from model.scenes.source import SourceScene, SplitBuilder, rotate_source, up_alignment
 
 VAL_EVERY = 8  # LLFF's usual hold-out: every 8th image
 
@@ -79,7 +79,6 @@ def load_llff(root: Path, downscale: int | None) -> SourceScene:
         values.image_size(path, round(w_full), round(h_full), where)
         down, right, back, t = poses[i, :, 0], poses[i, :, 1], poses[i, :, 2], poses[i, :, 3]
         c2w = torch.stack([right, -down, back, t], dim=1)  # LLFF [down, right, back] -> OpenGL [right, up, back]
-        check_pose(path, c2w, where)
         w, h = probe_image(image_path)
         if abs(w * factor - w_full) > factor or abs(h * factor - h_full) > factor:
             raise SceneError(

@@ -15,7 +15,7 @@ from model.scenes.errors import SceneError
 from model.scenes.images import ImageFile, check_image_size, downscale_depth, find_image, probe_image
 from model.scenes.limits import MAX_METADATA_BYTES, check_file_size, read_npy, read_npy_header, read_npz
 from model.scenes.paths import scene_file
-from model.scenes.source import SourceScene, SourceSplit, SplitBuilder, check_intrinsics, check_pose, scale_intrinsics
+from model.scenes.source import SourceScene, SourceSplit, SplitBuilder, scale_intrinsics
 
 # Mega-NeRF's world is down-right-back (x down). DRB -> (east-like right, forward, up): a proper rotation.
 DRB_TO_ZUP = torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]], dtype=torch.float64)
@@ -48,9 +48,7 @@ def read_metadata(path: Path) -> dict:
         raise SceneError(path, f"metadata is missing field(s): {', '.join(missing)}")
     width, height = values.image_size(path, meta["W"], meta["H"])
     intrinsics = values.array(path, meta["intrinsics"], "intrinsics [fx, fy, cx, cy]", ((4,),))
-    c2w = values.array(path, meta["c2w"], "c2w", ((3, 4), (4, 4)))[:3]
-    check_pose(path, c2w)
-    check_intrinsics(path, intrinsics, width, height)
+    c2w = values.array(path, meta["c2w"], "c2w", ((3, 4), (4, 4)))[:3]  # the camera's checks: SplitBuilder.add
     raw = meta.get("distortion")
     distortion = torch.zeros(4) if raw is None else values.distortion(path, raw)
     return {"W": width, "H": height, "intrinsics": intrinsics, "c2w": c2w, "distortion": distortion}
