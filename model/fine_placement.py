@@ -44,6 +44,7 @@ class FineDraw:
     coarse: Tensor  # (R, M + 1) intermediate edges in s
     t_mid: Tensor  # (R, M) their mid-points along the ray
     main: Tensor  # (R, n + 1) the main samples' edges in s
+    sigma: Tensor  # (R, M) O's densities at t_mid, as `density` returned them (with gradient while O learns)
 
 
 def fine_samples(rows: Tensor, edges: Tensor, keep: Tensor, weights: Tensor, intermediate: int, n: int,
@@ -52,20 +53,21 @@ def fine_samples(rows: Tensor, edges: Tensor, keep: Tensor, weights: Tensor, int
     """Exactly n samples per row of `edges` (R, B + 1) inside its kept bins (`rows`: which hit rays those are,
     kept for the loss), drawn in two levels: `intermediate`
     intervals by the coarse histogram `weights` (R, B) (padding added), then n by O's densities at their
-    mid-points (`density`: (R, M) t -> (R, M) sigma, no gradient needed here)."""
+    mid-points (`density`: (R, M) t -> (R, M) sigma; the draw uses it detached, and keeps it for the loss, so
+    a step where O learns asks O once)."""
     s_edges = kept_axis(edges, keep)
     mass = weights.clamp(min=0) * keep
     mass = torch.where(mass.sum(-1, keepdim=True) > 0, mass, keep.to(mass.dtype))  # no weight: by bin
     coarse = pdf_edges(s_edges, mass, intermediate, generator, padding=0.0)
     t_mid = to_t(0.5 * (coarse[:, 1:] + coarse[:, :-1]), s_edges, edges)
     sigma = density(t_mid)
-    fine = batched_weights(sigma.double(), (coarse[:, 1:] - coarse[:, :-1]).double())[0].to(coarse.dtype)
+    fine = batched_weights(sigma.detach().double(), (coarse[:, 1:] - coarse[:, :-1]).double())[0].to(coarse.dtype)
     main = pdf_edges(coarse, fine, n, generator, anneal=anneal, padding=padding)
     mid, delta = 0.5 * (main[:, 1:] + main[:, :-1]), main[:, 1:] - main[:, :-1]
     t = to_t(mid, s_edges, edges).reshape(-1)
     delta = delta.reshape(-1)
     ray = torch.arange(len(edges), device=edges.device).repeat_interleave(n)
-    return PackedSamples(t - 0.5 * delta, t + 0.5 * delta, ray), FineDraw(rows, s_edges, coarse, t_mid, main)
+    return PackedSamples(t - 0.5 * delta, t + 0.5 * delta, ray), FineDraw(rows, s_edges, coarse, t_mid, main, sigma)
 
 
 def fine_placement_loss(draw: FineDraw, sigma: Tensor, main_weights: Tensor) -> Tensor:

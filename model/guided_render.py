@@ -33,8 +33,10 @@ class Placer:
     `guided.placement_fine`, in two passes (model/fine_placement.py), the last draw kept for its loss."""
 
     def __init__(self, profile: Profile, query: OccupancyQuery, rays: RayBatch, anneal: float,
-                 generator: torch.Generator | None):
+                 generator: torch.Generator | None, learn: bool = False):
+        """`learn`: O's placement learns this step, so the fine pass asks O with gradient (kept for the loss)."""
         self.g, self.query, self.rays, self.anneal, self.generator = profile.guided, query, rays, anneal, generator
+        self.learn = learn
         self.fine: FineDraw | None = None
 
     def __call__(self, rows: Tensor, edges: Tensor, keep: Tensor) -> PackedSamples:
@@ -46,9 +48,9 @@ class Placer:
         keep = confident_bins(keep, weights, g.placement_min_share)
         if not g.placement_fine:
             return placed_samples(edges, keep, weights + g.placement_padding, g.main_samples, self.generator)
+        density = lambda t: self.density(rows, t, grad=self.learn)  # noqa: E731
         samples, self.fine = fine_samples(rows, edges, keep, weights + g.placement_padding, g.placement_fine,
-                                          g.main_samples, lambda t: self.density(rows, t, grad=False), self.generator,
-                                          self.anneal, g.placement_padding)
+                                          g.main_samples, density, self.generator, self.anneal, g.placement_padding)
         return samples
 
     def density(self, rows: Tensor, t: Tensor, grad: bool = True) -> Tensor:
@@ -68,7 +70,7 @@ def render_guided(field: SwitchNeRF, background: BackgroundField, rays: RayBatch
     hit = torch.nonzero(rays.far > rays.near)[:, 0]
     sub = rays.subset(hit)  # only rays that cross the box have bins to keep
     with torch.no_grad():
-        place = Placer(profile, query, sub, anneal, generator) if g.placement else None
+        place = Placer(profile, query, sub, anneal, generator, learn_placement) if g.placement else None
         draw = draw_guided(sub.near, sub.far, sub.origins, sub.directions, query.occupied, g.coarse_samples,
                            g.split, generator, g.jitter, g.dilate, g.fallback, g.fallback_topk, query.scores, place,
                            g.queries_per_bin)
@@ -88,9 +90,8 @@ def render_guided(field: SwitchNeRF, background: BackgroundField, rays: RayBatch
         losses.append(g.placement_loss_weight * placement_loss(proposal, local, rendered.weights, sub.near, sub.far))
         if place is not None and place.fine is not None and len(place.fine.rows):
             fine = place.fine
-            sigma = place.density(fine.rows, fine.t_mid)
             main = rendered.weights.reshape(len(fine.rows), g.main_samples)
-            losses.append(g.placement_loss_weight * fine_placement_loss(fine, sigma, main))
+            losses.append(g.placement_loss_weight * fine_placement_loss(fine, fine.sigma, main))
     stats = {"o_kept_ratio": float(draw.occupied_bins.float().mean()) if len(sub) else 0.0,
              "fallback_fraction": float(draw.lost.float().mean()) if len(sub) else 0.0}
     # Culled samples still ran the network once (without gradient), so they count, as vanilla's coarse ones do.

@@ -113,6 +113,9 @@ class GuidedConfig(Frozen):
     # head is asked at their mid-points, and the main samples follow that finer histogram (0: one pass, the main
     # samples spread evenly inside each kept bin's share)
     placement_fine: int = Field(0, ge=0, le=1024)
+    # O's placement losses (both passes) on every k-th main-phase step; on the others O places the samples
+    # without gradient, as S+Prop's proposals do between updates (with `online_every` = k, O's whole learning)
+    placement_every: int = Field(1, ge=1, le=1000)
 
     @model_validator(mode="after")
     def options_need_their_switch(self) -> "GuidedConfig":
@@ -135,6 +138,10 @@ class GuidedConfig(Frozen):
         """Whether O learns at this main-phase step (0-based), given `online`, its warm-up and its period."""
         past_warmup = main_step - self.online_warmup
         return self.online and past_warmup >= 0 and past_warmup % self.online_every == 0
+
+    def placement_learns(self, main_step: int) -> bool:
+        """Whether O's placement losses run at this main-phase step (0-based), given `placement_every`."""
+        return self.placement and main_step % self.placement_every == 0
 
 
 class VanillaConfig(Frozen):

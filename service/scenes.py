@@ -44,10 +44,11 @@ def describe_folder(path: Path, max_pixels: int, source: str = "LECO_MAX_SCENE_P
     return describe(scene), camera_layout(scene)
 
 
-# Real captures and renders hold at most a few decoded pixels per byte of PNG or JPEG (lego 1.0, fern 0.6, the
-# synthetic city 0.5): an archive may declare at most this many, so a small upload cannot register a scene that
-# later decodes to gigabytes (1 MB: at most 64 million pixels, 192 MB as RGB).
-MAX_PIXELS_PER_UPLOAD_BYTE = 64
+# Real captures and renders hold at most a few decoded pixels per byte of PNG or JPEG (lego 1.0 on average and 1.6
+# in its densest image, fern 0.6, the synthetic city 0.5): an archive may declare at most this many, so a small
+# upload cannot register a scene that later decodes to gigabytes (1 MiB: at most one 4096 x 4096 image's worth of
+# pixels, 48 MB as RGB; decoding it grows a process by well under 256 MB, tests/test_decode_memory.py).
+MAX_PIXELS_PER_UPLOAD_BYTE = 16
 
 
 def upload_pixel_budget(max_scene_pixels: int, archive_bytes: int) -> tuple[int, str]:

@@ -130,7 +130,10 @@ def serve(args: argparse.Namespace) -> int:
     from service.api.connections import connection_budget, guarded_protocol
 
     protocol = guarded_protocol(settings.header_timeout_s, connection_budget(settings.max_connections))
-    config = uvicorn.Config(app, host=args.host, port=args.port, log_level="warning", http=protocol)
+    # The client address the per-client limits count is the one a trusted proxy forwards (X-Forwarded-For);
+    # uvicorn trusts only 127.0.0.1 unless told (a sidecar proxy in the same pod is 127.0.0.1).
+    config = uvicorn.Config(app, host=args.host, port=args.port, log_level="warning", http=protocol,
+                            proxy_headers=True, forwarded_allow_ips=args.trusted_proxies)
     server = releasing_server(config, on_exit=dispatcher.release_all if dispatcher else None)
     try:
         server.run()
@@ -181,6 +184,9 @@ def add_commands(commands) -> None:
     srv.add_argument("--slots", type=int, default=1, help="jobs this dispatcher runs at once (default 1)")
     srv.add_argument("--no-auth", action="store_true", help="no bearer token (only for a loopback-only service)")
     srv.add_argument("--no-dispatcher", action="store_true", help="API only; run `leco dispatch` elsewhere")
+    srv.add_argument("--trusted-proxies", default="127.0.0.1",
+                     help="addresses whose X-Forwarded-For names the client (comma-separated, or '*' when only a "
+                          "proxy can reach the API; default 127.0.0.1)")
     srv.set_defaults(func=serve)
 
     dsp = commands.add_parser("dispatch", help="run a dispatcher only (claims and runs queued jobs)")

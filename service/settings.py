@@ -29,6 +29,7 @@ class Settings(BaseModel):
     # each cut off (408) when it sends nothing for upload_idle_s or, past its first upload_idle_s, averages under
     # upload_min_bytes_per_s.
     upload_receivers: int = Field(8, ge=1)
+    upload_receivers_per_client: int = Field(2, ge=1)  # ... of which one client address may hold this many
     upload_idle_s: float = Field(30.0, gt=0)
     upload_min_bytes_per_s: float = Field(16 * 1024, ge=0)
     # `leco serve` without a proxy (service/api/connections.py): a connection whose request headers are not in
@@ -120,6 +121,7 @@ class Settings(BaseModel):
                           ("scene_workers", "LECO_SCENE_WORKERS"), ("scene_queue", "LECO_SCENE_QUEUE"),
                           ("view_workers", "LECO_VIEW_WORKERS"), ("view_queue", "LECO_VIEW_QUEUE"),
                           ("upload_receivers", "LECO_UPLOAD_RECEIVERS"), ("upload_idle_s", "LECO_UPLOAD_IDLE_S"),
+                          ("upload_receivers_per_client", "LECO_UPLOAD_RECEIVERS_PER_CLIENT"),
                           ("upload_min_bytes_per_s", "LECO_UPLOAD_MIN_BYTES_PER_S"),
                           ("header_timeout_s", "LECO_HEADER_TIMEOUT_S"), ("max_connections", "LECO_MAX_CONNECTIONS")):
             if env.get(name):

@@ -133,6 +133,8 @@ def test_clients_reach_the_api_through_nginx_only(compose):
     which holds the deadlines and limits docs/SERVICE.md and deploy/README.md promise."""
     services = compose["services"]
     assert "ports" not in services["api"] and services["api"]["expose"] == ["8765"]
+    # ... so the API may trust every X-Forwarded-For it sees: its per-client limits then count real clients
+    assert services["api"]["command"][-2:] == ["--trusted-proxies", "*"]
     proxy = services["proxy"]
     assert re.fullmatch(r"nginx:\d+\.\d+\.\d+-bookworm", proxy["image"])  # pinned
     assert proxy["ports"] == [f"{env_example().get('LECO_PORT', '8765')}:8080"]

@@ -131,6 +131,20 @@ def test_a_leco_run_where_o_places_the_samples_learns_the_placement_in_both_phas
     assert summary["sampling"]["samples_per_hit_ray"] == 6 and summary["rays"]["samples_per_hit_ray"] == 6
 
 
+@pytest.mark.parametrize("fine", [0, 12])
+def test_o_places_without_gradient_between_its_placement_updates(tiny_scene, tmp_path, fine):
+    cfg = TrainConfig(method="leco", profile="smoke", metrics_every=1, seed=0, overrides={
+        "occupancy.steps": 6, "main_steps": 8, "guided.placement": True, "guided.main_samples": 6,
+        "guided.placement_fine": fine, "guided.placement_every": 3, "guided.online": False, "guided.fallback": True,
+        "guided.warm_start": True})
+    run = tmp_path / "run"
+    run_training(cfg, tiny_scene.root, run, backend="local")
+    main = [r for r in read_metrics(run / "metrics.jsonl") if r["phase"] == "main"]
+    # phase_step is counted after the step: main steps 0, 3 and 6 learn, the others only place
+    assert [r["phase_step"] for r in main if "occupancy_online_loss" in r] == [1, 4, 7]
+    assert all(r["samples_per_hit_ray"] == 6 for r in main)
+
+
 def test_the_decision_logit_is_positive_exactly_where_the_sampler_keeps_the_point():
     network = OccupancyNetwork(num_scene_experts=3, width=16, xyz_frequencies=2)
     logits = torch.randn(2000, 4, generator=torch.Generator().manual_seed(0)) * 3

@@ -19,7 +19,8 @@ TOKEN = "slow-token"
 @pytest.fixture
 def server(service_settings):
     settings = Settings(**{**service_settings.model_dump(), "api_tokens": (TOKEN,), "scene_workers": 1,
-                           "scene_queue": 0, "upload_receivers": 3, "upload_idle_s": 1.5})
+                           "scene_queue": 0, "upload_receivers": 3, "upload_receivers_per_client": 3,
+                           "upload_idle_s": 1.5})
     app = create_app(settings)
     with uvicorn_in_thread(app, log_level="warning") as port:
         yield port, app
@@ -63,6 +64,44 @@ def test_slow_uploads_hold_no_pool_place_and_are_cut_off_at_their_deadline(serve
     while app.state.upload_slots.taken and time.monotonic() < deadline:
         time.sleep(0.05)
     assert app.state.upload_slots.taken == 0  # every slot came back
+
+
+def test_one_client_may_hold_only_so_many_receiving_slots(service_settings):
+    settings = Settings(**{**service_settings.model_dump(), "api_tokens": (TOKEN,), "upload_receivers": 3,
+                           "upload_receivers_per_client": 2, "upload_idle_s": 1.5})
+    app = create_app(settings)
+    with uvicorn_in_thread(app, log_level="warning") as port:
+        slow = [slow_upload(port, f"slow-{i}") for i in range(2)]
+        try:
+            time.sleep(0.3)
+            third = slow_upload(port, "third")
+            assert status_of(third, timeout=5) == 429
+            third.close()
+            assert app.state.upload_slots.taken == 2 and app.state.upload_slots.by_client == {"127.0.0.1": 2}
+        finally:
+            for sock in slow:
+                sock.close()
+        deadline = time.monotonic() + 5
+        while app.state.upload_slots.taken and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert app.state.upload_slots.taken == 0 and app.state.upload_slots.by_client == {}
+
+
+def test_the_per_client_cap_counts_each_address_apart_and_the_total_still_binds():
+    from fastapi import HTTPException
+
+    from service.api.receiving import ReceivingSlots
+
+    slots = ReceivingSlots(limit=3, per_client=2)
+    with slots.slot("10.0.0.1"), slots.slot("10.0.0.1"):
+        with pytest.raises(HTTPException, match="this client already sends 2 uploads"):
+            with slots.slot("10.0.0.1"):
+                pass
+        with slots.slot("10.0.0.2"):  # another client still gets the last slot
+            with pytest.raises(HTTPException, match="3 uploads are being received"):
+                with slots.slot("10.0.0.3"):
+                    pass
+    assert slots.taken == 0 and slots.by_client == {}
 
 
 def receive(chunks, gap_s: float, **limits):

@@ -166,9 +166,10 @@ class LeCOMethod(Method):
         g = self.profile.guided
         query = self.main_query()
         # O's keep/drop loss starts once the main network has had `online_warmup` steps to fit what its weights
-        # will teach; its placement learns from the first step, its histogram annealed in from uniform.
+        # will teach; its placement learns from the first step (every `placement_every`-th), its histogram
+        # annealed in from uniform. On a step where neither learns, O is asked without gradient.
         keeps = phase_step is not None and g.online_learns(phase_step)
-        places = phase_step is not None and g.placement
+        places = phase_step is not None and g.placement_learns(phase_step)
         query.learn = keeps or places
         learner = query if keeps and isinstance(query, OnlineOccupancy) else None
         anneal = anneal_power(phase_step, g.placement_anneal_steps, 10.0)

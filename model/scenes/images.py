@@ -80,6 +80,24 @@ def probe_image(path: Path) -> tuple[int, int]:
     return w, h
 
 
+# RGBA is composited in float32 this many pixels at a time, so the temporaries stay near 15 MB whatever the
+# image's size; decoding then holds a few bytes per pixel, not the ~50 a whole-image float composite took.
+COMPOSITE_BLOCK_PIXELS = 1 << 18
+
+
+def _composite(rgba: np.ndarray, background: tuple[float, float, float]) -> np.ndarray:
+    """uint8 (H, W, 3) of uint8 (H, W, 4) over `background`, in row blocks."""
+    out = np.empty(rgba.shape[:2] + (3,), np.uint8)
+    behind = np.asarray(background, np.float32)
+    rows = max(1, COMPOSITE_BLOCK_PIXELS // max(1, rgba.shape[1]))
+    for top in range(0, rgba.shape[0], rows):
+        block = rgba[top : top + rows].astype(np.float32) / 255.0
+        alpha = block[..., 3:4]
+        rgb = block[..., :3] * alpha + behind * (1.0 - alpha)
+        out[top : top + rows] = np.clip(np.round(rgb * 255.0), 0, 255)
+    return out
+
+
 def read_image(path: Path, *, background: tuple[float, float, float] | None = None) -> Tensor:
     """uint8 (H, W, 3). RGBA is composited on `background` (RGB in [0, 1]; black when None)."""
     try:
@@ -88,19 +106,15 @@ def read_image(path: Path, *, background: tuple[float, float, float] | None = No
             im.load()
             mode = im.mode
             if mode in ("RGBA", "LA") or (mode == "P" and "transparency" in im.info):
-                rgba = np.asarray(im.convert("RGBA"), dtype=np.float32) / 255.0
-                if background is None:
-                    background = (0.0, 0.0, 0.0)
-                alpha = rgba[..., 3:4]
-                rgb = rgba[..., :3] * alpha + np.asarray(background, np.float32) * (1.0 - alpha)
-                array = np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
+                rgba = np.asarray(im if mode == "RGBA" else im.convert("RGBA"))
+                array = _composite(rgba, background or (0.0, 0.0, 0.0))
             else:
-                array = np.asarray(im.convert("RGB"), dtype=np.uint8)
+                array = np.array(im if mode == "RGB" else im.convert("RGB"), dtype=np.uint8)  # a writable copy
     except Image.DecompressionBombError as exc:
         raise _bomb(path, exc) from None
     except (UnidentifiedImageError, OSError, SyntaxError) as exc:
         raise SceneError(path, f"image is unreadable ({exc.__class__.__name__}: {exc})") from None
-    return torch.from_numpy(array.copy())
+    return torch.from_numpy(array)
 
 
 def downscaled_size(width: int, height: int, factor: int) -> tuple[int, int]:

@@ -79,7 +79,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.http_stats = {"count": Counter(), "seconds": 0.0, "started": time.monotonic()}
     app.state.poll_cache = PollCache(settings.poll_cache_s)
     app.state.scene_pool = WorkPool(settings.scene_workers, settings.scene_queue, "scene registrations")
-    app.state.upload_slots = ReceivingSlots(settings.upload_receivers)
+    app.state.upload_slots = ReceivingSlots(settings.upload_receivers, settings.upload_receivers_per_client)
     app.state.view_pool = WorkPool(settings.view_workers, settings.view_queue, "view renders")
     app.state.view_cache = work.ViewCache(work.VIEW_CACHE)
 

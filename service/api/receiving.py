@@ -18,24 +18,36 @@ from service.workpool import RETRY_AFTER_S
 
 
 class ReceivingSlots:
-    """At most `limit` bodies being received at once; one more is answered 429 at once (no waiting)."""
+    """At most `limit` bodies being received at once, and at most `per_client` from one client address; one more
+    is answered 429 at once (no waiting). The per-client cap keeps one client's slow uploads from taking every
+    slot (behind a proxy the address is the one it forwards: uvicorn's proxy headers)."""
 
-    def __init__(self, limit: int):
-        self.limit, self.taken, self._lock = limit, 0, threading.Lock()
+    def __init__(self, limit: int, per_client: int | None = None):
+        self.limit, self.per_client = limit, per_client or limit
+        self.taken, self._lock = 0, threading.Lock()
+        self.by_client: dict[str, int] = {}
 
     @contextmanager
-    def slot(self) -> Iterator[None]:
+    def slot(self, client: str = "") -> Iterator[None]:
         with self._lock:
             if self.taken >= self.limit:
                 raise HTTPException(429, f"{self.limit} uploads are being received, the most this server takes at "
                                          f"once; retry in {RETRY_AFTER_S} s",
                                     headers={"retry-after": str(RETRY_AFTER_S)})
+            if self.by_client.get(client, 0) >= self.per_client:
+                raise HTTPException(429, f"this client already sends {self.per_client} uploads, the most one client "
+                                         f"may send at once; retry once one is in (in {RETRY_AFTER_S} s)",
+                                    headers={"retry-after": str(RETRY_AFTER_S)})
             self.taken += 1
+            self.by_client[client] = self.by_client.get(client, 0) + 1
         try:
             yield
         finally:
             with self._lock:
                 self.taken -= 1
+                self.by_client[client] -= 1
+                if not self.by_client[client]:
+                    del self.by_client[client]  # the map holds only clients sending now: bounded by `limit`
 
 
 async def receive_body(chunks: AsyncIterator[bytes], into: IO[bytes], max_bytes: int, idle_s: float,

@@ -74,7 +74,7 @@ async def upload(request: Request, name: str = Query(..., pattern=NAME),
     with tempfile.NamedTemporaryFile(dir=settings.scenes_dir, prefix=".archive-") as tmp:
         # The body first, in a receiving slot under deadlines (service/api/receiving.py); only then a place in
         # the scene pool (Busy -> 429), so a slow client holds no place another registration could use.
-        with request.app.state.upload_slots.slot():
+        with request.app.state.upload_slots.slot(request.client.host if request.client else ""):
             size = await receive_body(request.stream(), tmp, settings.max_upload_bytes, settings.upload_idle_s,
                                       settings.upload_min_bytes_per_s)
         tmp.flush()
