@@ -40,6 +40,14 @@ def status_of(sock: socket.socket, timeout: float) -> int:
     return int(line.split()[1])
 
 
+def slots_back(slots, within_s: float = 5.0) -> bool:
+    """Whether every receiving slot (and every client's count) comes back within `within_s`."""
+    deadline = time.monotonic() + within_s
+    while slots.taken and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return slots.taken == 0 and slots.by_client == {}
+
+
 def test_slow_uploads_hold_no_pool_place_and_are_cut_off_at_their_deadline(server):
     port, app = server
     slow = [slow_upload(port, f"slow-{i}") for i in range(3)]
@@ -60,10 +68,7 @@ def test_slow_uploads_hold_no_pool_place_and_are_cut_off_at_their_deadline(serve
     finally:
         for sock in slow:
             sock.close()
-    deadline = time.monotonic() + 5
-    while app.state.upload_slots.taken and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert app.state.upload_slots.taken == 0  # every slot came back
+    assert slots_back(app.state.upload_slots)
 
 
 def test_one_client_may_hold_only_so_many_receiving_slots(service_settings):
@@ -81,10 +86,7 @@ def test_one_client_may_hold_only_so_many_receiving_slots(service_settings):
         finally:
             for sock in slow:
                 sock.close()
-        deadline = time.monotonic() + 5
-        while app.state.upload_slots.taken and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert app.state.upload_slots.taken == 0 and app.state.upload_slots.by_client == {}
+        assert slots_back(app.state.upload_slots)
 
 
 def test_the_per_client_cap_counts_each_address_apart_and_the_total_still_binds():
