@@ -129,6 +129,9 @@ class GuidedConfig(Frozen):
         if self.placement_fine and not self.placement:
             raise ValueError("guided.placement_fine needs guided.placement=true (it refines O's placement); "
                              "with guided.placement=false set guided.placement_fine=0 too")
+        if self.placement_every > 1 and not self.placement:
+            raise ValueError("guided.placement_every needs guided.placement=true (it spaces O's placement updates); "
+                             "with guided.placement=false set guided.placement_every=1 too")
         if self.placement_fine and self.cull_transmittance is not None:
             raise ValueError("guided.placement_fine and guided.cull_transmittance cannot be combined: the fine "
                              "pass's loss needs every placed sample's weight; unset one of them")

@@ -149,4 +149,6 @@ def test_a_guided_option_without_its_switch_is_refused_naming_both():
         GuidedConfig(fallback_topk=2)
     with pytest.raises(ValidationError, match="guided.placement_in_phase1 needs guided.placement=true"):
         GuidedConfig(placement_in_phase1=True)
+    with pytest.raises(ValidationError, match="guided.placement_every needs guided.placement=true"):
+        GuidedConfig(placement_every=5)
     assert GuidedConfig(fallback=True, fallback_topk=2, placement=True, placement_in_phase1=True).fallback_topk == 2
