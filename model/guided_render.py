@@ -15,7 +15,7 @@ from model.main_phase import MainRender, composite_field, cull_occluded, field_o
 from model.occupancy import OccupancyQuery
 from model.occupancy_phase import render_background
 from model.online_occupancy import OnlineOccupancy
-from model.placement import confident_bins, placed_samples, placement_loss
+from model.placement import confident_bins, explored, placed_samples, placement_loss
 from model.profiles import GuidedConfig, Profile
 from model.rendering import Rendered, batched_weights
 from model.samplers import PackedSamples, draw_guided, pack_edges, stratified_edges
@@ -46,10 +46,11 @@ class Placer:
         sigma = query.sigma.detach().reshape(-1, edges.shape[1] - 1, g.queries_per_bin).mean(dim=-1)[rows]
         weights = histogram(sigma, edges) ** self.anneal
         keep = confident_bins(keep, weights, g.placement_min_share)
+        keep, mass = explored(keep, weights + g.placement_padding, edges, g.placement_explore)
         if not g.placement_fine:
-            return placed_samples(edges, keep, weights + g.placement_padding, g.main_samples, self.generator)
+            return placed_samples(edges, keep, mass, g.main_samples, self.generator)
         density = lambda t: self.density(rows, t, grad=self.learn)  # noqa: E731
-        samples, self.fine = fine_samples(rows, edges, keep, weights + g.placement_padding, g.placement_fine,
+        samples, self.fine = fine_samples(rows, edges, keep, mass, g.placement_fine,
                                           g.main_samples, density, self.generator, self.anneal, g.placement_padding)
         return samples
 

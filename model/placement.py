@@ -64,6 +64,21 @@ def confident_bins(keep: Tensor, weights: Tensor, min_share: float) -> Tensor:
     return (keep & (share >= min_share)) | heaviest
 
 
+def explored(keep: Tensor, mass: Tensor, edges: Tensor, share: float) -> tuple[Tensor, Tensor]:
+    """Every bin of each ray (R, B) may get a sample: the bins O dropped together receive `share` of the ray's
+    mass (`mass` (R, B) over the kept bins, padding included), spread over them by length, so about `share` of
+    the main samples look where O says nothing is, as a proposal's histogram padding does. A surface O dropped
+    can then catch weight, and the online learner (which learns only from sampled bins) can teach O to keep it.
+    Returns the new keep (all True) and mass; rays that keep every bin are unchanged."""
+    if share <= 0:
+        return keep, mass
+    kept_mass = (mass * keep).sum(-1, keepdim=True)
+    length = (edges[:, 1:] - edges[:, :-1]) * ~keep
+    dropped = length.sum(-1, keepdim=True)
+    spread = share / (1 - share) * kept_mass * length / dropped.clamp(min=1e-30)
+    return torch.ones_like(keep), torch.where(keep, mass, spread)
+
+
 def bin_mass(samples: PackedSamples, weights: Tensor, near: Tensor, far: Tensor, bins: int) -> Tensor:
     """(R, bins) the main network's (detached) render weight summed in each coarse bin of each ray."""
     flat = samples.ray_index * bins + sample_bins(samples, near, far, bins)

@@ -116,6 +116,9 @@ class GuidedConfig(Frozen):
     # O's placement losses (both passes) on every k-th main-phase step; on the others O places the samples
     # without gradient, as S+Prop's proposals do between updates (with `online_every` = k, O's whole learning)
     placement_every: int = Field(1, ge=1, le=1000)
+    # This share of each hit ray's main samples goes to the bins O dropped, by length (model/placement.py
+    # `explored`), so the main network can show O a surface it dropped (0: samples only in kept bins)
+    placement_explore: float = Field(0.0, ge=0, lt=1)
 
     @model_validator(mode="after")
     def options_need_their_switch(self) -> "GuidedConfig":
@@ -132,6 +135,9 @@ class GuidedConfig(Frozen):
         if self.placement_every > 1 and not self.placement:
             raise ValueError("guided.placement_every needs guided.placement=true (it spaces O's placement updates); "
                              "with guided.placement=false set guided.placement_every=1 too")
+        if self.placement_explore > 0 and not self.placement:
+            raise ValueError("guided.placement_explore needs guided.placement=true (it shares O's placement budget); "
+                             "with guided.placement=false set guided.placement_explore=0 too")
         if self.placement_fine and self.cull_transmittance is not None:
             raise ValueError("guided.placement_fine and guided.cull_transmittance cannot be combined: the fine "
                              "pass's loss needs every placed sample's weight; unset one of them")

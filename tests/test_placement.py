@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from model.fields.hmoe import OccupancyNetwork
-from model.placement import bin_mass, confident_bins, placed_samples, placement_loss
+from model.placement import bin_mass, confident_bins, explored, placed_samples, placement_loss
 from model.rendering import batched_weights, packed_weights
 from model.sample_accounting import step_accounting, surface_accounting
 from model.samplers import PackedSamples, guided_samples, stratified_edges
@@ -65,6 +65,25 @@ def test_bins_below_the_minimum_share_get_no_sample_and_every_ray_keeps_one():
     samples = placed_samples(edges, kept, weights + 0.01, 9, torch.Generator().manual_seed(0))
     bin_of = ((samples.mids - near[samples.ray_index]) / ((far - near) / 4)[samples.ray_index]).floor().long()
     assert kept[samples.ray_index, bin_of.clamp(0, 3)].all() and not (bin_of[samples.ray_index == 0] == 0).any()
+
+
+def test_exploration_gives_the_dropped_bins_their_share_of_the_samples():
+    near, far, edges = coarse(r=2, bins=8)
+    keep = torch.zeros(2, 8, dtype=torch.bool)
+    keep[0, [2, 3]] = True
+    keep[1] = True  # a ray that keeps every bin has nothing to explore
+    mass = torch.rand(2, 8, generator=torch.Generator().manual_seed(2)) + 0.01
+    assert explored(keep, mass, edges, 0.0) == (keep, mass)
+    everywhere, spread = explored(keep, mass, edges, 0.2)
+    assert everywhere.all() and torch.equal(spread[1], mass[1]) and torch.equal(spread[0, [2, 3]], mass[0, [2, 3]])
+    assert float(spread[0, ~keep[0]].sum() / spread[0].sum()) == pytest.approx(0.2)  # the dropped bins' share
+    assert torch.allclose(spread[0, ~keep[0]], spread[0, 0].expand(6))  # equal lengths, equal mass
+    samples = placed_samples(edges, everywhere, spread, 200, None)
+    mids = samples.mids.reshape(2, 200)
+    assert (mids[:, 1:] > mids[:, :-1]).all() and (mids >= near[:, None]).all() and (mids <= far[:, None]).all()
+    bin_of = ((mids - near[:, None]) / ((far - near) / 8)[:, None]).floor().long().clamp(0, 7)
+    # 20% of the samples where O dropped the bins (give or take the interval that straddles a boundary)
+    assert abs(int((~keep[0][bin_of[0]]).sum()) - 40) <= 1
 
 
 def test_the_placement_loss_is_the_interlevel_bound_and_trains_only_the_proposal():
@@ -151,4 +170,6 @@ def test_a_guided_option_without_its_switch_is_refused_naming_both():
         GuidedConfig(placement_in_phase1=True)
     with pytest.raises(ValidationError, match="guided.placement_every needs guided.placement=true"):
         GuidedConfig(placement_every=5)
+    with pytest.raises(ValidationError, match="guided.placement_explore needs guided.placement=true"):
+        GuidedConfig(placement_explore=0.05)
     assert GuidedConfig(fallback=True, fallback_topk=2, placement=True, placement_in_phase1=True).fallback_topk == 2
