@@ -5,6 +5,8 @@ shared storage and LPIPS weights."""
 
 import re
 import shlex
+import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -125,7 +127,8 @@ def test_every_command_the_compose_file_runs_exists(compose):
 
 
 NGINX_DEADLINES = ("client_header_timeout 10s;", "client_body_timeout 30s;", "limit_conn leco_per_client 64;",
-                   "limit_conn_status 429;", "proxy_request_buffering off;", "proxy_pass http://${LECO_API_UPSTREAM};")
+                   "limit_conn_status 429;", "limit_req zone=leco_writes burst=60 nodelay;",
+                   "proxy_request_buffering off;", "proxy_pass http://${LECO_API_UPSTREAM};")
 
 
 def test_clients_reach_the_api_through_nginx_only(compose):
@@ -154,6 +157,23 @@ def test_clients_reach_the_api_through_nginx_only(compose):
     assert service["spec"]["ports"][0]["targetPort"] == 8080
     assert "kubectl create configmap leco-nginx --from-file=deploy/nginx.conf.template" in (
         ROOT / "deploy" / "README.md").read_text()
+
+
+def test_the_nginx_template_is_a_config_nginx_accepts(tmp_path):
+    """The template rendered as the nginx image renders it (envsubst of ${LECO_API_UPSTREAM}), checked by a real
+    nginx (`nginx -t`), where one is installed (Debian: apt-get install nginx)."""
+    nginx = shutil.which("nginx") or next((p for p in ("/usr/sbin/nginx",) if Path(p).exists()), None)
+    if nginx is None:
+        pytest.skip("nginx is not installed here (apt-get install nginx): the template's syntax is not checked")
+    template = (ROOT / "deploy" / "nginx.conf.template").read_text()
+    (tmp_path / "default.conf").write_text(template.replace("${LECO_API_UPSTREAM}", "127.0.0.1:8765"))
+    (tmp_path / "nginx.conf").write_text(
+        f"pid {tmp_path}/nginx.pid;\nerror_log {tmp_path}/error.log;\nevents {{}}\n"
+        f"http {{ access_log off; client_body_temp_path {tmp_path}; proxy_temp_path {tmp_path}; "
+        f"include {tmp_path}/default.conf; }}\n")
+    checked = subprocess.run([nginx, "-t", "-p", str(tmp_path), "-c", str(tmp_path / "nginx.conf")],
+                             capture_output=True, text=True, timeout=30)
+    assert checked.returncode == 0, checked.stderr
 
 
 def test_dockerfiles_are_pinned_and_copy_what_exists():
