@@ -73,7 +73,8 @@ def test_exploration_gives_the_dropped_bins_their_share_of_the_samples():
     keep[0, [2, 3]] = True
     keep[1] = True  # a ray that keeps every bin has nothing to explore
     mass = torch.rand(2, 8, generator=torch.Generator().manual_seed(2)) + 0.01
-    assert explored(keep, mass, edges, 0.0) == (keep, mass)
+    unchanged = explored(keep, mass, edges, 0.0)
+    assert unchanged[0] is keep and unchanged[1] is mass  # share 0: the kept bins and the mass as they were
     everywhere, spread = explored(keep, mass, edges, 0.2)
     assert everywhere.all() and torch.equal(spread[1], mass[1]) and torch.equal(spread[0, [2, 3]], mass[0, [2, 3]])
     assert float(spread[0, ~keep[0]].sum() / spread[0].sum()) == pytest.approx(0.2)  # the dropped bins' share
