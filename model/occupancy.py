@@ -36,6 +36,7 @@ class OccupancyPredictor:
 
     @torch.no_grad()
     def occupied(self, points: Tensor) -> Tensor:
+        points = points.to(next(self.network.parameters()).device)  # the estimator interface takes any device
         out = [self.network.occupied(points[s : s + self.chunk], self.empty_threshold)
                for s in range(0, len(points), self.chunk)]
         return torch.cat(out) if out else torch.zeros(0, dtype=torch.bool, device=points.device)

@@ -43,7 +43,7 @@ class OccupancyGrid:
 
     def occupied(self, points: Tensor) -> Tensor:
         """Estimator interface shared with OccupancyPredictor; points outside the box are free."""
-        index, inside = self._cell_index(points)
+        index, inside = self._cell_index(points.to(self.aabb.device))
         return self.binary[index] & inside
 
     @torch.no_grad()

@@ -26,7 +26,7 @@ def render_background(background: BackgroundField, rays: RayBatch, samples: int,
     r = len(rays)
     sigma, rgb = background(xyz.reshape(-1, 3), rays.directions.repeat_interleave(samples, 0),
                             rays.image_index.repeat_interleave(samples, 0))
-    return composite_batched(sigma.reshape(r, samples), rgb.reshape(r, samples, 3), t, deltas, torch.zeros(3))
+    return composite_batched(sigma.reshape(r, samples), rgb.reshape(r, samples, 3), t, deltas, sigma.new_zeros(3))
 
 
 def field_on_edges(field, rays: RayBatch, edges: Tensor) -> tuple[FieldOutput, Tensor, Tensor]:

@@ -187,5 +187,5 @@ def guided_samples(near: Tensor, far: Tensor, origins: Tensor, directions: Tenso
     dilation and fallback; model/sample_accounting.py counts what reaches the main network)."""
     draw = draw_guided(near, far, origins, directions, occupied, num_coarse, split, generator, **options)
     hits = far > near
-    kept = draw.occupied_bins[hits].float().mean() if bool(hits.any()) else torch.zeros(())
+    kept = draw.occupied_bins[hits].float().mean() if bool(hits.any()) else near.new_zeros(())
     return draw.samples, kept

@@ -218,7 +218,9 @@ def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, b
         raise (RunGaveUp if failure.get("retryable") else RunError)(failure["reason"])
     if (run_dir / "stopped.json").exists():
         raise RunInterrupted(json.loads((run_dir / "stopped.json").read_text())["reason"])
-    evaluation = evaluate_run(run_dir)
+    # On a GPU when this process has one (a Ray driver may not): a paper-size model's full-resolution views
+    # take minutes on a CPU.
+    evaluation = evaluate_run(run_dir, "cuda" if cfg.use_gpu and torch.cuda.is_available() else "cpu")
     summary = summarise(cfg, run_dir, evaluation, time.perf_counter() - started)
     write_json(run_dir / SUMMARY, summary)
     return summary

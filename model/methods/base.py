@@ -24,7 +24,8 @@ from model.profiles import Profile
 from model.rendering import Rendered
 from model.scenes.rays import RayBatch
 
-Occupied = Callable[[Tensor], Tensor]  # world points (N, 3) -> bool (N,): the estimator interface
+# The estimator interface: world points (N, 3) on any device -> bool (N,) on the estimator's own device.
+Occupied = Callable[[Tensor], Tensor]
 
 
 def count(*modules: nn.Module) -> int:

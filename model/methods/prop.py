@@ -164,7 +164,7 @@ class ProposalMethod(Method):
     def proposal_grid(self, models: Networks) -> OccupancyGrid:
         """The last proposal level's density through one full update of an occupancy grid: the grid's rule."""
         g, network = self.profile.grid, models.proposals[-1]
-        grid = OccupancyGrid(self.aabb, g.resolution)
+        grid = OccupancyGrid(self.aabb, g.resolution).to(next(network.parameters()).device)
         was = network.training
         network.eval()
         grid.update(0, network, grid_step_size(grid, g.march_steps), g.threshold, g.decay, warmup_steps=1, every=1,

@@ -93,6 +93,7 @@ class OccupancyGrid:
 
     def lookup(self, points: Tensor) -> Tensor:
         """Occupancy at world points; points outside the grid read as free."""
+        points = points.to(self.occupied.device)  # the estimator interface takes points on any device
         ijk = torch.floor((points.double() - self.aabb[0].double()) / self.cell_size.double()).long()
         shape = torch.tensor(self.occupied.shape)
         inside = ((ijk >= 0) & (ijk < shape)).all(dim=-1)

@@ -1,0 +1,51 @@
+#!/usr/bin/env bash
+# The GPU check, for a machine with one CUDA device and a Python whose torch sees it (the project's other
+# dependencies installed, or at least pydantic on PYTHONPATH: the training stack needs nothing else).
+#   bench/gpu-check.sh [OUT]     (default OUT: gpu-check/)
+# 1. tests/test_cuda.py: every method trains on the GPU and its model scores the same on the CPU.
+# 2. LeCO against proposal networks on the synthetic city at the `cpu` profile, equal wall-clock budgets on
+#    the GPU (GPU_PAIR_MIN minutes each, default 2).
+# 3. Every method at the `paper` profile for GPU_PAPER_MIN minutes (default 0.25): rays/s and peak memory
+#    at the paper's sizes (too short to compare quality).
+# Each step has its own time limit and leaves its logs and reports in OUT as soon as it ends, so a step that
+# runs out of time still leaves the ones before it. About 8.5 minutes in all on an H200. docs/BENCHMARKS.md "On a GPU" has the results.
+set -u
+OUT=${1:-gpu-check}
+PY=${PYTHON:-python3}
+PAIR_MIN=${GPU_PAIR_MIN:-2}
+PAPER_MIN=${GPU_PAPER_MIN:-0.25}
+export PYTHONUNBUFFERED=1
+mkdir -p "$OUT"
+
+# `leco bench` without the service's command line (whose imports need the database libraries)
+BENCH=("$PY" -c 'import argparse, sys
+from bench.cli import add_commands
+parser = argparse.ArgumentParser(prog="leco")
+add_commands(parser.add_subparsers())
+args = parser.parse_args(sys.argv[1:])
+sys.exit(args.func(args))' bench)
+
+{
+    date -u
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
+    "$PY" -c 'import torch; print("torch", torch.__version__, "cuda", torch.version.cuda, torch.cuda.get_device_name(0))'
+    nproc
+} >"$OUT/env.txt" 2>&1
+
+timeout 150 "$PY" -m pytest -q -s -p no:cacheprovider tests/test_cuda.py >"$OUT/test_cuda.log" 2>&1
+echo "test_cuda rc=$?" >>"$OUT/env.txt"
+
+[ -d scenes/city-0 ] || "$PY" -c 'from model.scenes.synthetic import generate; generate("city", 0, "scenes/city-0")'
+
+timeout 330 "${BENCH[@]}" --scene scenes/city-0 --profile cpu --gpu --budget-min "$PAIR_MIN" --methods leco,prop \
+    --seeds 0 --out gpu-bench/city-pair >"$OUT/pair.log" 2>&1
+echo "pair rc=$?" >>"$OUT/env.txt"
+cp gpu-bench/city-pair/report.md "$OUT/pair-report.md" 2>/dev/null
+cp gpu-bench/city-pair/results.json "$OUT/pair-results.json" 2>/dev/null
+
+timeout 240 "${BENCH[@]}" --scene scenes/city-0 --profile paper --gpu --budget-min "$PAPER_MIN" --seeds 0 \
+    --eval-views 1 --out gpu-bench/city-paper >"$OUT/paper.log" 2>&1
+echo "paper rc=$?" >>"$OUT/env.txt"
+cp gpu-bench/city-paper/report.md "$OUT/paper-report.md" 2>/dev/null
+cp gpu-bench/city-paper/results.json "$OUT/paper-results.json" 2>/dev/null
+cat "$OUT/env.txt"
