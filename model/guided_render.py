@@ -15,7 +15,7 @@ from model.main_phase import MainRender, composite_field, cull_occluded, field_o
 from model.occupancy import OccupancyQuery
 from model.occupancy_phase import render_background
 from model.online_occupancy import OnlineOccupancy
-from model.placement import confident_bins, explored, placed_samples, placement_loss
+from model.placement import confident_bins, explored, placed_samples, placement_loss, subdivided, within_bin_shares
 from model.profiles import GuidedConfig, Profile
 from model.rendering import Rendered, batched_weights
 from model.samplers import PackedSamples, draw_guided, pack_edges, stratified_edges
@@ -48,6 +48,9 @@ class Placer:
         keep = confident_bins(keep, weights, g.placement_min_share)
         keep, mass = explored(keep, weights + g.placement_padding, edges, g.placement_explore)
         if not g.placement_fine:
+            if g.placement_within != "uniform":
+                shares = within_bin_shares(g.placement_within, mass, sigma, edges)
+                edges, keep, mass = subdivided(edges, keep, mass, shares)
             return placed_samples(edges, keep, mass, g.main_samples, self.generator)
         density = lambda t: self.density(rows, t, grad=self.learn)  # noqa: E731
         samples, self.fine = fine_samples(rows, edges, keep, mass, g.placement_fine,

@@ -51,6 +51,51 @@ def placed_samples(edges: Tensor, keep: Tensor, weights: Tensor, n: int,
     return PackedSamples(t_mid - 0.5 * delta, t_mid + 0.5 * delta, ray)
 
 
+WITHIN = ("uniform", "linear", "volume")  # guided.placement_within
+SUBBINS = 4  # sub-bins per coarse bin that a non-uniform within-bin shape is drawn at
+
+
+def within_bin_shares(kind: str, mass: Tensor, sigma: Tensor, edges: Tensor, k: int = SUBBINS) -> Tensor:
+    """(R, B, k): how each coarse bin's mass splits over its k equal sub-bins (each row sums to 1).
+    uniform: evenly (one histogram bin, one flat density). linear: a density that varies linearly across the
+    bin, from the mean with the bin in front to the mean with the bin behind (`mass` / width, dropped bins 0, the
+    ray's ends flat), rescaled to keep the bin's mass. volume: the weight a constant density `sigma` (R, B) puts
+    along the bin by volume rendering (eq. 3), which is the shape O's histogram already assumes: an opaque bin's
+    weight sits at its front, a faint one's spreads evenly."""
+    r, b = mass.shape
+    x = (torch.arange(k, device=mass.device, dtype=mass.dtype) + 0.5) / k
+    if kind == "uniform":
+        return torch.full((r, b, k), 1.0 / k, device=mass.device, dtype=mass.dtype)
+    width = (edges[:, 1:] - edges[:, :-1]).to(mass.dtype)
+    if kind == "linear":
+        d = mass / width.clamp(min=1e-30)
+        front = torch.cat([d[:, :1], d[:, :-1]], -1)
+        behind = torch.cat([d[:, 1:], d[:, -1:]], -1)
+        a, z = 0.5 * (front + d), 0.5 * (d + behind)
+        profile = a[..., None] + (z - a)[..., None] * x
+        total = profile.sum(-1, keepdim=True)
+        return torch.where(total > 0, profile / total.clamp(min=1e-30), torch.full_like(profile, 1.0 / k))
+    if kind == "volume":
+        tau = (sigma.to(mass.dtype) * width).clamp(min=0, max=60.0)[..., None]
+        steps = torch.arange(k + 1, device=mass.device, dtype=mass.dtype) / k
+        through = torch.exp(-tau * steps)  # transmittance from the bin's front to each sub-bin edge
+        share = (through[..., :-1] - through[..., 1:]) / (1 - through[..., -1:]).clamp(min=1e-30)
+        faint = tau < 1e-4  # no measurable absorption: evenly, as the limit of the shape
+        return torch.where(faint, torch.full_like(share, 1.0 / k), share)
+    raise ValueError(f"within-bin shape {kind!r}: choose one of {', '.join(WITHIN)}")
+
+
+def subdivided(edges: Tensor, keep: Tensor, mass: Tensor, shares: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The bins cut into k equal sub-bins, each taking its share (R, B, k) of its bin's mass and its bin's keep:
+    (edges (R, B * k + 1), keep (R, B * k), mass (R, B * k)) for `placed_samples`."""
+    r, b, k = shares.shape
+    steps = torch.arange(k, device=edges.device, dtype=edges.dtype) / k
+    starts = edges[:, :-1, None] + (edges[:, 1:] - edges[:, :-1])[..., None] * steps
+    fine_edges = torch.cat([starts.reshape(r, b * k), edges[:, -1:]], -1)
+    fine_keep = keep[..., None].expand(r, b, k).reshape(r, b * k)
+    return fine_edges, fine_keep, (mass[..., None] * shares).reshape(r, b * k)
+
+
 def confident_bins(keep: Tensor, weights: Tensor, min_share: float) -> Tensor:
     """The kept bins (R, B) holding at least `min_share` of their ray's kept histogram `weights` (R, B); a ray
     where none does keeps its heaviest kept bin, and a ray without any weight keeps them all, so every ray that

@@ -3,6 +3,8 @@ later stages (training config, API, benchmark) embed rather than copy. See docs/
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 MAX_STEPS = 10_000_000  # per phase; `leco bench --budget-min` uses this as "until the clock stops"
@@ -119,6 +121,10 @@ class GuidedConfig(Frozen):
     # This share of each hit ray's main samples goes to the bins O dropped, by length (model/placement.py
     # `explored`), so the main network can show O a surface it dropped (0: samples only in kept bins)
     placement_explore: float = Field(0.0, ge=0, lt=1)
+    # How a kept bin's share of the samples spreads inside it (model/placement.py `within_bin_shares`): evenly
+    # (uniform), by a density linear across the bin from its neighbours' (linear), or as O's constant density
+    # in the bin puts its weight by volume rendering, towards the front of an opaque bin (volume)
+    placement_within: Literal["uniform", "linear", "volume"] = "uniform"
 
     @model_validator(mode="after")
     def options_need_their_switch(self) -> "GuidedConfig":
@@ -135,6 +141,9 @@ class GuidedConfig(Frozen):
         if self.placement_every > 1 and not self.placement:
             raise ValueError("guided.placement_every needs guided.placement=true (it spaces O's placement updates); "
                              "with guided.placement=false set guided.placement_every=1 too")
+        if self.placement_within != "uniform" and (not self.placement or self.placement_fine):
+            raise ValueError("guided.placement_within needs guided.placement=true and guided.placement_fine=0 (it "
+                             "shapes the one-pass draw); otherwise leave guided.placement_within=uniform")
         if self.placement_explore > 0 and not self.placement:
             raise ValueError("guided.placement_explore needs guided.placement=true (it shares O's placement budget); "
                              "with guided.placement=false set guided.placement_explore=0 too")

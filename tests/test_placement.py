@@ -174,3 +174,58 @@ def test_a_guided_option_without_its_switch_is_refused_naming_both():
     with pytest.raises(ValidationError, match="guided.placement_explore needs guided.placement=true"):
         GuidedConfig(placement_explore=0.05)
     assert GuidedConfig(fallback=True, fallback_topk=2, placement=True, placement_in_phase1=True).fallback_topk == 2
+
+
+def test_within_bin_shares_keep_each_bins_mass_and_take_the_shape_asked():
+    from model.placement import within_bin_shares
+
+    edges = torch.tensor([[0.0, 1.0, 2.0, 3.0, 4.0]])
+    mass = torch.tensor([[0.1, 1.0, 4.0, 0.0]])  # the last bin dropped (no mass)
+    sigma = torch.tensor([[0.0, 0.01, 50.0, 50.0]])
+    for kind in ("uniform", "linear", "volume"):
+        shares = within_bin_shares(kind, mass, sigma, edges, k=4)
+        assert shares.shape == (1, 4, 4) and torch.allclose(shares.sum(-1), torch.ones(1, 4))
+    assert torch.equal(within_bin_shares("uniform", mass, sigma, edges, k=4), torch.full((1, 4, 4), 0.25))
+    linear = within_bin_shares("linear", mass, sigma, edges, k=4)[0]
+    # bin 1 lies between a light bin and a heavy one: its density rises towards the heavy one
+    assert (linear[1, 1:] > linear[1, :-1]).all()
+    # the heavy bin 2 has the dropped bin behind it: it falls towards it
+    assert (linear[2, 1:] < linear[2, :-1]).all()
+    volume = within_bin_shares("volume", mass, sigma, edges, k=4)[0]
+    assert torch.allclose(volume[0], torch.full((4,), 0.25))  # no density: evenly
+    assert torch.allclose(volume[1], torch.full((4,), 0.25), atol=2e-3)  # faint: nearly evenly
+    assert volume[2, 0] > 0.99  # opaque (tau 50): the weight is at the bin's front, as volume rendering puts it
+    with pytest.raises(ValueError, match="within-bin shape 'cubic'"):
+        within_bin_shares("cubic", mass, sigma, edges)
+
+
+@pytest.mark.parametrize("kind", ["linear", "volume"])
+def test_a_shaped_draw_is_still_exactly_n_per_ray_sorted_inside_the_kept_bins(kind):
+    from model.placement import subdivided, within_bin_shares
+
+    near, far, edges = coarse()
+    keep = torch.zeros(5, 8, dtype=torch.bool)
+    keep[:, [1, 2, 5]] = True
+    mass = (torch.rand(5, 8, generator=torch.Generator().manual_seed(1)) + 0.01) * keep
+    sigma = torch.full((5, 8), 30.0)
+    shares = within_bin_shares(kind, mass, sigma, edges)
+    fine_edges, fine_keep, fine_mass = subdivided(edges, keep, mass, shares)
+    assert fine_edges.shape == (5, 33) and torch.allclose(fine_mass.reshape(5, 8, 4).sum(-1), mass)
+    samples = placed_samples(fine_edges, fine_keep, fine_mass, 21, torch.Generator().manual_seed(2))
+    mids = samples.mids.reshape(5, 21)
+    assert (mids[:, 1:] > mids[:, :-1]).all() and (samples.deltas > 0).all()
+    width = (far - near) / 8
+    position = (mids - near[:, None]) / width[:, None]
+    assert keep.gather(1, position.floor().long().clamp(0, 7)).all()
+    if kind == "volume":  # opaque bins: the samples crowd each kept bin's front quarter
+        assert (position.frac() < 0.25).float().mean() > 0.9
+
+
+def test_a_within_bin_shape_needs_the_one_pass_placement():
+    from model.profiles import GuidedConfig
+
+    assert GuidedConfig(placement=True, placement_within="volume").placement_within == "volume"
+    with pytest.raises(ValueError, match="guided.placement_within needs guided.placement=true"):
+        GuidedConfig(placement_within="linear")
+    with pytest.raises(ValueError, match="placement_fine=0"):
+        GuidedConfig(placement=True, placement_fine=8, placement_within="linear")
