@@ -245,7 +245,7 @@ def test_an_archive_without_files_is_refused(tmp_path, kind):
     assert refused(archive, tmp_path) == "archive holds no files"
 
 
-# --- issue 17: bombs behind the end marker, huge zip directories, deep paths ---------------------------------
+# --- Bombs behind the end marker, huge zip directories, deep paths -----------------------------------------
 
 @pytest.mark.parametrize("mode", ["w:bz2", "w:gz", "w:xz"])
 def test_data_after_the_tar_end_marker_counts_against_the_limits(tmp_path, mode):

@@ -274,7 +274,7 @@ def test_unknown_format_and_missing_path(tmp_path):
         load_scene(tmp_path, downscale=0)
 
 
-# --- Paths that lead out of the scene folder (issue 17) -------------------------------------------------------
+# --- Paths that lead out of the scene folder -----------------------------------------------------------------
 
 def test_blender_file_path_outside_the_scene(blender, tmp_path):
     shutil.copy(blender / "train" / "r_0.png", tmp_path / "elsewhere.png")

@@ -1,4 +1,4 @@
-"""Camera paths (issue 20): generated orbits, fly-overs and spirals are rigid poses that look where they should;
+"""Camera paths: generated orbits, fly-overs and spirals are rigid poses that look where they should;
 user paths convert from the dataset's frame to the world and back; what is not a camera is refused by name."""
 
 import json

@@ -126,7 +126,7 @@ def sessionStorage_token(page) -> str:
 
 
 def test_the_dashboard_renders_videos_and_views_a_finished_job(service):
-    """Issue 20 on the page: a render submitted from the job view's form plays in a <video> (H.264 through a
+    """On the page: a render submitted from the job view's form plays in a <video> (H.264 through a
     blob: URL, under the Content-Security-Policy), a bad one shows the API's 422; the viewer answers a drag with
     low-resolution frames and a sharp one once the pointer rests; two of its cameras render as a path."""
     from playwright.sync_api import expect, sync_playwright

@@ -1,4 +1,4 @@
-"""Geometry exports in the dataset's own frame and units (issue 20): the cameras of real scenes come back as the
+"""Geometry exports in the dataset's own frame and units: the cameras of real scenes come back as the
 dataset wrote them (lego's transforms, fern's poses_bounds), points land inside the source-frame foreground box,
 and the transform written beside maps them to the world the networks live in."""
 

@@ -1,4 +1,4 @@
-"""Fencing (issue 17, item 6): every write of a run carries its attempt and is refused once another attempt
+"""Fencing: every write of a run carries its attempt and is refused once another attempt
 holds the job; lease and database-retry settings cannot contradict each other; and a database outage longer
 than the lease ends with one writer per step, a gap-free metric series and no duplicate."""
 
@@ -26,7 +26,7 @@ def test_a_retry_budget_that_outlives_the_lease_is_refused_at_start_up(monkeypat
     with pytest.raises(ValueError, match="shorter than three quarters of LECO_LEASE_S"):
         Settings(lease_s=60.0, db_retry_s=50.0)  # 50 s of waiting > 45 s the lease surely lasts
     monkeypatch.setenv("LECO_LEASE_S", "60")
-    monkeypatch.setenv("LECO_DB_RETRY_S", "120")  # the combination issue 17 found: a 60-120 s outage splits a job
+    monkeypatch.setenv("LECO_DB_RETRY_S", "120")  # a 60-120 s outage splits a job
     with pytest.raises(ValueError, match=r"invalid service settings: .*LECO_DB_RETRY_S \(120 s\).*LECO_LEASE_S \(60 s"):
         Settings.from_env()
     monkeypatch.setenv("LECO_DB_RETRY_S", "40")

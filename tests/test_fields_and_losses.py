@@ -1,4 +1,4 @@
-"""Networks and losses of issue 3's first slice: encodings, Switch-NeRF, HMoE, Eq. 1 and Eq. 2."""
+"""Networks and losses: encodings, Switch-NeRF, HMoE, Eq. 1 and Eq. 2."""
 
 import pytest
 import torch

@@ -1,4 +1,4 @@
-"""The guided sampler's options (issue 16): jittered queries, dilation, the fallback for rays with nothing kept.
+"""The guided sampler's options: jittered queries, dilation, the fallback for rays with nothing kept.
 Every option must keep the packed invariants: samples grouped by ray in increasing t, inside [near, far]."""
 
 import pytest

@@ -1,4 +1,4 @@
-"""The API's memory estimate (issue 17) against what a real step keeps, and its cost whatever the sizes."""
+"""The API's memory estimate against what a real step keeps, and its cost whatever the sizes."""
 
 import time
 

@@ -1,4 +1,4 @@
-"""Methods have one home (issue 19): a method is a class behind model/methods/base.py plus one registry line.
+"""Methods have one home: a method is a class behind model/methods/base.py plus one registry line.
 A toy method registered here trains through `leco train` and through the API without any other module
 knowing its name; the loop, evaluation, bench and API compare no method names."""
 

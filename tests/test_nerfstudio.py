@@ -129,7 +129,7 @@ def test_sparse_points_from_ply(nerfstudio, binary):
 
 @pytest.mark.parametrize("field", ["file_path", "ply_file_path"])
 def test_paths_outside_the_scene_are_refused_alike_whether_they_exist(nerfstudio, tmp_path, field):
-    """Issue 17: a named path that is absolute or climbs out is refused before it is opened, and the answer
+    """A named path that is absolute or climbs out is refused before it is opened, and the answer
     does not tell whether the target exists."""
     (tmp_path / "other").mkdir()
     shutil.copy(nerfstudio / "images" / "r_0.png", tmp_path / "other" / "stolen.png")

@@ -1,4 +1,4 @@
-"""O learning during the main phase (guided.online, issue 16): which bins teach what, that the signal finds a
+"""O learning during the main phase (guided.online): which bins teach what, that the signal finds a
 surface O missed, and that a LeCO run with it trains, saves the O it ended with and reports O's loss."""
 
 import json

@@ -1,4 +1,4 @@
-"""Issue 18 item 3: the evaluated permutation behind the memory-flat ray sampler."""
+"""The evaluated permutation behind the memory-flat ray sampler."""
 
 import pytest
 import torch

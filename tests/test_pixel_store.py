@@ -1,4 +1,4 @@
-"""Issue 18 item 2: the memory-mapped pixel store: exact contents, atomic and resumable builds, corruption and
+"""The memory-mapped pixel store: exact contents, atomic and resumable builds, corruption and
 changed sources detected and rebuilt, one builder among concurrent ranks."""
 
 import json

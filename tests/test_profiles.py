@@ -16,7 +16,7 @@ def test_paper_profile_has_the_papers_numbers():
     assert (p.occupancy.samples_per_ray, p.occupancy.steps, p.occupancy.v) == (512, 40_000, 80.0)
     assert (p.occupancy.w_r, p.occupancy.w_g, p.occupancy.w_d) == (1.0, 5e-4, 0.1)
     assert (p.guided.coarse_samples, p.guided.split) == (128, 8)
-    g, o = p.guided, p.occupancy  # the paper's formulation: none of issue 16's settings
+    g, o = p.guided, p.occupancy  # the paper's formulation: none of the settings beyond the paper
     assert not (g.jitter or g.dilate or g.fallback or g.warm_start) and g.empty_threshold is None
     assert o.empty_gate_grad and o.w_v == 0 and o.lr_final is None and o.w_g_final is None
     assert (p.vanilla.coarse_samples, p.vanilla.fine_samples, p.rays_per_device) == (256, 512, 1024)

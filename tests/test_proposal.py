@@ -1,4 +1,4 @@
-"""S+Prop (issue 19): proposal networks sized to LeCO's O, inverse-CDF resampling level by level, the
+"""S+Prop: proposal networks sized to LeCO's O, inverse-CDF resampling level by level, the
 interlevel loss against the main network's detached weights, the anneal and the update schedule."""
 
 import pytest

@@ -1,4 +1,4 @@
-"""`leco render` and `leco export` on a run folder (issue 20): a video along a generated path, the same path
+"""`leco render` and `leco export` on a run folder: a video along a generated path, the same path
 rendered again from the camera path file it wrote (the dataset-frame round trip gives the same frames), a
 nerfstudio camera_path.json, exports, and bad input named on stderr."""
 

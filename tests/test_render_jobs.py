@@ -1,4 +1,4 @@
-"""Render, export and view of a finished job through the API (issue 20), on SQLite and PostgreSQL: bad input
+"""Render, export and view of a finished job through the API, on SQLite and PostgreSQL: bad input
 is refused naming the field and queues nothing; a render job runs on a dispatcher like training, survives a
 dispatcher stopping mid-render (the next attempt renders again and replaces, never duplicates, the video);
 exports and views come from the stored final networks."""

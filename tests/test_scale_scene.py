@@ -1,4 +1,4 @@
-"""The scale scene (issue 18) built small: views are crops of shared renders, and a crop is an exact image of
+"""The scale scene built small: views are crops of shared renders, and a crop is an exact image of
 its camera (the principal point shifted by its offset), so crops of one render agree pixel for pixel. Loading
 it reads headers only; its pixels reach a run through the store, one image decoded at a time."""
 

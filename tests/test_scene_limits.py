@@ -1,4 +1,4 @@
-"""Issue 17 item 7: a dataset's small files cannot make a reader allocate what their headers claim, and a
+"""A dataset's small files cannot make a reader allocate what their headers claim, and a
 scene's images decode within a pixel budget. Each refusal is a SceneError naming the file and the limit,
 raised before the allocation."""
 

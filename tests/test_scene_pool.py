@@ -1,4 +1,4 @@
-"""Issue 17 item 7: scene registration is bounded work in the API process, on SQLite and PostgreSQL. A full
+"""Scene registration is bounded work in the API process, on SQLite and PostgreSQL. A full
 scene pool answers 429 with Retry-After before an upload's body is read; a scene over the pixel budget is
 refused with nothing stored; /cameras answers from the layout kept at registration, without decoding."""
 

@@ -406,7 +406,7 @@ def test_every_v1_route_needs_the_token_and_health_does_not(api):
 
 
 def test_the_token_is_checked_and_the_body_capped_before_the_body_is_read(api):
-    """Issue 17: no token -> 401 whatever the body (malformed, huge); a token and a huge JSON body -> 413."""
+    """No token -> 401 whatever the body (malformed, huge); a token and a huge JSON body -> 413."""
     from fastapi.testclient import TestClient
 
     from service.api.gate import MAX_JSON_BODY
@@ -472,7 +472,7 @@ def test_a_render_body_of_the_documented_maximum_of_cameras_passes_the_body_cap(
     ("scene", "DIGITS", ""),  # 5,000 digits, more than Python parses into an int by default
 ])
 def test_job_configs_are_bounded_on_both_sides_and_finite(api, field, value, named):
-    """Issue 17: every number has an upper bound and must be finite; 422 names the field, nothing is stored."""
+    """Every number has an upper bound and must be finite; 422 names the field, nothing is stored."""
     import json
 
     body = json.dumps({"scene": 1, "method": "leco", "profile": "smoke", field: value}).replace('"DIGITS"', "9" * 5000)
@@ -484,7 +484,7 @@ def test_job_configs_are_bounded_on_both_sides_and_finite(api, field, value, nam
 
 
 def test_a_job_that_cannot_fit_its_slot_is_refused_with_the_estimate(api):
-    """Issue 17: the API estimates a job's peak memory (model/memory_estimate.py) and refuses what cannot fit."""
+    """The API estimates a job's peak memory (model/memory_estimate.py) and refuses what cannot fit."""
     scene = ready_scene(api)
 
     def submit(**body):
@@ -513,7 +513,7 @@ def test_a_job_that_cannot_fit_its_slot_is_refused_with_the_estimate(api):
     "/v1/jobs/1/metrics?after_step=99999999999", "/v1/jobs/99999999999", "/healthz?x=%00",
 ])
 def test_nul_bytes_and_huge_numbers_in_paths_and_queries_are_4xx(api, path):
-    """Issue 17: these gave 500 on PostgreSQL (NUL in a string literal) or in int() (5,000 digits)."""
+    """These gave 500 on PostgreSQL (NUL in a string literal) or in int() (5,000 digits)."""
     answer = api.get(path)
     assert answer.status_code < 500, (path, answer.status_code, answer.text[:200])
     if "%00" in path:
@@ -573,7 +573,7 @@ def test_security_headers_and_the_dashboards_content_security_policy(api):
 
 
 def test_an_idempotent_job_and_its_recorded_answer_commit_together(api, monkeypatch):
-    """Issue 17: a failure between writing the job and recording the key's answer used to leave a job whose
+    """A failure between writing the job and recording the key's answer used to leave a job whose
     key a retry would not find, so the retry made a second job. Now both roll back and the retry makes one."""
     from fastapi.testclient import TestClient
 

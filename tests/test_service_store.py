@@ -93,7 +93,7 @@ def test_prune_keeps_the_newest_checkpoints(store_and_job):
 
 
 def test_what_a_crash_leaves_behind_is_collected_and_nothing_else(store_and_job):
-    """Issue 17: a staged file or a placed blob whose row never committed (a crash between the steps) is
+    """A staged file or a placed blob whose row never committed (a crash between the steps) is
     removed by `collect_orphans` (`leco db gc`, and at start-up); stored artifacts and fresh staging stay."""
     import os
     import time

@@ -1,4 +1,4 @@
-"""The validation protocol (issue 16): no validation view is coloured by an embedding the run never trained.
+"""The validation protocol: no validation view is coloured by an embedding the run never trained.
 Right halves are scored; every embedding the phase renders with starts from the mean of the training
 views' embeddings and is fitted on left-half pixels, with the networks frozen."""
 
