@@ -8,7 +8,7 @@
 # 3. Every method at the `paper` profile for GPU_PAPER_MIN minutes (default 0.25): rays/s and peak memory
 #    at the paper's sizes (too short to compare quality).
 # Each step has its own time limit and leaves its logs and reports in OUT as soon as it ends, so a step that
-# runs out of time still leaves the ones before it. About 8.5 minutes in all on an H200. docs/BENCHMARKS.md "On a GPU" has the results.
+# runs out of time still leaves the ones before it. About 8.5 minutes in all on an H200. docs/BENCHMARKS.md "GPU" has the results.
 set -u
 OUT=${1:-gpu-check}
 PY=${PYTHON:-python3}
