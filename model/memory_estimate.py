@@ -1,6 +1,6 @@
 """A job's peak training memory per rank, estimated before it runs, so the API can refuse a job that
-cannot fit where it would run instead of letting a worker be OOM-killed. The networks are built on PyTorch's
-meta device (shapes only, no storage), so the estimate costs nothing whatever sizes a request asks for.
+cannot fit where it would run instead of letting a worker be OOM-killed. Parameter counts come from the
+profile's numbers (model/sizes.py, no PyTorch), so the estimate costs nothing whatever sizes a request asks for.
 Activations use the bytes autograd keeps per main-network sample, which matches the measured
 `activation_memory_mb` of the `cpu` profile within 5% for vanilla Switch-NeRF (98 estimated vs 103 MB); a
 validation render holds a chunk of rays' samples at once without gradient, which is what sets a small run's
@@ -10,7 +10,7 @@ peak. Against measured peak RSS on the city (`cpu`, docs/BENCHMARKS.md): vanilla
 from __future__ import annotations
 
 from model.methods import get_method
-from model.methods.base import PhaseMemory
+from model.methods.spec import PhaseMemory
 from model.profiles import Profile
 
 BYTES_PER_PARAMETER = 16  # fp32 weights, gradients and Adam's two moments
@@ -32,9 +32,9 @@ def live_bytes_per_sample(width: int) -> int:
 
 def estimate_peak_bytes(method: str, profile: Profile, num_images: int) -> dict:
     """Per-rank peak bytes and its parts (each naming the settings that drive it): the worst phase of the
-    method's (model/methods/base.py PhaseMemory) for each part."""
+    method's (its registry entry's memory model, model/methods/costs.py) for each part."""
     n, b = profile.network, profile.background
-    phases: dict[str, PhaseMemory] = get_method(method)(profile).memory(num_images)
+    phases: dict[str, PhaseMemory] = get_method(method).memory(profile, num_images)
     per_sample = saved_bytes_per_sample(n.width, n.expert_layers)
     behind = profile.rays_per_device * b.samples * 4 * (2 * b.layers * b.width + 100)
     rays = profile.rays_per_device

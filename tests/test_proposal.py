@@ -4,9 +4,10 @@ interlevel loss against the main network's detached weights, the anneal and the 
 import pytest
 import torch
 
+from model import sizes
 from model.fields.proposal import ProposalDensity
 from model.methods import get_method
-from model.methods.prop import occupancy_network_parameters, proposal_width
+from model.methods.costs import proposal_width
 from model.model_info import model_info
 from model.profiles import get_profile
 from model.proposal_sampling import UpdateSchedule, anneal_power, interlevel_loss, outer_weights, pdf_edges
@@ -16,12 +17,12 @@ from model.scenes.rays import RayBatch
 @pytest.mark.parametrize("profile,expected,o", [("cpu", 13_888, 13_962), ("paper", 153_760, 153_865)])
 def test_proposals_total_the_parameters_of_lecos_occupancy_network(profile, expected, o):
     p = get_profile(profile)
-    assert occupancy_network_parameters(p) == o
+    assert sizes.occupancy_network(p) == o
     assert model_info("prop", p)["components"]["proposal_networks"] == expected
     width = proposal_width(p)
     built = ProposalDensity(width, p.prop.layers, p.network.xyz_frequencies)
     assert sum(x.numel() for x in built.parameters()) * len(p.prop.samples) == expected
-    assert len(p.prop.samples) * ProposalDensity.num_parameters(width + 1, p.prop.layers, 12) > o  # the widest fit
+    assert len(p.prop.samples) * sizes.proposal(width + 1, p.prop.layers, 12) > o  # the widest fit
 
 
 def test_pdf_edges_follow_the_histogram_and_stay_sorted_inside_it():

@@ -6,12 +6,15 @@ dotted key (`occupancy.steps=200`, `network.width=128`); the resolved profile is
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from model.methods import METHODS, Method, get_method
+from model.methods import METHODS, get_method
 from model.profiles import MAX_STEPS, PROFILES, Profile
+
+if TYPE_CHECKING:
+    from model.methods.base import Method
 
 MAX_WORKERS = 8
 
@@ -95,7 +98,7 @@ class TrainConfig(BaseModel):
         return get_method(self.method).phases
 
     def phase_steps(self, phase: str) -> int:
-        return self.method_for_run().phase_steps(phase)
+        return get_method(self.method).steps(self.resolved_profile(), phase)
 
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:

@@ -20,11 +20,6 @@ class ProposalDensity(nn.Module):
             body += [nn.Linear(a, b), nn.ReLU()]
         self.mlp = nn.Sequential(*body, nn.Linear(dims[-1], 1))
 
-    @staticmethod
-    def num_parameters(width: int, layers: int, xyz_frequencies: int) -> int:
-        inputs = 3 * (1 + 2 * xyz_frequencies)
-        return inputs * width + width + (layers - 1) * (width * width + width) + width + 1
-
     def forward(self, xyz: Tensor) -> Tensor:
         """(N,) density >= 0 at world points (N, 3)."""
         return F.softplus(self.mlp(self.encoding(xyz)).squeeze(-1) - 1.0)

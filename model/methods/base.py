@@ -10,9 +10,8 @@ predictor), which it checkpoints through `state_dict` / `load_state_dict`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, ClassVar
+from typing import Any, Callable
 
 import torch
 from torch import Tensor, nn
@@ -20,6 +19,7 @@ from torch import Tensor, nn
 from model.fields.background import BackgroundField
 from model.fields.switch_nerf import SwitchNeRF
 from model.main_phase import MainRender, main_loss
+from model.methods.spec import MethodSpec, PhaseMemory, SweepPoint
 from model.profiles import Profile
 from model.rendering import Rendered
 from model.scenes.rays import RayBatch
@@ -44,27 +44,6 @@ def background(profile: Profile, num_images: int) -> BackgroundField:
                            appearance_dim=n.appearance_dim, density_noise=n.density_noise)
 
 
-@dataclass(frozen=True)
-class PhaseMemory:
-    """What one phase of a method keeps per rank, for the memory estimate (model/memory_estimate.py)."""
-
-    trained: int  # parameters with gradients and Adam state
-    frozen: int = 0  # parameters only read
-    samples_per_ray: int = 0  # the most main-size network samples with gradient one ray can have
-    render_samples_per_ray: int = 0  # ... in a validation render (no gradient); 0: samples_per_ray
-    extra_bytes: int = 0  # state that is neither parameters nor activations (a grid's cells)
-    extra_bytes_per_ray: int = 0  # activations of the method's own small networks (proposal MLPs)
-
-
-@dataclass(frozen=True)
-class SweepPoint:
-    """One sampling budget of a method for `leco bench --sweep` (speed against error)."""
-
-    tag: str
-    text: str
-    overrides: dict = field(default_factory=dict)
-
-
 class Networks(nn.Module):
     """A run's trainable networks, named by the method that built them (checkpoints keep these names)."""
 
@@ -74,20 +53,21 @@ class Networks(nn.Module):
 
 
 class Method:
-    name: ClassVar[str]
-    label: ClassVar[str]  # the benchmark's row label
-    # "ours": the method the benchmark reports speed-ups for; "reference": the unguided method its equal-PSNR
-    # target and time ratios are measured against; "baseline": every other method.
-    role: ClassVar[str] = "baseline"
-    phases: ClassVar[tuple[str, ...]] = ("main",)
-    # Whether the method has an occupancy to score (the paper's Table 1 and the point cloud's filter).
-    has_occupancy: ClassVar[bool] = False
-    colour: ClassVar[str | None] = None  # in the benchmark's figures
-    # The benchmark's target for the proposed method's occupancy size against this one's (a fraction), if any.
-    occupancy_size_target: ClassVar[float | None] = None
+    """A method's training code. Its name, labels, phases and memory model are its registry entry's
+    (model/methods/spec.py), set as `spec` when the registry makes the object."""
+
+    spec: MethodSpec
 
     def __init__(self, profile: Profile):
         self.profile = profile
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    @property
+    def phases(self) -> tuple[str, ...]:
+        return self.spec.phases
 
     # ----- what a run of it costs, before it runs ---------------------------------------------------------
     def build(self, num_images: int, aabb: Tensor) -> Networks:
@@ -105,14 +85,8 @@ class Method:
                 "main.experts": count(main.experts), "main.heads": count(main.head),
                 "main.appearance": count(main.appearance), "background": count(behind)}
 
-    def main_samples_bound(self) -> int:
-        """The most main-network samples with gradient one ray can have in the main phase."""
-        raise NotImplementedError
-
     def memory(self, num_images: int) -> dict[str, PhaseMemory]:
-        with torch.device("meta"):
-            main = count(switch_nerf(self.profile, num_images), background(self.profile, num_images))
-        return {"main": PhaseMemory(trained=main, samples_per_ray=self.main_samples_bound())}
+        return self.spec.memory(self.profile, num_images)
 
     def sweep(self) -> list[SweepPoint]:
         """Sampling budgets around the profile's own for `leco bench --sweep` (none: not swept)."""
@@ -124,11 +98,11 @@ class Method:
         return self
 
     def phase_steps(self, phase: str) -> int:
-        return self.profile.main_steps
+        return self.spec.steps(self.profile, phase)
 
     def budget_share(self, phase: str) -> float | None:
         """The share of a wall-clock budget the phase stops at; None: whatever the phases before it left."""
-        return None
+        return self.spec.budget_share(self.profile, phase)
 
     def phase_lr(self, phase: str) -> tuple[float, float | None]:
         """(start, final) learning rate of the phase; the schedule decays log-linearly between them."""

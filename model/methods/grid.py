@@ -9,18 +9,12 @@ import torch
 from torch import Tensor
 
 from model.main_phase import MainRender, grid_step_size, render_grid
-from model.methods.base import Method, Networks, Occupied, PhaseMemory, SweepPoint, mean_of
+from model.methods.base import Method, Networks, Occupied, SweepPoint, mean_of
 from model.occupancy_grid import OccupancyGrid
 from model.scenes.rays import RayBatch
 
 
 class GridMethod(Method):
-    name = "grid"
-    label = "S+Grid"
-    colour = "#2ca02c"
-    has_occupancy = True
-    occupancy_size_target = 0.10  # the paper: 0.15M parameters instead of a 2M-cell grid
-
     grid: OccupancyGrid  # made by build()
 
     def build(self, num_images: int, aabb: Tensor) -> Networks:
@@ -29,15 +23,6 @@ class GridMethod(Method):
 
     def components(self, num_images: int) -> dict[str, int]:
         return {**super().components(num_images), "grid_cells": self.profile.grid.resolution**3}
-
-    def main_samples_bound(self) -> int:
-        return self.profile.grid.march_steps
-
-    def memory(self, num_images: int) -> dict[str, PhaseMemory]:
-        main = super().memory(num_images)["main"]
-        cells = self.profile.grid.resolution**3
-        return {"main": PhaseMemory(main.trained, samples_per_ray=main.samples_per_ray,
-                                    extra_bytes=5 * cells)}  # float values + occupied bits
 
     def sweep(self) -> list[SweepPoint]:
         n = self.profile.grid.march_steps

@@ -18,7 +18,6 @@ from model.methods.base import (
     Method,
     Networks,
     Occupied,
-    PhaseMemory,
     SweepPoint,
     background,
     count,
@@ -45,13 +44,6 @@ def hmoe(profile: Profile, num_images: int) -> HMoE:
 
 
 class LeCOMethod(Method):
-    name = "leco"
-    label = "S+Ours (LeCO)"
-    colour = "#d62728"
-    role = "ours"
-    phases = ("occupancy", "main")
-    has_occupancy = True
-
     def __init__(self, profile: Profile):
         super().__init__(profile)
         self.predictor: OccupancyPredictor | None = None
@@ -74,20 +66,6 @@ class LeCOMethod(Method):
                 "phase1.empty_expert_and_head": count(occ.empty_expert, occ.empty_head),
                 "phase1.appearance": count(occ.appearance), **super().components(num_images)}
 
-    def main_samples_bound(self) -> int:
-        g = self.profile.guided
-        return g.main_samples if g.placement else g.coarse_samples * g.split
-
-    def memory(self, num_images: int) -> dict[str, PhaseMemory]:
-        with torch.device("meta"):
-            occ, behind = hmoe(self.profile, num_images), count(background(self.profile, num_images))
-        main = super().memory(num_images)["main"]
-        gate = count(occ.gate)
-        samples = self.profile.occupancy.samples_per_ray
-        return {"occupancy": PhaseMemory(trained=count(occ) + behind, samples_per_ray=samples),
-                "main": PhaseMemory(trained=main.trained, frozen=gate, samples_per_ray=main.samples_per_ray,
-                                    render_samples_per_ray=max(main.samples_per_ray, samples))}
-
     def sweep(self) -> list[SweepPoint]:
         g = self.profile.guided
         cull = SweepPoint("cull", "culling T < 1e-3", {"guided.cull_transmittance": 1e-3})
@@ -101,12 +79,6 @@ class LeCOMethod(Method):
                            {"guided.coarse_samples": 2 * g.coarse_samples}), cull]
 
     # ----- a run --------------------------------------------------------------------------------------
-    def phase_steps(self, phase: str) -> int:
-        return self.profile.occupancy.steps if phase == "occupancy" else self.profile.main_steps
-
-    def budget_share(self, phase: str) -> float | None:
-        return self.profile.occupancy.budget_share if phase == "occupancy" else None
-
     def phase_lr(self, phase: str) -> tuple[float, float | None]:
         # Phase 1 at the occupancy lr, constant as in the paper unless occupancy.lr_final is set.
         if phase == "occupancy":

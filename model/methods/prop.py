@@ -17,8 +17,8 @@ from torch import Tensor, nn
 
 from model.fields.proposal import ProposalDensity
 from model.main_phase import MainRender, grid_step_size, main_loss, render_batched
-from model.methods.base import Method, Networks, Occupied, PhaseMemory, SweepPoint, count, mean_of
-from model.methods.leco import hmoe
+from model.methods.base import Method, Networks, Occupied, SweepPoint, mean_of
+from model.methods.costs import proposal_parameters, proposal_width
 from model.occupancy_grid import OccupancyGrid
 from model.occupancy_phase import render_background
 from model.profiles import Profile
@@ -28,35 +28,12 @@ from model.samplers import PackedSamples, pack_edges, stratified_edges
 from model.scenes.rays import RayBatch
 
 
-def occupancy_network_parameters(profile: Profile) -> int:
-    """LeCO's O at this profile: the size S+Prop's proposals are matched to."""
-    with torch.device("meta"):
-        return count(hmoe(profile, 1).gate)
-
-
-def proposal_width(profile: Profile) -> int:
-    """`prop.width`, or the widest proposal MLP whose levels together do not exceed O's parameter count."""
-    p = profile.prop
-    if p.width is not None:
-        return p.width
-    target, levels, f = occupancy_network_parameters(profile), len(p.samples), profile.network.xyz_frequencies
-    width = 4
-    while levels * ProposalDensity.num_parameters(width + 1, p.layers, f) <= target:
-        width += 1
-    return width
-
-
 def scatter(values: Tensor, index: Tensor, size: int, fill: float) -> Tensor:
     """(size,) filled with `fill`, `values` at `index`."""
     return torch.full((size,), fill, dtype=values.dtype, device=values.device).index_copy(0, index, values)
 
 
 class ProposalMethod(Method):
-    name = "prop"
-    label = "S+Prop"
-    colour = "#8c564b"
-    has_occupancy = True
-
     def __init__(self, profile: Profile):
         super().__init__(profile)
         self.schedule = UpdateSchedule(profile.prop.update_every, profile.prop.update_warmup)
@@ -72,21 +49,7 @@ class ProposalMethod(Method):
         return models
 
     def components(self, num_images: int) -> dict[str, int]:
-        p, width = self.profile.prop, proposal_width(self.profile)
-        one = ProposalDensity.num_parameters(width, p.layers, self.profile.network.xyz_frequencies)
-        return {"proposal_networks": one * len(p.samples), **super().components(num_images)}
-
-    def main_samples_bound(self) -> int:
-        return self.profile.prop.main_samples
-
-    def memory(self, num_images: int) -> dict[str, PhaseMemory]:
-        main = super().memory(num_images)["main"]
-        p, width = self.profile.prop, proposal_width(self.profile)
-        proposals = self.components(num_images)["proposal_networks"]
-        # What backward keeps per proposal sample: each layer's input and ReLU mask, and the encoding.
-        per_ray = sum(p.samples) * 4 * (2 * p.layers * width + 100)
-        return {"main": PhaseMemory(trained=main.trained + proposals, samples_per_ray=main.samples_per_ray,
-                                    extra_bytes_per_ray=per_ray)}
+        return {"proposal_networks": proposal_parameters(self.profile), **super().components(num_images)}
 
     def sweep(self) -> list[SweepPoint]:
         p = self.profile.prop
@@ -186,7 +149,4 @@ class ProposalMethod(Method):
             self.schedule.since_update = state["since_update"]
 
     def summary_occupancy(self, final: Path, main: list[dict], first: list[dict]) -> dict:
-        p = self.profile.prop
-        return {"params": len(p.samples) * ProposalDensity.num_parameters(
-            proposal_width(self.profile), p.layers, self.profile.network.xyz_frequencies),
-            "occupancy_ratio": mean_of(main, "occupancy_ratio")}
+        return {"params": proposal_parameters(self.profile), "occupancy_ratio": mean_of(main, "occupancy_ratio")}

@@ -11,15 +11,6 @@ from model.scenes.rays import RayBatch
 
 
 class SwitchNeRFMethod(Method):
-    name = "switch"
-    label = "S-NeRF* (vanilla)"
-    colour = "#1f77b4"
-    role = "reference"
-
-    def main_samples_bound(self) -> int:
-        v = self.profile.vanilla
-        return v.coarse_samples + v.fine_samples + 1
-
     def render_main(self, models: Networks, rays: RayBatch, generator: torch.Generator | None,
                     phase_step: int | None) -> MainRender:
         return render_vanilla(models.field, models.background, rays, self.profile, generator)

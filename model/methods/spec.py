@@ -1,0 +1,91 @@
+"""What the registry knows of a method without loading PyTorch: its name, labels, role, phases, and what a run
+of it costs in memory. The API, the job schema and the dashboard read only this; the training code behind it
+(a `Method` subclass, model/methods/base.py) is imported when a run or a benchmark first asks for it."""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Callable
+
+from model.profiles import Profile
+
+if TYPE_CHECKING:
+    from model.methods.base import Method
+
+
+@dataclass(frozen=True)
+class PhaseMemory:
+    """What one phase of a method keeps per rank, for the memory estimate (model/memory_estimate.py)."""
+
+    trained: int  # parameters with gradients and Adam state
+    frozen: int = 0  # parameters only read
+    samples_per_ray: int = 0  # the most main-size network samples with gradient one ray can have
+    render_samples_per_ray: int = 0  # ... in a validation render (no gradient); 0: samples_per_ray
+    extra_bytes: int = 0  # state that is neither parameters nor activations (a grid's cells)
+    extra_bytes_per_ray: int = 0  # activations of the method's own small networks (proposal MLPs)
+
+
+@dataclass(frozen=True)
+class SweepPoint:
+    """One sampling budget of a method for `leco bench --sweep` (speed against error)."""
+
+    tag: str
+    text: str
+    overrides: dict = field(default_factory=dict)
+
+
+# (profile, number of training images) -> each phase's memory needs
+MemoryModel = Callable[[Profile, int], dict[str, PhaseMemory]]
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """One registry entry. `implementation` is the Method subclass, or "module:Class" to import it on first
+    use. Calling the spec with a profile makes the method object (`get_method(name)(profile)`)."""
+
+    name: str
+    label: str  # the benchmark's row label
+    implementation: str | type[Method]
+    memory: MemoryModel
+    # "ours": the method the benchmark reports speed-ups for; "reference": the unguided method its equal-PSNR
+    # target and time ratios are measured against; "baseline": every other method.
+    role: str = "baseline"
+    # Each phase and the profile setting that holds its step count, in training order.
+    phase_steps: tuple[tuple[str, str], ...] = (("main", "main_steps"),)
+    has_occupancy: bool = False  # an occupancy to score (the paper's Table 1) and to filter a point cloud with
+    colour: str | None = None  # in the benchmark's figures
+    # The benchmark's target for the proposed method's occupancy size against this one's (a fraction), if any.
+    occupancy_size_target: float | None = None
+    # The profile setting that stops a phase at a share of a wall-clock budget (phase -> dotted key).
+    budget_shares: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def phases(self) -> tuple[str, ...]:
+        return tuple(phase for phase, _ in self.phase_steps)
+
+    def steps(self, profile: Profile, phase: str) -> int:
+        return int(setting(profile, dict(self.phase_steps)[phase]))
+
+    def budget_share(self, profile: Profile, phase: str) -> float | None:
+        key = dict(self.budget_shares).get(phase)
+        return None if key is None else setting(profile, key)
+
+    def load(self) -> type[Method]:
+        if not isinstance(self.implementation, str):
+            return self.implementation
+        module, _, name = self.implementation.partition(":")
+        return getattr(importlib.import_module(module), name)
+
+    def __call__(self, profile: Profile) -> Method:
+        method = self.load()(profile)
+        method.spec = self
+        return method
+
+
+def setting(profile: Profile, key: str):
+    """A profile value by its dotted key (`occupancy.steps`)."""
+    value = profile
+    for part in key.split("."):
+        value = getattr(value, part)
+    return value
