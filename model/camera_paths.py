@@ -19,11 +19,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from model.scenes.cameras import Cameras, make_cameras, rotation_error
+from model.rotation import rotation_problem
+from model.scenes.cameras import Cameras, make_cameras
 from model.scenes.scene import Normalization
 
 UP = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
-ROTATION_TOLERANCE = 1e-3  # max |R^T R - I| and |det R - 1| a user's camera-to-world may have
 
 
 class PathError(ValueError):
@@ -216,13 +216,9 @@ def interpolate(path: CameraPath, frames: int) -> CameraPath:
 
 
 def check_rotation(c2w: Tensor, field: str) -> None:
-    r = c2w.double().reshape(1, 3, 4)
-    if not bool(torch.isfinite(r).all()):
-        raise PathError(field, "holds a value that is not a finite number")
-    error = float(rotation_error(r)[0])
-    if error > ROTATION_TOLERANCE:
-        raise PathError(field, f"its 3x3 block is not a rotation (max |R^T R - I|, |det R - 1| = {error:.3g}, "
-                               f"more than {ROTATION_TOLERANCE:g}): give an orthonormal, right-handed camera-to-world")
+    problem = rotation_problem(c2w.double().reshape(3, 4).tolist())
+    if problem is not None:
+        raise PathError(field, problem)
 
 
 def source_to_world_pose(c2w: Tensor, normalization: Normalization) -> Tensor:

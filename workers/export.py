@@ -21,7 +21,7 @@ import torch
 from model.camera_paths import world_to_source_pose
 from model.scenes.scene import Scene
 from workers.frames import appearance_row, render_frame
-from workers.render_config import ExportConfig
+from workers.render_config import EXPORT_PHASE, ExportConfig
 from workers.store import RunStore, check_stop
 from workers.trained import Trained
 
@@ -104,7 +104,7 @@ def point_cloud(trained: Trained, cfg: ExportConfig, store: RunStore | None = No
             colours.append((frame.rgb[keep] * 255).round().clamp(0, 255).byte().numpy())
             done += 1
             if store is not None:
-                store.write(done, {"phase": "export", "phase_step": done, "views_done": done, "views": total})
+                store.write(done, {"phase": EXPORT_PHASE, "phase_step": done, "views_done": done, "views": total})
     all_points = np.concatenate(points) if points else np.zeros((0, 3))
     all_colours = np.concatenate(colours) if colours else np.zeros((0, 3), np.uint8)
     if len(all_points) > cfg.max_points:

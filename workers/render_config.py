@@ -6,11 +6,12 @@ from __future__ import annotations
 
 from typing import Annotated, Literal, Union
 
-import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
-from model.camera_paths import PathError, check_rotation
+from model.rotation import rotation_problem
 
+RENDER_PHASE = "render"  # a render job's one phase: a step a frame
+EXPORT_PHASE = "export"  # an export job's: a step a view of a point cloud (one otherwise)
 MAX_FRAMES = 1200
 MAX_SIDE = 1920
 MAX_FRAME_PIXELS = 1920 * 1080
@@ -38,10 +39,9 @@ class Camera(BaseModel):
     def a_rotation_and_a_centre(cls, c2w: list[list[float]]) -> list[list[float]]:
         if len(c2w) == 4 and [float(v) for v in c2w[3]] != [0.0, 0.0, 0.0, 1.0]:
             raise ValueError("the last row of a 4x4 camera-to-world must be 0, 0, 0, 1")
-        try:
-            check_rotation(torch.tensor(c2w[:3], dtype=torch.float64), "c2w")
-        except PathError as error:
-            raise ValueError(error.message) from None
+        problem = rotation_problem(c2w)
+        if problem is not None:
+            raise ValueError(problem)
         return c2w
 
 

@@ -26,12 +26,19 @@ from model.camera_paths import (
 )
 from model.scenes.scene import Scene
 from workers.frames import appearance_row, depth_uint8, render_frame, to_uint8
-from workers.render_config import CamerasPath, FlyoverPath, NerfstudioPath, OrbitPath, RenderConfig, SpiralPath
+from workers.render_config import (
+    RENDER_PHASE,
+    CamerasPath,
+    FlyoverPath,
+    NerfstudioPath,
+    OrbitPath,
+    RenderConfig,
+    SpiralPath,
+)
 from workers.store import RunStore, check_stop
 from workers.trained import Trained
 from workers.video import Mp4Writer
 
-PHASE = "render"
 SIBLINGS = {"depth": ".depth.mp4", "poster": ".poster.png", "path": ".camera_path.json", "summary": ".render.json"}
 
 
@@ -97,7 +104,7 @@ def render_video(trained: Trained, cfg: RenderConfig, video: Path, store: RunSto
         writers.append(Mp4Writer(files["depth"], cfg.width, cfg.height, cfg.fps))
     seconds, samples, depth_range = [], [], (0.0, 1.0)
     if store is not None:
-        store.phase_started(PHASE)
+        store.phase_started(RENDER_PHASE)
     try:
         for i in range(len(path)):
             check_stop(store)
@@ -114,7 +121,7 @@ def render_video(trained: Trained, cfg: RenderConfig, video: Path, store: RunSto
             if cfg.depth_video:
                 writers[1].write(depth_uint8(frame, *depth_range).numpy())
             if store is not None:
-                store.write(i + 1, {"phase": PHASE, "phase_step": i + 1, "seconds_per_frame": seconds[-1],
+                store.write(i + 1, {"phase": RENDER_PHASE, "phase_step": i + 1, "seconds_per_frame": seconds[-1],
                                     "rays_per_s": cfg.width * cfg.height / seconds[-1],
                                     "samples_per_ray": frame.samples_per_ray})
             log(f"frame {i + 1}/{len(path)}: {seconds[-1]:.2f} s")

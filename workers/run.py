@@ -23,22 +23,10 @@ from workers.evaluate import evaluate_run
 from workers.loop import NonFiniteRun, RankRun, RunStopped, StoreFailed, write_pid
 from workers.session import LocalSession, RaySession
 from workers.sinks import read_metrics
-from workers.store import RunStore
+from workers.store import RunError, RunGaveUp, RunInterrupted, RunStore
 
 SUMMARY = "summary.json"
-
-
-class RunError(RuntimeError):
-    """A run that cannot start or did not finish, with the reason a user can act on."""
-
-
-class RunInterrupted(RunError):
-    """The run's store asked it to stop (cancelled, lease lost); it stopped after a checkpoint."""
-
-
-class RunGaveUp(RunError):
-    """The run stopped because its store went away past its retries or another attempt holds the job: not a
-    failure of the job, which a later attempt resumes from its last stored checkpoint."""
+__all__ = ["SUMMARY", "RunError", "RunGaveUp", "RunInterrupted", "run_training"]
 
 
 def end_cleanly(run: RankRun, run_dir: Path) -> None:

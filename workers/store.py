@@ -21,6 +21,19 @@ class StopRequested(RuntimeError):
     """A job's work stopped because its store asked it to (`stop_reason`): cancelled, or its lease lost."""
 
 
+class RunError(RuntimeError):
+    """A run that cannot start or did not finish, with the reason a user can act on."""
+
+
+class RunInterrupted(RunError, StopRequested):
+    """The run's store asked it to stop (cancelled, lease lost); it stopped after a checkpoint."""
+
+
+class RunGaveUp(RunError):
+    """The run stopped because its store went away past its retries or another attempt holds the job: not a
+    failure of the job, which a later attempt resumes from its last stored checkpoint."""
+
+
 def check_stop(store: "RunStore | None") -> None:
     """Raises StopRequested when the store asks the work to stop; between frames or views of a render job."""
     reason = store.stop_reason() if store is not None else None

@@ -1,13 +1,22 @@
-"""Scenes: one representation for photographed and generated data (see docs/SCENES.md)."""
+"""Scenes: one representation for photographed and generated data (see docs/SCENES.md).
 
-from model.scenes.cameras import Cameras, pixel_rays
-from model.scenes.errors import SceneError
-from model.scenes.formats import FORMATS, detect_format
-from model.scenes.load import load_scene
-from model.scenes.rays import PixelTable, RayBatch, RaySampler, shard
-from model.scenes.scene import Bounds, Normalization, OccupancyGrid, Scene, Views
+The names below load on first use, so a torch-free part of this package (scenes/folders.py, errors.py) can be
+imported without PyTorch (the API process does)."""
 
-__all__ = [
-    "FORMATS", "Bounds", "Cameras", "Normalization", "OccupancyGrid", "PixelTable", "RayBatch", "RaySampler",
-    "Scene", "SceneError", "Views", "detect_format", "load_scene", "pixel_rays", "shard",
-]
+from importlib import import_module
+from typing import Any
+
+_HOMES = {
+    "Cameras": "cameras", "pixel_rays": "cameras", "SceneError": "errors", "FORMATS": "formats",
+    "detect_format": "formats", "load_scene": "load", "PixelTable": "rays", "RayBatch": "rays",
+    "RaySampler": "rays", "shard": "rays", "Bounds": "scene", "Normalization": "scene", "OccupancyGrid": "scene",
+    "Scene": "scene", "Views": "scene",
+}
+
+__all__ = sorted(_HOMES)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _HOMES:
+        raise AttributeError(f"module 'model.scenes' has no attribute {name!r}")
+    return getattr(import_module(f"model.scenes.{_HOMES[name]}"), name)

@@ -11,6 +11,7 @@ import torch
 from model.scenes import values
 from model.scenes.cameras import pixel_rays
 from model.scenes.errors import SceneError
+from model.scenes.folders import folder_factor
 from model.scenes.formats.points import read_colmap_points
 from model.scenes.images import IMAGE_SUFFIXES, ImageFile, probe_image
 from model.scenes.limits import read_npy
@@ -43,12 +44,6 @@ def pick_folder(root: Path, downscale: int | None) -> tuple[Path, int, int]:
         have = ", ".join(folders[f].name for f in sorted(folders))
         raise SceneError(root, f"downscale {downscale} is not a multiple of any image folder's factor (have {have})")
     return folders[factor], factor, downscale // factor
-
-
-def folder_factor(factors, downscale: int) -> int | None:
-    """The largest image-folder factor that `downscale` is a multiple of (resizing the least), else None."""
-    usable = [f for f in factors if downscale % f == 0]
-    return max(usable) if usable else None
 
 
 MAX_POSES = 100_000  # rows of poses_bounds.npy (one per image)
