@@ -20,7 +20,7 @@ import uuid
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 
 from service import queue
-from service.execute import execute
+from service.jobs.attempt import execute
 from service.settings import Settings
 
 log = logging.getLogger("leco.dispatcher")

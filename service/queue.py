@@ -16,7 +16,6 @@ from sqlalchemy.orm import Session
 
 from service.db import transaction
 from service.tables import TERMINAL, Job, JobPhase, Scene, utcnow
-from workers.config import TrainConfig
 from workers.store import StoreWriteError
 
 
@@ -45,26 +44,17 @@ def _rowcount(result: Result) -> int:
     return cast(CursorResult, result).rowcount
 
 
-def submit(session: Session, scene_id: int, cfg: TrainConfig) -> Job:
-    job = Job(scene_id=scene_id, state="queued", method=cfg.method, profile=cfg.profile,
-              config=cfg.model_dump(mode="json"), total_steps=sum(cfg.phase_steps(p) for p in cfg.phases),
-              step=0, attempts=0, cancel_requested=False, submitted_at=utcnow())
+def enqueue(session: Session, kind: str, scene_id: int, method: str, profile: str, config: dict,
+            phases: list[tuple[str, int]], parent_id: int | None = None) -> Job:
+    """A new queued job and its phases ((name, steps) in order); service/jobs/submit.py makes the arguments
+    from a job kind and its config."""
+    job = Job(kind=kind, parent_id=parent_id, scene_id=scene_id, state="queued", method=method, profile=profile,
+              config=config, total_steps=sum(steps for _, steps in phases), step=0, attempts=0,
+              cancel_requested=False, submitted_at=utcnow())
     session.add(job)
     session.flush()
-    for position, phase in enumerate(cfg.phases):
-        session.add(JobPhase(job_id=job.id, name=phase, position=position, state="queued",
-                             steps_total=cfg.phase_steps(phase), step=0))
-    return job
-
-
-def submit_work(session: Session, parent: Job, kind: str, config: dict, phase: str, steps: int) -> Job:
-    """A render or export of the finished training job `parent`: queued like any job, on its scene."""
-    job = Job(kind=kind, parent_id=parent.id, scene_id=parent.scene_id, state="queued", method=parent.method,
-              profile=parent.profile, config=config, total_steps=steps, step=0, attempts=0, cancel_requested=False,
-              submitted_at=utcnow())
-    session.add(job)
-    session.flush()
-    session.add(JobPhase(job_id=job.id, name=phase, position=0, state="queued", steps_total=steps, step=0))
+    for position, (phase, steps) in enumerate(phases):
+        session.add(JobPhase(job_id=job.id, name=phase, position=position, state="queued", steps_total=steps, step=0))
     return job
 
 

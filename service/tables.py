@@ -25,8 +25,6 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 TERMINAL = ("succeeded", "failed", "cancelled")
 SCENE_STATES = ("generating", "ready", "failed")
-# A training job, or work on a finished one: a video along a camera path, or an export of its geometry.
-JOB_KINDS = ("train", "render", "export")
 ARTIFACT_KINDS = ("checkpoint", "render", "occupancy_model", "pointcloud", "report")
 
 
@@ -81,10 +79,10 @@ class Scene(Base):
 
 class Job(Base):
     __tablename__ = "jobs"
-    __table_args__ = (one_of("state", JOB_STATES), one_of("kind", JOB_KINDS), Index("ix_jobs_state_id", "state", "id"),
-                      NEVER_REUSED)
+    __table_args__ = (one_of("state", JOB_STATES), Index("ix_jobs_state_id", "state", "id"), NEVER_REUSED)
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    # An entry of the job-kind registry (service/jobs/kinds.py), which the API checks before writing.
     kind: Mapped[str] = mapped_column(String(16), default="train", server_default="train")
     # The finished training job a render or export works on; deleting it deletes them (the API refuses while
     # one has not ended).

@@ -13,6 +13,8 @@ from service import queue
 from service.api.app import create_app
 from service.db import reading, transaction, upgrade
 from service.dispatcher import Dispatcher
+from service.jobs.kinds import TRAIN
+from service.jobs.submit import submit
 from service.queue import StaleAttempt
 from service.runstore import DatabaseRunStore
 from service.settings import Settings
@@ -49,7 +51,7 @@ def claimed_job(settings: Settings) -> int:
         scene = Scene(name="fenced", source="synthetic", state="ready", path="/nowhere")
         session.add(scene)
         session.flush()
-        job_id = queue.submit(session, scene.id, TrainConfig(method="switch", profile="smoke")).id
+        job_id = submit(session, TRAIN, scene.id, TrainConfig(method="switch", profile="smoke")).id
     assert queue.claim(settings.db_url, "first", settings.lease_s) == (job_id, 1)
     return job_id
 

@@ -20,6 +20,8 @@ from service.db import (
     transaction,
     upgrade,
 )
+from service.jobs.kinds import TRAIN
+from service.jobs.submit import submit
 from service.tables import Artifact, Base, Job, JobPhase, Scene, utcnow
 from workers.config import TrainConfig
 
@@ -34,7 +36,7 @@ def add_scene(url, name="s", state="ready") -> int:
 
 def add_jobs(url, scene_id, n, method="leco") -> list[int]:
     with transaction(url) as session:
-        return [queue.submit(session, scene_id, TrainConfig(method=method, profile="smoke")).id for _ in range(n)]
+        return [submit(session, TRAIN, scene_id, TrainConfig(method=method, profile="smoke")).id for _ in range(n)]
 
 
 def add_job_before_0005(url, scene_id) -> int:
@@ -230,7 +232,7 @@ def test_cancel_queued_at_once_running_by_request_and_not_after_the_end(service_
 
 
 def test_leco_serve_refuses_an_unmigrated_database_and_says_what_to_run(database_url, tmp_path, monkeypatch, capsys):
-    from service.cli import main
+    from cli.main import main
 
     monkeypatch.setenv("DATABASE_URL", database_url)
     monkeypatch.setenv("LECO_DATA_DIR", str(tmp_path / "data"))

@@ -14,7 +14,7 @@ from sqlalchemy import case, delete, func, select, true
 from sqlalchemy.exc import IntegrityError
 
 from model.memory_estimate import RUNTIME_BYTES, describe, estimate_peak_bytes
-from model.scenes.formats.llff import folder_factor
+from model.scenes.folders import folder_factor
 from service import queue
 from service.api.deps import MAX_INT, RowId, not_found, poll_cache_of
 from service.api.links import cancelled_job_links, deleted_job_links, job_links, links, submitted_job_links
@@ -22,11 +22,12 @@ from service.api.methods import check_method_filter
 from service.api.scenes import find_scene
 from service.api.schemas import JobList, JobOut, JobRequest, MetricsOut, PhaseOut, Point, Series
 from service.db import reading, transaction
-from service.derived import rays_per_step
-from service.execute import job_dir_for
+from service.jobs.kinds import KINDS, TRAIN, get_kind
+from service.jobs.paths import job_dir_for
+from service.jobs.submit import submit as enqueue
 from service.settings import Settings
 from service.store import ArtifactStore
-from service.tables import JOB_KINDS, JOB_STATES, TERMINAL, IdempotencyKey, Job, JobPhase, Metric, utcnow
+from service.tables import JOB_STATES, TERMINAL, IdempotencyKey, Job, JobPhase, Metric, utcnow
 from workers.config import TrainConfig
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
@@ -44,17 +45,27 @@ def job_out(session, job: Job) -> JobOut:
         if rows:
             metrics[phase.name] = dict(rows)
     eta = None
-    batch = TrainConfig.model_validate(job.config).global_batch if job.kind == "train" else rays_per_step(job)
+    batch = rays_per_step(job)
     if job.state == "running" and job.rays_per_s and batch:
         eta = max(job.total_steps - job.step, 0) * batch / job.rays_per_s
     percent = 100.0 if job.state == "succeeded" else round(100.0 * job.step / max(job.total_steps, 1), 2)
-    return JobOut(id=job.id, kind=job.kind, parent_id=job.parent_id, scene_id=job.scene_id, state=job.state,
-                  method=job.method, profile=job.profile,
+    trains = job.kind in KINDS and get_kind(job.kind).trains
+    return JobOut(id=job.id, kind=job.kind, trains=trains, parent_id=job.parent_id, scene_id=job.scene_id,
+                  state=job.state, method=job.method, profile=job.profile,
                   config=job.config, phase=job.phase, step=job.step, total_steps=job.total_steps, percent=percent,
                   eta_s=eta, rays_per_s=job.rays_per_s, attempts=job.attempts, cancel_requested=job.cancel_requested,
                   error=job.error, submitted_at=job.submitted_at, started_at=job.started_at,
                   finished_at=job.finished_at, latest_metrics=metrics,
                   phases=[PhaseOut.model_validate(p, from_attributes=True) for p in phases])
+
+
+def rays_per_step(job: Job) -> int | None:
+    """Rays one step of the job renders or trains (its ETA); None where steps differ, or for a kind no longer
+    registered."""
+    if job.kind not in KINDS:
+        return None
+    kind = get_kind(job.kind)
+    return kind.rays_per_step(kind.config_of(job.config))
 
 
 def check_resources(cfg: TrainConfig, settings: Settings, num_images: int) -> None:
@@ -120,7 +131,7 @@ def create_job(body: JobRequest, settings: Settings, idempotency_key: str | None
             raise not_found("scene", body.scene)
         if scene.state == "failed":
             raise HTTPException(409, f"scene {scene.name!r} failed to generate ({scene.error}); it cannot be trained")
-        job = queue.submit(session, scene.id, cfg)
+        job = enqueue(session, TRAIN, scene.id, cfg)
         session.flush()
         payload = jsonable_encoder(job_out(session, job))
         if idempotency_key is not None:  # the job and the key's answer commit together, or neither does
@@ -203,23 +214,35 @@ def begin_idempotent(settings: Settings, key: str, digest: str) -> JSONResponse 
 @router.get("", response_model=JobList, operation_id="listJobs", responses=links(200, job_links("/items/0")))
 async def list_jobs(request: Request, state: str | None = Query(None, pattern="^(" + "|".join(JOB_STATES) + ")$"),
                     scene: str | None = None, method: str | None = Query(None, max_length=64),
-                    kind: str | None = Query(None, pattern="^(" + "|".join(JOB_KINDS) + ")$"),
+                    # Checked below (422 naming the kinds); the enum tells clients and the fuzz the built-in ones.
+                    kind: str | None = Query(None, max_length=64, json_schema_extra={"enum": list(KINDS)}),
+                    trains: bool | None = Query(None, description="only jobs of kinds that train (or that do not)"),
                     limit: int = Query(50, ge=1, le=200), offset: int = Query(0, ge=0, le=MAX_INT)) -> Response:
     # The dashboard's jobs page polls this: served from the poll cache, at most LECO_POLL_CACHE_S old.
     check_method_filter(method)
+    check_kind_filter(kind)
     settings = request.app.state.settings
     body = await poll_cache_of(request).job_list(
-        (state, scene, method, kind, limit, offset),
-        lambda: job_list_json(settings, state, scene, method, limit, offset, kind))
+        (state, scene, method, kind, trains, limit, offset),
+        lambda: job_list_json(settings, state, scene, method, limit, offset, kind, trains))
     return Response(body, media_type="application/json")
 
 
+def check_kind_filter(kind: str | None) -> None:
+    """A `?kind=` filter must name a registered job kind: 422 naming the choices otherwise."""
+    if kind is not None and kind not in KINDS:
+        raise HTTPException(422, [{"loc": ["query", "kind"], "type": "value_error",
+                                   "msg": f"unknown job kind {kind!r}: choose one of {', '.join(KINDS)}"}])
+
+
 def job_list_json(settings: Settings, state: str | None, scene: str | None, method: str | None, limit: int,
-                  offset: int, kind: str | None = None) -> bytes:
+                  offset: int, kind: str | None = None, trains: bool | None = None) -> bytes:
     with reading(settings.db_url) as session:
         query = select(Job)
         if kind:
             query = query.where(Job.kind == kind)
+        if trains is not None:
+            query = query.where(Job.kind.in_([k.name for k in KINDS.values() if k.trains == trains]))
         if state:
             query = query.where(Job.state == state)
         if method:

@@ -72,7 +72,10 @@ class PhaseOut(BaseModel):
 
 class JobOut(BaseModel):
     id: int
-    kind: str = Field(description="train, or render / export of the finished training job `parent_id`")
+    kind: str = Field(description="a registered job kind (GET /v1/job-kinds): train, or render / export of the "
+                                  "finished training job `parent_id`")
+    trains: bool = Field(description="a job of a kind that trains networks: renders, exports and views are made "
+                                     "of it once it succeeded")
     parent_id: int | None
     scene_id: int
     state: str

@@ -72,7 +72,7 @@ async function download(url, name) {
 // ----- jobs list ------------------------------------------------------------------------------------------
 async function showJobs() {
   const view = document.getElementById("view");
-  const [jobs, scenes] = await Promise.all([getJson("/v1/jobs?kind=train&limit=100"), getJson("/v1/scenes")]);
+  const [jobs, scenes] = await Promise.all([getJson("/v1/jobs?trains=true&limit=100"), getJson("/v1/scenes")]);
   const sceneName = Object.fromEntries(scenes.map(s => [s.id, s.name]));
   const rows = jobs.items.map(j => {
     const psnr = (j.latest_metrics[j.phase || ""] || {}).psnr;
@@ -141,7 +141,7 @@ function occupancyStats(job, registry) {
 const pct = v => (v === null || v === undefined ? "–" : `${fmt(100 * v, 1)}%`);
 
 async function loadEvaluation(job, artifacts) {
-  if (job.kind !== "train") return;  // a render job's summary.json describes its video
+  if (!job.trains) return;  // a render job's summary.json describes its video
   const summary = artifacts.find(a => a.kind === "report" && a.name === "summary.json");
   if (!summary || jobState.summaryId === summary.id) return;
   try {
@@ -248,7 +248,7 @@ async function showJob(id) {
     };
   }
   document.getElementById("job-state").innerHTML = stateBadge(job.state);
-  const parent = job.kind !== "train" && job.parent_id ? `${esc(job.kind)} of <a href="#/jobs/${job.parent_id}">job ${job.parent_id}</a> · ` : "";
+  const parent = !job.trains && job.parent_id ? `${esc(job.kind)} of <a href="#/jobs/${job.parent_id}">job ${job.parent_id}</a> · ` : "";
   document.getElementById("job-summary").innerHTML = `${parent}${esc(job.method)} · profile ${esc(job.profile)} · phase ${esc(job.phase || "–")} ·
     step ${job.step}/${job.total_steps} · ${progressBar(job.percent)} ${eta(job.eta_s)} · attempt ${job.attempts}
     ${job.cancel_requested && !TERMINAL.includes(job.state) ? " · stopping (cancel requested)" : ""}`;
@@ -273,12 +273,12 @@ async function showJob(id) {
   document.querySelectorAll("#artifacts a.dl").forEach(a => { a.onclick = e => { e.preventDefault(); download(a.dataset.url, a.dataset.name); }; });
   await refreshImages(artifacts);
   let rendering = false;
-  if (job.kind === "train" && job.state === "succeeded") {  // renders and the viewer: of a finished training job only
+  if (job.trains && job.state === "succeeded") {  // renders and the viewer: of a finished training job only
     if (!document.getElementById("renders-card")) await buildWork(job);
     rendering = await refreshRenders();
   }
   setStatus(`job ${id} · updated ${new Date().toLocaleTimeString()}`);
-  const evaluating = job.kind === "train" && job.state === "succeeded" && !jobState.summaryId;
+  const evaluating = job.trains && job.state === "succeeded" && !jobState.summaryId;
   if (!TERMINAL.includes(job.state) || !jobState.plyId || rendering || evaluating) schedule(route);
 }
 
@@ -679,7 +679,7 @@ function smooth(points, k = 5) {
 }
 
 async function showCompare(sceneId) {
-  const [scene, jobs] = await Promise.all([getJson(`/v1/scenes/${sceneId}`), getJson(`/v1/jobs?kind=train&scene=${sceneId}&limit=200`)]);
+  const [scene, jobs] = await Promise.all([getJson(`/v1/scenes/${sceneId}`), getJson(`/v1/jobs?trains=true&scene=${sceneId}&limit=200`)]);
   // Validation PSNR (jobs submitted with eval_every_s) when every job has it; else the training batch's, smoothed.
   const fetched = [];
   for (const job of jobs.items) {
