@@ -23,7 +23,7 @@ run: $(STAMP)
 
 # Lint and types first (seconds), then the suite.
 test: $(STAMP)
-	$(BIN)/ruff check model workers service bench tests
+	$(BIN)/ruff check model workers service bench cli tests
 	$(BIN)/mypy
 	$(BIN)/python -m pytest -q --durations=15
 

@@ -63,10 +63,10 @@ class Service:
     def __enter__(self) -> "Service":
         self.data_dir.mkdir(parents=True, exist_ok=True)
         if "DATABASE_URL" in self.env:
-            subprocess.run([sys.executable, "-m", "service.cli", "db", "upgrade"], env=self.env, cwd=ROOT,
+            subprocess.run([sys.executable, "-m", "cli", "db", "upgrade"], env=self.env, cwd=ROOT,
                            check=True, capture_output=True)
         self.log = open(self.data_dir / "serve.log", "w")
-        self.process = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(self.port)],
+        self.process = subprocess.Popen([sys.executable, "-m", "cli", "serve", "--port", str(self.port)],
                                         env=self.env, cwd=ROOT, stdout=self.log, stderr=subprocess.STDOUT,
                                         start_new_session=True)
         deadline = time.monotonic() + 120

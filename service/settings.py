@@ -9,6 +9,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+TOKEN_FILE = "api-token"  # where `leco serve` writes a generated API token, in the data folder (mode 600)
+
 
 class Settings(BaseModel):
     model_config = ConfigDict(frozen=True)

@@ -10,8 +10,8 @@ from PIL import Image
 
 from bench.analysis import equal_psnr, speedups, targets, time_to_psnr
 from bench.variants import RUNGS
+from cli.main import main
 from model.occupancy_eval import evaluate_occupancy_exact
-from service.cli import main
 from workers.memory import SavedTensorBytes
 
 
@@ -253,7 +253,7 @@ def test_loadtest_keeps_off_databases_in_use_and_drops_its_own(database_url):
     from sqlalchemy import create_engine, text
 
     from bench.load import refuse_used_database, throwaway_database
-    from service.cli import main
+    from cli.main import main
     from service.db import upgrade
 
     with pytest.raises(SystemExit, match="--pollers must be at least 1"):

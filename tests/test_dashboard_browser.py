@@ -30,7 +30,7 @@ def service(tmp_path):
     for key in ("DATABASE_URL", "LECO_API_TOKENS", "RAY_ADDRESS", "LECO_RAY_JOBS_ADDRESS"):
         env.pop(key, None)
     log = open(tmp_path / "serve.log", "w")
-    server = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port)], cwd=ROOT, env=env,
+    server = subprocess.Popen([sys.executable, "-m", "cli", "serve", "--port", str(port)], cwd=ROOT, env=env,
                               stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     url = f"http://127.0.0.1:{port}"
     try:

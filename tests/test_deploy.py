@@ -105,7 +105,7 @@ def commands(compose):
 def test_every_command_the_compose_file_runs_exists(compose):
     from ray.scripts.scripts import cli as ray_cli
 
-    from service.cli import build_parser
+    from cli.main import build_parser
 
     seen = set()
     for name, words in commands(compose):

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from service.cli import main
+from cli.main import main
 
 ROOT = Path(__file__).resolve().parents[1]
 FORBIDDEN_IN_MODEL = {"service", "workers", "ray", "fastapi", "sqlalchemy", "uvicorn", "httpx", "alembic",

@@ -1,4 +1,4 @@
-"""Methods have one home: a method is a class behind model/methods/base.py plus one registry line.
+"""Methods have one home: a method is a class behind model/methods/base.py plus one registry line (its spec).
 A toy method registered here trains through `leco train` and through the API without any other module
 knowing its name; the loop, evaluation, bench and API compare no method names."""
 
@@ -12,12 +12,13 @@ import pytest
 import torch
 from fastapi.testclient import TestClient
 
+from cli.main import main
 from model.main_phase import MainRender, render_batched
-from model.methods import METHODS, Method, get_method, register
+from model.methods import METHODS, Method, MethodSpec, PhaseMemory, get_method, register
 from model.methods.base import method_state
+from model.methods.costs import main_phase
 from model.occupancy_phase import render_background
 from model.samplers import stratified_edges
-from service.cli import main
 from workers.config import TrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -26,34 +27,32 @@ ROOT = Path(__file__).resolve().parents[1]
 class UniformSamples(Method):
     """The toy: the main network on 6 stratified samples per ray, nothing else."""
 
-    name = "toy-uniform"
-    label = "S+Uniform (toy)"
-
-    def main_samples_bound(self) -> int:
-        return 6
-
     def render_main(self, models, rays, generator, phase_step) -> MainRender:
         behind = render_background(models.background, rays, self.profile.background.samples, generator).rgb
         rendered, out = render_batched(models.field, rays, stratified_edges(rays.near, rays.far, 6, generator), behind)
         return MainRender(rendered, out, 6.0, None)
 
 
+def uniform_memory(profile, num_images) -> dict[str, PhaseMemory]:
+    return {"main": main_phase(profile, num_images, samples_per_ray=6)}
+
+
+TOY = MethodSpec("toy-uniform", "S+Uniform (toy)", UniformSamples, uniform_memory)
+
+
 @pytest.fixture
 def toy():
-    register(UniformSamples)
-    yield UniformSamples
-    METHODS.pop(UniformSamples.name)
+    register(TOY)
+    yield TOY
+    METHODS.pop(TOY.name)
 
 
 def test_registry_lists_every_method_once_and_refuses_a_second_owner_of_a_name():
     assert list(METHODS) == ["leco", "switch", "grid", "prop"]
     assert [get_method(n).role for n in METHODS] == ["ours", "reference", "baseline", "baseline"]
 
-    class Impostor(UniformSamples):
-        name = "grid"
-
     with pytest.raises(ValueError, match="'grid' is already registered"):
-        register(Impostor)
+        register(MethodSpec("grid", "Impostor", UniformSamples, uniform_memory))
     with pytest.raises(ValueError, match="unknown method 'nope': choose one of leco, switch, grid, prop"):
         TrainConfig(method="nope")
 

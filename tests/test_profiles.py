@@ -5,9 +5,9 @@ import json
 import pytest
 from pydantic import ValidationError
 
+from cli.main import main
 from model.model_info import model_info
 from model.profiles import PROFILES, NetworkConfig, get_profile
-from service.cli import main
 
 
 def test_paper_profile_has_the_papers_numbers():

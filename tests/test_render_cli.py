@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from service.cli import main
+from cli.main import main
 from workers.video import probe
 
 pytestmark = pytest.mark.slow

@@ -12,6 +12,8 @@ from fastapi.testclient import TestClient
 from service import queue
 from service.api.app import create_app
 from service.db import transaction
+from service.jobs.kinds import TRAIN
+from service.jobs.submit import submit
 from service.runstore import DatabaseRunStore
 from service.settings import Settings
 from service.tables import IdempotencyKey, Job, Scene, utcnow
@@ -321,7 +323,6 @@ def test_list_filters_pagination_show_and_cancel(api):
 def test_metrics_filters_polling_and_downsampling(api):
     scene = ready_scene(api)
     job = api.post("/v1/jobs", json={"scene": scene["id"], "method": "leco", "profile": "smoke"}).json()
-    from service import queue
 
     assert queue.claim(api.settings.db_url, "test", 60) == (job["id"], 1)
     store = DatabaseRunStore(api.settings.db_url, str(api.settings.artifacts), job["id"], 1, api.settings.retry_s)
@@ -543,7 +544,7 @@ def test_no_auth_only_on_loopback_blank_tokens_refused_and_the_token_file_privat
     import argparse
     import stat
 
-    from service.serve_cli import loopback, serve, write_private
+    from cli.serve import loopback, serve, write_private
 
     assert loopback("127.0.0.1") and loopback("::1") and loopback("localhost")
     assert not loopback("0.0.0.0") and not loopback("10.0.0.5") and not loopback("example.org")
@@ -600,7 +601,7 @@ def test_an_idempotent_job_and_its_recorded_answer_commit_together(api, monkeypa
 # never deleted by the delete that raced it; the delete is refused instead.
 def succeeded_training_job(url: str, scene_id: int) -> int:
     with transaction(url) as session:
-        job = queue.submit(session, scene_id, TrainConfig(method="switch", profile="smoke"))
+        job = submit(session, TRAIN, scene_id, TrainConfig(method="switch", profile="smoke"))
         session.flush()
         job.state = "succeeded"
         return job.id

@@ -125,7 +125,7 @@ def test_a_killed_dispatcher_loses_its_lease_and_the_job_resumes_once(api, servi
     job_id = api.post("/v1/jobs", json=body).json()["id"]
     env = {**os.environ, "DATABASE_URL": service_settings.db_url, "LECO_DATA_DIR": str(service_settings.data_dir),
            "LECO_LEASE_S": "4", "LECO_LOCAL_CPUS": "2", "RAY_ADDRESS": ""}
-    first = subprocess.Popen([sys.executable, "-m", "service.cli", "dispatch"], cwd=ROOT, env=env,
+    first = subprocess.Popen([sys.executable, "-m", "cli", "dispatch"], cwd=ROOT, env=env,
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         killed_at = wait_for(api, job_id, lambda j: j["step"] >= 70)["step"]

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
+from cli.main import main
 from model.scenes import RaySampler, load_scene, pixel_rays
 from model.scenes.bounds import ray_aabb
 from model.scenes.synthetic import generate
 from model.scenes.synthetic.writer import save_npz
-from service.cli import main
 
 
 @pytest.fixture(scope="module")

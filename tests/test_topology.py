@@ -56,7 +56,7 @@ class Topology:
 
     def start(self, name: str, *args: str) -> None:
         log = open(self.logs / f"{name}.log", "a")
-        self.processes[name] = subprocess.Popen([sys.executable, "-m", "service.cli", *args], env=self.env, cwd=ROOT,
+        self.processes[name] = subprocess.Popen([sys.executable, "-m", "cli", *args], env=self.env, cwd=ROOT,
                                                 stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
 
     def kill(self, name: str) -> None:
@@ -86,7 +86,7 @@ class Topology:
 
     def up(self) -> None:
         ray = str(BIN / "ray")
-        self.run(sys.executable, "-m", "service.cli", "db", "upgrade")  # the one-shot migrate service
+        self.run(sys.executable, "-m", "cli", "db", "upgrade")  # the one-shot migrate service
         self.run(ray, "start", "--head", f"--port={self.gcs}", "--num-cpus=0", "--include-dashboard=true",
                  "--dashboard-host=127.0.0.1", f"--dashboard-port={self.dashboard}", f"--temp-dir={self.ray_temp}",
                  "--disable-usage-stats")
@@ -148,7 +148,7 @@ def test_every_route_wants_the_token_and_ray_wants_its_own(topology):
 
 def test_a_smoke_job_runs_end_to_end_through_leco_submit(topology):
     # --token=VALUE: a random token may start with "-", which argparse would read as an option
-    done = topology.run(sys.executable, "-m", "service.cli", "submit", "--url", topology.url,
+    done = topology.run(sys.executable, "-m", "cli", "submit", "--url", topology.url,
                         f"--token={topology.token}", "--scene", str(topology.scene), "--method", "leco",
                         "--profile", "smoke", "--workers", "2", timeout=400)
     result = json.loads(done.stdout)
@@ -277,10 +277,10 @@ def test_a_dispatcher_stopped_mid_job_hands_it_back_and_the_next_one_resumes_it(
         assert "final/models.pt" in all_artifacts_intact(api, job_id)
 
 
-# `leco submit`'s own follower (service.client.follow through Api.call, which retries while the API restarts).
+# `leco submit`'s own follower (cli.submit.follow through Api.call, which retries while the API restarts).
 FOLLOW = """
 import json, sys
-from service.client import Api, follow
+from cli.submit import Api, follow
 job = follow(Api(sys.argv[1], sys.argv[2]), int(sys.argv[3]), sys.stderr, poll_s=0.5)
 print(json.dumps({"state": job["state"]}))
 """

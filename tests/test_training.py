@@ -145,7 +145,7 @@ def test_gradient_check_finds_a_single_nan_or_inf_in_any_tensor():
 def test_killed_run_resumes_from_its_checkpoint(tiny_scene, tmp_path):
     """Kill -9 a `leco train` process after its first checkpoint; the same command finishes the run."""
     out = tmp_path / "run"
-    cmd = [sys.executable, "-m", "service.cli", "train", "--scene", str(tiny_scene.root), "--method", "switch",
+    cmd = [sys.executable, "-m", "cli", "train", "--scene", str(tiny_scene.root), "--method", "switch",
            "--profile", "smoke", "--out", str(out), "--backend", "local", "--checkpoint-every", "10",
            "--set", "main_steps=400"]
     root = Path(__file__).resolve().parents[1]
@@ -185,7 +185,7 @@ def test_phase_one_stops_at_its_share_of_the_budget(tiny_scene, tmp_path):
 
 
 def test_leco_eval_command_reevaluates_a_finished_run(tiny_scene, tmp_path, capsys):
-    from service.cli import main
+    from cli.main import main
 
     cfg = TrainConfig(method="leco", profile="smoke", overrides={"occupancy.steps": 3, "main_steps": 3})
     summary = run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")
@@ -234,7 +234,7 @@ def test_leco_pipeline_on_the_tiny_city_learns_occupancy(tiny_scene, tmp_path):
 
 
 def test_train_command_names_bad_arguments_and_writes_nothing(tiny_scene, tmp_path, capsys):
-    from service.cli import main
+    from cli.main import main
 
     base = ["train", "--scene", str(tiny_scene.root), "--method", "leco", "--out", str(tmp_path / "run")]
     assert main(base + ["--workers", "9"]) == 2

@@ -13,6 +13,8 @@ import uuid
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from service.settings import TOKEN_FILE
+
 if TYPE_CHECKING:
     import httpx  # imported where used at run time, so the CLI starts without it
 
@@ -65,8 +67,6 @@ class Api:
 
 
 def default_token(data_dir: str | None) -> str | None:
-    from service.serve_cli import TOKEN_FILE
-
     if os.environ.get("LECO_TOKEN"):
         return os.environ["LECO_TOKEN"]
     path = Path(data_dir or os.environ.get("LECO_DATA_DIR", "leco-data")) / TOKEN_FILE

@@ -68,9 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     from bench.load import add_commands as add_load_commands
     from bench.render_speed import add_commands as add_render_bench_commands
     from bench.scale import add_commands as add_scale_commands
-    from service.render_cli import add_commands as add_render_commands
-    from service.serve_cli import add_commands as add_service_commands
-    from service.train_cli import add_commands
+    from cli.render import add_commands as add_render_commands
+    from cli.serve import add_commands as add_service_commands
+    from cli.train import add_commands
 
     add_commands(commands)
     add_render_commands(commands)
@@ -86,8 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from pydantic import ValidationError
 
+    from cli.submit import ClientError
     from model.scenes.errors import SceneError
-    from service.client import ClientError
     from service.db import SchemaError
     from workers.run import RunError
 

@@ -11,7 +11,7 @@ import signal
 import threading
 from pathlib import Path
 
-TOKEN_FILE = "api-token"
+from service.settings import TOKEN_FILE
 
 
 def settings_from(args: argparse.Namespace, **overrides):
@@ -194,7 +194,7 @@ def add_commands(commands) -> None:
     dsp.add_argument("--slots", type=int, default=1)
     dsp.set_defaults(func=dispatch)
 
-    from service.client import add_submit
+    from cli.submit import add_submit
 
     add_submit(commands)
 
