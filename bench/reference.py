@@ -11,34 +11,24 @@ from typing import Any
 import torch
 
 from model.occupancy_eval import evaluate_occupancy
-from model.scenes.rays import PixelTable, RayBatch
+from model.scenes.rays import PixelTable
 from model.scenes.scene import Scene, Views
 from workers.evaluate import load_final, ray_accounting
+from workers.renderer import SURFACE_OPACITY, render_rays
 
-CHUNK = 4096
-SURFACE_OPACITY = 0.5  # a pixel whose foreground opacity stays below this saw no surface (background)
 RESOLUTION = 64
 
 
-@torch.no_grad()
 def vanilla_depth_maps(switch_run: Path) -> tuple[list[torch.Tensor], tuple[Scene, Views]]:
     """Per validation view: the vanilla model's surface distance along each unit pixel ray (inf: none)."""
     _, scene, method, models = load_final(switch_run, torch.device("cpu"))
-    models.eval()
     views = scene.splits.get("val", scene.train)
     table, aabb = PixelTable(views), scene.bounds.aabb
     maps = []
     for image in range(len(views)):
-        rays = table.image_rays(image, aabb)
-        depth = []
-        for s in range(0, len(rays), CHUNK):
-            chunk = RayBatch(*(getattr(rays, f)[s : s + CHUNK] for f in RayBatch.__dataclass_fields__))
-            out = method.render(models, "main", chunk)
-            # Rendered.depth is sum(w t): divided by the opacity it is the expected distance of the surface hit.
-            surface = out.depth.double() / out.opacity.double().clamp(min=1e-6)
-            depth.append(torch.where(out.opacity >= SURFACE_OPACITY, surface, torch.inf))
+        rendered = render_rays(method, models, "main", table.image_rays(image, aabb))
         h, w = int(views.cameras.height[image]), int(views.cameras.width[image])
-        maps.append(torch.cat(depth).reshape(h, w))
+        maps.append(rendered.surface_distance(SURFACE_OPACITY).reshape(h, w))
     return maps, (scene, views)
 
 

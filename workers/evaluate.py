@@ -192,10 +192,11 @@ def evaluate_run(run_dir: str | Path, device: str | torch.device = "cpu") -> dic
     for image in range(len(views)):
         scored = right_columns(views, image) if has_val else None
         picture = image < MAX_RENDERS
-        rgb, depth = render_image(method, models, "main", table, image, scene.bounds.aabb, device,
-                                  None if picture else scored)
+        rendered = render_image(method, models, "main", table, image, scene.bounds.aabb, device,
+                                None if picture else scored)
+        rgb = rendered.rgb
         if picture:
-            save_triptych(run_dir / "renders" / f"final_{views.names[image]}.png", rgb, views.image(image), depth)
+            save_triptych(run_dir / "renders" / f"final_{views.names[image]}.png", rendered, views.image(image))
             if scored is not None:
                 rgb = rgb[:, scored[0] : scored[1]]
         truth = scored_truth(views, image, scored)

@@ -10,21 +10,19 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from model.scenes.bounds import ray_aabb
-from model.scenes.cameras import Cameras, pixel_rays
+from model.scenes.cameras import Cameras
 from model.scenes.rays import RayBatch
 from workers.appearance import phase_embeddings
+from workers.renderer import Rendering, camera_rays, render_rays
 from workers.trained import Trained
 
-CHUNK = 8192  # rays per forward pass (no gradient: memory is activations of one chunk)
+CHUNK = 8192  # rays per forward pass of a frame
 
 
 @dataclass
-class Frame:
-    rgb: Tensor  # (H, W, 3) float in [0, 1]
-    depth: Tensor  # (H, W) expected distance along the unit ray, world units (0 where nothing is hit)
-    opacity: Tensor  # (H, W) the foreground's accumulated opacity
-    samples_per_ray: float  # main-network samples the method spent per ray
+class Frame(Rendering):
+    """A camera's rendering shaped (H, W), with its rays."""
+
     rays: RayBatch  # the frame's rays, row by row
 
     def surface_points(self, min_opacity: float) -> tuple[Tensor, Tensor]:
@@ -56,43 +54,10 @@ def appearance_row(trained: Trained, choice: str | int) -> int:
     return trained.mean_row
 
 
-def frame_rays(cameras: Cameras, index: int, aabb: Tensor, appearance: int) -> RayBatch:
-    """Every pixel of camera `index`, row by row."""
-    width, height = int(cameras.width[index]), int(cameras.height[index])
-    v, u = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
-    cam = torch.full((width * height,), index, dtype=torch.long)
-    origins, directions = pixel_rays(cameras, cam, u.reshape(-1), v.reshape(-1))
-    origins, directions = origins.float(), directions.float()
-    near, far = ray_aabb(origins, directions, aabb)
-    n = width * height
-    return RayBatch(origins, directions, near, far, torch.full((n,), appearance, dtype=torch.long),
-                    torch.zeros(n, 3), torch.arange(n))
-
-
-@torch.no_grad()
 def render_frame(trained: Trained, cameras: Cameras, index: int, appearance: int) -> Frame:
-    rays = frame_rays(cameras, index, trained.scene.bounds.aabb.float(), appearance)
-    rgb, depth, opacity, samples = [], [], [], 0
-    trained.models.eval()
-    for s in range(0, len(rays), CHUNK):
-        chunk = RayBatch(*(getattr(rays, f)[s : s + CHUNK] for f in RayBatch.__dataclass_fields__))
-        out = trained.method.render(trained.models, "main", chunk.to(trained.device))
-        rgb.append(out.rgb.float().clamp(0, 1).cpu())
-        depth.append(out.depth.float().cpu())
-        opacity.append(out.opacity.float().cpu())
-        samples += out.weights.numel()
+    """Every pixel of camera `index` through the finished run's networks (workers/renderer.py)."""
+    rays = camera_rays(cameras, index, trained.scene.bounds.aabb.float(), appearance)
+    out = render_rays(trained.method, trained.models, "main", rays, trained.device, CHUNK)
     h, w = int(cameras.height[index]), int(cameras.width[index])
-    return Frame(torch.cat(rgb).reshape(h, w, 3), torch.cat(depth).reshape(h, w), torch.cat(opacity).reshape(h, w),
-                 samples / len(rays), rays)
-
-
-def to_uint8(rgb: Tensor) -> Tensor:
-    return (rgb * 255).round().clamp(0, 255).byte()
-
-
-def depth_uint8(frame: Frame, near: float, far: float) -> Tensor:
-    """Depth as grey on a fixed range (near bright), black where the foreground is transparent: a video's
-    frames share the range, so brightness does not flicker."""
-    scaled = 1.0 - ((frame.depth - near) / max(far - near, 1e-8)).clamp(0, 1)
-    grey = (scaled * frame.opacity.clamp(0, 1) * 255).round().byte()
-    return grey[..., None].expand(*grey.shape, 3).contiguous()
+    shaped = out.reshape(h, w)
+    return Frame(shaped.rgb, shaped.depth, shaped.opacity, shaped.samples_per_ray, rays)

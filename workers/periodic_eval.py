@@ -41,8 +41,8 @@ class PeriodicEval:
                                           run.device, run.cfg.val_appearance_steps)
             columns = lambda image: right_columns(self.views, image)
         for image in images:
-            rgb, _ = render_image(run.method, run.models, phase, self.table, image, run.aabb, run.device,
-                                  columns(image))
+            rgb = render_image(run.method, run.models, phase, self.table, image, run.aabb, run.device,
+                               columns(image)).rgb
             truth = scored_truth(self.views, image, columns(image))
             scores["val_psnr"] += psnr(rgb, truth) / self.count
             scores["val_ssim"] += ssim(rgb, truth) / self.count

@@ -25,7 +25,7 @@ from model.camera_paths import (
     world_to_source_pose,
 )
 from model.scenes.scene import Scene
-from workers.frames import appearance_row, depth_uint8, render_frame, to_uint8
+from workers.frames import appearance_row, render_frame
 from workers.render_config import (
     RENDER_PHASE,
     CamerasPath,
@@ -35,6 +35,7 @@ from workers.render_config import (
     RenderConfig,
     SpiralPath,
 )
+from workers.renderer import depth_grey, depth_range, to_uint8
 from workers.store import RunStore, check_stop
 from workers.trained import Trained
 from workers.video import Mp4Writer
@@ -102,7 +103,9 @@ def render_video(trained: Trained, cfg: RenderConfig, video: Path, store: RunSto
     writers = [Mp4Writer(files["video"], cfg.width, cfg.height, cfg.fps)]
     if cfg.depth_video:
         writers.append(Mp4Writer(files["depth"], cfg.width, cfg.height, cfg.fps))
-    seconds, samples, depth_range = [], [], (0.0, 1.0)
+    seconds: list[float] = []
+    samples: list[float] = []
+    near_far = (0.0, 1.0)
     if store is not None:
         store.phase_started(RENDER_PHASE)
     try:
@@ -113,13 +116,11 @@ def render_video(trained: Trained, cfg: RenderConfig, video: Path, store: RunSto
             seconds.append(time.perf_counter() - started)
             samples.append(frame.samples_per_ray)
             writers[0].write(to_uint8(frame.rgb).numpy())
-            if i == 0:
+            if i == 0:  # the first frame's depth range holds for the whole video
                 Image.fromarray(to_uint8(frame.rgb).numpy()).save(files["poster"])
-                seen = frame.depth[frame.opacity > 0.5] / frame.opacity[frame.opacity > 0.5]
-                if len(seen):
-                    depth_range = (float(torch.quantile(seen, 0.01)), float(torch.quantile(seen, 0.99)))
+                near_far = depth_range(frame)
             if cfg.depth_video:
-                writers[1].write(depth_uint8(frame, *depth_range).numpy())
+                writers[1].write(depth_grey(frame, *near_far).numpy())
             if store is not None:
                 store.write(i + 1, {"phase": RENDER_PHASE, "phase_step": i + 1, "seconds_per_frame": seconds[-1],
                                     "rays_per_s": cfg.width * cfg.height / seconds[-1],
