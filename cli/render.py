@@ -8,20 +8,20 @@ import json
 import sys
 from pathlib import Path
 
-from workers.render_config import GENERATED
+from workers.camera_paths.registry import PATH_KINDS, generated
 
 
 def path_spec(args: argparse.Namespace) -> dict:
-    """A generated path with the options given, or a user's file: nerfstudio's camera_path.json, a
-    {"cameras": [...]} file (what a render writes as NAME.camera_path.json), or a bare list of matrices."""
-    if args.path in GENERATED:
+    """A generated path with the options given (those its kind has), or a user's file: nerfstudio's
+    camera_path.json, a {"cameras": [...]} file (what a render writes as NAME.camera_path.json), or a bare list
+    of matrices."""
+    if args.path in generated():
         options = {"pitch_deg": args.pitch, "altitude": args.altitude, "turns": args.turns, "fov_deg": args.fov}
-        allowed = {"orbit": ("pitch_deg", "altitude", "turns", "fov_deg"), "flyover": ("fov_deg",),
-                   "spiral": ("turns", "fov_deg")}[args.path]
-        return {"kind": args.path, **{k: v for k, v in options.items() if v is not None and k in allowed}}
+        fields = PATH_KINDS[args.path].model_fields
+        return {"kind": args.path, **{k: v for k, v in options.items() if v is not None and k in fields}}
     file = Path(args.path)
     if not file.is_file():
-        raise FileNotFoundError(f"--path {args.path}: neither {', '.join(GENERATED)} nor a camera path file")
+        raise FileNotFoundError(f"--path {args.path}: neither {', '.join(generated())} nor a camera path file")
     data = json.loads(file.read_text())
     if isinstance(data, list):
         return {"kind": "cameras", "cameras": [{"c2w": m} for m in data]}
@@ -69,7 +69,7 @@ def add_commands(commands) -> None:
     render = commands.add_parser("render", help="an H.264 video of a finished run along a camera path")
     render.add_argument("--run", required=True, help="run folder written by leco train")
     render.add_argument("--path", default="orbit",
-                        help=f"{' | '.join(GENERATED)} | FILE (nerfstudio camera_path.json, a 'cameras' JSON, or a "
+                        help=f"{' | '.join(generated())} | FILE (nerfstudio camera_path.json, a 'cameras' JSON, or a "
                              "list of 3x4/4x4 camera-to-world matrices; in the dataset's own frame)")
     render.add_argument("--frames", type=int, default=120, help="frames of a generated path (default 120)")
     render.add_argument("--size", default="320x240", help="WxH, both even (default 320x240)")

@@ -21,7 +21,7 @@ from torch import Tensor
 
 from model.rotation import rotation_problem
 from model.scenes.cameras import Cameras, make_cameras
-from model.scenes.scene import Normalization
+from model.scenes.scene import Normalization, Scene
 
 UP = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
 
@@ -116,6 +116,12 @@ def orbit(aabb: Tensor, frames: int, width: int, height: int, *, fov_deg: float 
         poses.append(look_at(centre + distance * offset, centre))
     return CameraPath(torch.stack(poses), intrinsics_for_fov(fov_deg, width, height).expand(frames, 4).clone(),
                       width, height)
+
+
+def training_order(scene: Scene) -> Cameras:
+    """The training cameras in capture order (by image name)."""
+    order = sorted(range(len(scene.train)), key=lambda i: scene.train.names[i])
+    return scene.train.cameras.index(order)
 
 
 def training_fov_deg(cameras: Cameras) -> float:

@@ -4,129 +4,21 @@ finite; a field that is wrong is named by its path (`path.cameras.3.c2w`, `frame
 
 from __future__ import annotations
 
-from typing import Annotated, Literal, Union
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
+from pydantic import BaseModel, Field, ValidationInfo, field_validator
 
-from model.rotation import rotation_problem
+from workers.camera_paths.base import MAX_FRAMES, STRICT, Camera, PathKind
+from workers.camera_paths.orbit import OrbitPath
+from workers.camera_paths.registry import on_change, path_type
 
 RENDER_PHASE = "render"  # a render job's one phase: a step a frame
 EXPORT_PHASE = "export"  # an export job's: a step a view of a point cloud (one otherwise)
-MAX_FRAMES = 1200
 MAX_SIDE = 1920
 MAX_FRAME_PIXELS = 1920 * 1080
 MAX_VIDEO_PIXELS = 60_000_000  # frames x pixels of one render job: 780 frames of 320x240, 195 of 640x480
 MAX_VIEW_SIDE = 640  # a view is a preview (POST /v1/jobs/{id}/view)
 MAX_VIEW_PIXELS = 640 * 480
-MIN_ALTITUDE_PITCH_DEG = 1.0  # an orbit at an altitude is at most 57x that altitude from the box
-
-Finite = Annotated[float, Field(ge=-1e9, le=1e9)]
-STRICT = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
-
-
-class Camera(BaseModel):
-    """One camera: a camera-to-world matrix (OpenGL axes: right, up, back, centre; 3x4 or 4x4 row by row) and
-    either pinhole intrinsics fx, fy, cx, cy at the path's size or a vertical field of view."""
-
-    model_config = STRICT
-
-    c2w: list[Annotated[list[Finite], Field(min_length=4, max_length=4)]] = Field(min_length=3, max_length=4)
-    intrinsics: Annotated[list[Annotated[float, Field(gt=0, le=1e6)]], Field(min_length=4, max_length=4)] | None = None
-    fov_deg: float = Field(50.0, gt=1, lt=170, description="vertical field of view, used without intrinsics")
-
-    @field_validator("c2w")
-    @classmethod
-    def a_rotation_and_a_centre(cls, c2w: list[list[float]]) -> list[list[float]]:
-        if len(c2w) == 4 and [float(v) for v in c2w[3]] != [0.0, 0.0, 0.0, 1.0]:
-            raise ValueError("the last row of a 4x4 camera-to-world must be 0, 0, 0, 1")
-        problem = rotation_problem(c2w)
-        if problem is not None:
-            raise ValueError(problem)
-        return c2w
-
-
-class OrbitPath(BaseModel):
-    model_config = STRICT
-    kind: Literal["orbit"] = "orbit"
-    pitch_deg: float = Field(30.0, ge=0, le=89, description="below the horizon")
-    altitude: float | None = Field(None, gt=0, le=1e7, description="above the foreground box's centre, in the "
-                                   "dataset's units (metres where it has them); default: the box fills the view")
-    turns: float = Field(1.0, gt=0, le=10)
-    fov_deg: float = Field(50.0, gt=1, lt=170, description="vertical field of view")
-
-    @model_validator(mode="after")
-    def altitude_needs_a_pitch(self) -> "OrbitPath":
-        # The orbit's distance is altitude / sin(pitch): at a level pitch no distance reaches that altitude.
-        if self.altitude is not None and self.pitch_deg < MIN_ALTITUDE_PITCH_DEG:
-            raise ValueError(f"an orbit at an altitude needs pitch_deg >= {MIN_ALTITUDE_PITCH_DEG:g} (the camera looks "
-                             f"down at the box from altitude / sin(pitch)); got pitch_deg={self.pitch_deg:g} with "
-                             f"altitude={self.altitude:g}: raise the pitch or leave the altitude out")
-        return self
-
-
-class FlyoverPath(BaseModel):
-    model_config = STRICT
-    kind: Literal["flyover"] = "flyover"
-    smoothing: float = Field(0.05, ge=0, le=1, description="Gaussian sigma as a fraction of the training cameras")
-    fov_deg: float | None = Field(None, gt=1, lt=170, description="default: the training cameras' median")
-
-
-class SpiralPath(BaseModel):
-    model_config = STRICT
-    kind: Literal["spiral"] = "spiral"
-    turns: float = Field(2.0, gt=0, le=10)
-    spread: float = Field(1.0, gt=0, le=10, description="radius against the training cameras' spread")
-    fov_deg: float | None = Field(None, gt=1, lt=170, description="default: the training cameras' median")
-
-
-class CamerasPath(BaseModel):
-    """A user's path: one camera per frame (or keyframes to interpolate), in the dataset's own frame (`source`)
-    or the normalised world the API's cameras route and the dashboard's viewer use (`world`)."""
-
-    model_config = STRICT
-    kind: Literal["cameras"] = "cameras"
-    frame: Literal["source", "world"] = "source"
-    width: int | None = Field(None, ge=1, le=8192, description="the size the intrinsics are given at (default: "
-                              "the render's)")
-    height: int | None = Field(None, ge=1, le=8192)
-    interpolate: bool = Field(False, description="the cameras are keyframes: render `frames` frames through them "
-                              "(evenly along the path, rotations interpolated); else one frame per camera")
-    cameras: list[Camera] = Field(min_length=1, max_length=MAX_FRAMES)
-
-    @field_validator("cameras")
-    @classmethod
-    def keyframes(cls, cameras: list[Camera], info: ValidationInfo) -> list[Camera]:
-        if info.data.get("interpolate") and len(cameras) < 2:
-            raise ValueError("interpolating a path needs at least two cameras")
-        return cameras
-
-
-class NerfstudioFrame(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="ignore", allow_inf_nan=False)
-    camera_to_world: list[Finite] = Field(min_length=16, max_length=16, description="4x4, row by row")
-    fov: float = Field(gt=1, lt=170, description="vertical, degrees")
-
-    @field_validator("camera_to_world")
-    @classmethod
-    def a_rotation_and_a_centre(cls, values: list[float]) -> list[float]:
-        Camera.a_rotation_and_a_centre([values[i:i + 4] for i in range(0, 16, 4)])
-        return values
-
-
-class NerfstudioPath(BaseModel):
-    """nerfstudio's camera_path.json (perspective cameras), read in the dataset's own frame."""
-
-    model_config = ConfigDict(frozen=True, extra="ignore", allow_inf_nan=False)
-    kind: Literal["nerfstudio"] = "nerfstudio"
-    camera_type: Literal["perspective"] = "perspective"
-    render_width: int | None = Field(None, ge=1, le=8192)
-    render_height: int | None = Field(None, ge=1, le=8192)
-    camera_path: list[NerfstudioFrame] = Field(min_length=1, max_length=MAX_FRAMES)
-
-
-PathSpec = Annotated[Union[OrbitPath, FlyoverPath, SpiralPath, CamerasPath, NerfstudioPath],
-                     Field(discriminator="kind")]
-GENERATED = ("orbit", "flyover", "spiral")
 
 
 def even_side(value: int) -> int:
@@ -148,7 +40,7 @@ class RenderConfig(BaseModel):
     appearance: Literal["mean"] | Annotated[int, Field(ge=0, le=2**31 - 1)] = Field(
         "mean", description="'mean' of the training views' appearance embeddings, or a training image's index")
     depth_video: bool = False
-    path: PathSpec = Field(default_factory=OrbitPath)
+    path: path_type() = Field(default_factory=OrbitPath)  # type: ignore[valid-type]  # the registry's kinds
 
     @field_validator("width", "height")
     @classmethod
@@ -163,25 +55,26 @@ class RenderConfig(BaseModel):
 
     @field_validator("path")
     @classmethod
-    def path_within_budget(cls, path, info: ValidationInfo):
-        count = path_frames(path)
+    def path_within_budget(cls, path: PathKind, info: ValidationInfo) -> PathKind:
+        count = path.frame_count()
         if count is not None:
             check_pixels(count, info.data)
         return path
 
     @property
     def frame_count(self) -> int:
-        count = path_frames(self.path)
+        count = self.path.frame_count()
         return self.frames if count is None else count
 
 
-def path_frames(path) -> int | None:
-    """A user path's frame count (one per camera), None for a generated path (`frames` sets it)."""
-    if isinstance(path, CamerasPath):
-        return None if path.interpolate else len(path.cameras)
-    if isinstance(path, NerfstudioPath):
-        return len(path.camera_path)
-    return None
+def follow_the_registry() -> None:
+    """A kind registered after this module was imported (a plug-in, a test's toy) is a `path` too."""
+    RenderConfig.model_fields["path"].annotation = path_type()
+    RenderConfig.__annotations__["path"] = path_type()
+    RenderConfig.model_rebuild(force=True)
+
+
+on_change(follow_the_registry)
 
 
 def check_pixels(frames: int, data: dict) -> None:

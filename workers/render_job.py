@@ -14,27 +14,10 @@ import numpy as np
 import torch
 from PIL import Image
 
-from model.camera_paths import (
-    CameraPath,
-    flyover,
-    interpolate,
-    intrinsics_for_fov,
-    orbit,
-    spiral,
-    user_path,
-    world_to_source_pose,
-)
+from model.camera_paths import CameraPath, world_to_source_pose
 from model.scenes.scene import Scene
 from workers.frames import appearance_row, render_frame
-from workers.render_config import (
-    RENDER_PHASE,
-    CamerasPath,
-    FlyoverPath,
-    NerfstudioPath,
-    OrbitPath,
-    RenderConfig,
-    SpiralPath,
-)
+from workers.render_config import RENDER_PHASE, RenderConfig
 from workers.renderer import depth_grey, depth_range, to_uint8
 from workers.store import RunStore, check_stop
 from workers.trained import Trained
@@ -49,35 +32,9 @@ def outputs(video: Path) -> dict[str, Path]:
     return {"video": video, **{k: video.with_name(video.stem + suffix) for k, suffix in SIBLINGS.items()}}
 
 
-def training_order(scene: Scene):
-    """The training cameras in capture order (by image name)."""
-    order = sorted(range(len(scene.train)), key=lambda i: scene.train.names[i])
-    return scene.train.cameras.index(order)
-
-
 def build_path(cfg: RenderConfig, scene: Scene) -> CameraPath:
-    """The path in the world frame, at the render's size."""
-    p, w, h, n, aabb = cfg.path, cfg.width, cfg.height, cfg.frames, scene.bounds.aabb
-    if isinstance(p, OrbitPath):
-        altitude = None if p.altitude is None else p.altitude / scene.normalization.scale
-        return orbit(aabb, n, w, h, fov_deg=p.fov_deg, pitch_deg=p.pitch_deg, altitude=altitude, turns=p.turns)
-    if isinstance(p, FlyoverPath):
-        return flyover(training_order(scene), n, w, h, fov_deg=p.fov_deg, smoothing=p.smoothing)
-    if isinstance(p, SpiralPath):
-        return spiral(training_order(scene), aabb, n, w, h, fov_deg=p.fov_deg, turns=p.turns, spread=p.spread)
-    if isinstance(p, CamerasPath):
-        sx, sy = w / (p.width or w), h / (p.height or h)
-        intrinsics = [[c.intrinsics[0] * sx, c.intrinsics[1] * sy, c.intrinsics[2] * sx, c.intrinsics[3] * sy]
-                      if c.intrinsics is not None else intrinsics_for_fov(c.fov_deg, w, h).tolist()
-                      for c in p.cameras]
-        norm = scene.normalization if p.frame == "source" else None
-        given = user_path([c.c2w for c in p.cameras], intrinsics, w, h, norm, field="path.cameras")
-        return interpolate(given, n) if p.interpolate else given
-    if isinstance(p, NerfstudioPath):
-        c2w = [[f.camera_to_world[i:i + 4] for i in range(0, 16, 4)] for f in p.camera_path]
-        intrinsics = [intrinsics_for_fov(f.fov, w, h).tolist() for f in p.camera_path]
-        return user_path(c2w, intrinsics, w, h, scene.normalization, field="path.camera_path")
-    raise TypeError(f"unknown path {p!r}")
+    """The path in the world frame, at the render's size (its kind builds it: workers/camera_paths)."""
+    return cfg.path.build(scene, cfg.width, cfg.height, cfg.frames)
 
 
 def path_in_source_frame(path: CameraPath, scene: Scene) -> dict:

@@ -13,7 +13,7 @@ from fastapi.responses import JSONResponse, Response
 from sqlalchemy.exc import InterfaceError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from service.api import artifacts, dashboard, health, job_kinds, jobs, methods, scenes, work
+from service.api import artifacts, camera_paths, dashboard, health, job_kinds, jobs, methods, scenes, work
 from service.api.gate import Gatekeeper
 from service.api.headers import SecurityHeaders
 from service.api.poll_cache import PollCache
@@ -84,7 +84,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.view_cache = work.ViewCache(work.VIEW_CACHE)
 
     v1 = APIRouter(prefix="/v1")  # the token is checked by Gatekeeper, before the body is read
-    for module in (scenes, jobs, artifacts, methods, job_kinds):
+    for module in (scenes, jobs, artifacts, methods, job_kinds, camera_paths):
         v1.include_router(module.router)
     v1.include_router(work.make_router())  # one pair of routes per registered kind made of a training job
     app.include_router(v1)

@@ -32,6 +32,9 @@ function problem(error) {
   return typeof error.detail === "string" ? `${error.status}: ${error.detail}` : error.message;
 }
 const getJson = async path => (await api(path)).json();
+// The camera paths a render menu offers (GET /v1/camera-paths, the generated ones): fetched once, never typed out.
+let pathKindsPromise = null;
+const pathKinds = () => (pathKindsPromise ??= getJson("/v1/camera-paths").then(p => p.items.filter(k => k.generated)));
 // The method registry (GET /v1/methods): names, labels, roles and phases; fetched once, never typed out here.
 let methodsPromise = null;
 const methodRegistry = () => (methodsPromise ??= getJson("/v1/methods").then(m => Object.fromEntries(m.items.map(i => [i.name, i]))));
@@ -310,8 +313,7 @@ async function buildWork(job) {
   document.getElementById("work-area").innerHTML = `<h2>Renders and viewer</h2><div class="work">
     <div class="card" id="renders-card"><h3>Renders</h3>
       <form id="render-form">
-        <label>path <select name="kind"><option value="orbit">orbit</option><option value="flyover">flyover</option>
-          <option value="spiral">spiral</option></select></label>
+        <label>path <select name="kind"></select></label>
         <label>frames <input name="frames" type="number" min="2" max="1200" step="1" value="120" required></label>
         <label>size <select name="size">${SIZES.map(s => `<option value="${s}"${s === "320x240" ? " selected" : ""}>${s}</option>`).join("")}</select></label>
         <label>fps <input name="fps" type="number" min="1" max="60" step="1" value="24" required></label>
@@ -333,6 +335,9 @@ async function buildWork(job) {
       <p id="path-error" class="error"></p>
     </div></div>`;
   const form = document.getElementById("render-form");
+  pathKinds().then(kinds => {
+    form.elements.kind.innerHTML = kinds.map(k => `<option value="${esc(k.kind)}" title="${esc(k.description)}">${esc(k.kind)}</option>`).join("");
+  }).catch(e => { document.getElementById("render-error").textContent = problem(e); });
   form.addEventListener("submit", event => {
     event.preventDefault();
     submitRender(job.id, { path: { kind: form.elements.kind.value } }, "render-error");
@@ -407,9 +412,7 @@ async function cancelRender(renderId) {
 
 function describeRender(r) {
   const c = r.config || {}, path = c.path || {};
-  const frames = path.kind === "cameras" && !path.interpolate ? (path.cameras || []).length : c.frames;
-  const kind = path.kind === "cameras" ? `path through ${(path.cameras || []).length} cameras` : esc(path.kind);
-  return `${kind} · ${frames} frames · ${c.width}x${c.height} · ${c.fps} fps${c.depth_video ? " · depth" : ""}`;
+  return `${esc(path.kind)} · ${r.total_steps} frames · ${c.width}x${c.height} · ${c.fps} fps${c.depth_video ? " · depth" : ""}`;
 }
 
 function addRenderItem(r) {
