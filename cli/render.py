@@ -65,7 +65,7 @@ def export_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_commands(commands) -> None:
+def add_commands(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     render = commands.add_parser("render", help="an H.264 video of a finished run along a camera path")
     render.add_argument("--run", required=True, help="run folder written by leco train")
     render.add_argument("--path", default="orbit",

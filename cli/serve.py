@@ -10,11 +10,18 @@ import secrets
 import signal
 import threading
 from pathlib import Path
+from types import FrameType
+from typing import TYPE_CHECKING, Any, Callable
 
 from service.settings import TOKEN_FILE
 
+if TYPE_CHECKING:
+    import uvicorn
 
-def settings_from(args: argparse.Namespace, **overrides):
+    from service.settings import Settings
+
+
+def settings_from(args: argparse.Namespace, **overrides: Any) -> Settings:
     from service.settings import Settings
 
     if getattr(args, "data_dir", None):
@@ -31,7 +38,7 @@ def db_upgrade(args: argparse.Namespace) -> int:
     return 0
 
 
-def prepare(settings, upgrade_embedded: bool) -> None:
+def prepare(settings: Settings, upgrade_embedded: bool) -> None:
     """The embedded default migrates for the user; any other database must already be at the schema. Then
     whatever a crash left in the artifact store goes (staged files an hour old, blobs no row references)."""
     from service.db import check_schema, upgrade
@@ -45,7 +52,7 @@ def prepare(settings, upgrade_embedded: bool) -> None:
     os.environ.setdefault("LECO_PIXEL_CACHE", str(settings.data_dir.resolve() / "pixel-cache"))
 
 
-def collect_orphans(settings) -> dict:
+def collect_orphans(settings: Settings) -> dict:
     from service.store import ArtifactStore
 
     if not settings.artifacts.is_dir():
@@ -65,7 +72,7 @@ def db_gc(args: argparse.Namespace) -> int:
     return 0
 
 
-def start_ray(settings) -> None:
+def start_ray(settings: Settings) -> None:
     if settings.ray_address or settings.backend != "ray":
         return
     from workers.run import ensure_ray
@@ -73,13 +80,13 @@ def start_ray(settings) -> None:
     ensure_ray(settings.local_cpus)  # here, in the main thread: Ray installs signal handlers
 
 
-def releasing_server(config, on_exit):
+def releasing_server(config: uvicorn.Config, on_exit: Callable[[], None] | None) -> uvicorn.Server:
     """uvicorn's server, which on SIGTERM or Ctrl-C first calls `on_exit` (returning the running jobs to the
     queue) and then shuts down gracefully. A subclass made here so that uvicorn is imported only to serve."""
     import uvicorn
 
     class ReleasingServer(uvicorn.Server):
-        def handle_exit(self, sig, frame) -> None:
+        def handle_exit(self, sig: int, frame: FrameType | None) -> None:
             if on_exit is not None and not self.should_exit:
                 on_exit()
             super().handle_exit(sig, frame)
@@ -157,7 +164,8 @@ def dispatch(args: argparse.Namespace) -> int:
     dispatcher = Dispatcher(settings, slots=args.slots)
     print(f"dispatcher {dispatcher.owner} polling {redact(settings.db_url)}", flush=True)
 
-    def stop(signum, frame) -> None:  # SIGTERM (docker stop) or Ctrl-C: hand the running jobs back first
+    # SIGTERM (docker stop) or Ctrl-C: hand the running jobs back first
+    def stop(signum: int, frame: FrameType | None) -> None:
         dispatcher.release_all()
 
     signal.signal(signal.SIGTERM, stop)
@@ -167,7 +175,7 @@ def dispatch(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_commands(commands) -> None:
+def add_commands(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     db = (commands.add_parser("db", help="database schema and artifact store upkeep")
           .add_subparsers(dest="action", required=True))
     up = db.add_parser("upgrade", help="apply the Alembic migrations (DATABASE_URL, or the embedded SQLite)")
@@ -210,7 +218,7 @@ def loopback(host: str) -> bool:
         return False
 
 
-def write_private(path, text: str) -> None:
+def write_private(path: Path, text: str) -> None:
     """Created 0600 from the first byte (never readable by others, not even briefly) and swapped in atomically."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)

@@ -11,7 +11,7 @@ import sys
 import time
 import uuid
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, TextIO
 
 from service.settings import TOKEN_FILE
 
@@ -31,7 +31,8 @@ class Api:
         self.url, self.retry_s = url.rstrip("/"), retry_s
         self.http = httpx.Client(base_url=self.url, headers=headers, timeout=timeout)
 
-    def call(self, method: str, path: str, ok=(200, 201, 202, 204), **kwargs):
+    def call(self, method: str, path: str, ok: tuple[int, ...] = (200, 201, 202, 204),
+             **kwargs: Any) -> httpx.Response:
         """One request; while the service restarts (no connection) or says it is briefly unavailable (502, 503,
         504) it is retried for up to `retry_s` seconds. Submits carry an Idempotency-Key, so a retry never
         makes a second job."""
@@ -44,7 +45,7 @@ class Api:
             raise ClientError(f"{method} {path}: HTTP {response.status_code}: {detail}")
         return response
 
-    def _send(self, method: str, path: str, **kwargs) -> httpx.Response:
+    def _send(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
         """The first answer other than 502-504, or the last answer when `retry_s` runs out."""
         import httpx
 
@@ -73,7 +74,7 @@ def default_token(data_dir: str | None) -> str | None:
     return path.read_text().strip() if path.is_file() else None
 
 
-def ensure_scene(api: Api, args) -> dict:
+def ensure_scene(api: Api, args: argparse.Namespace) -> dict:
     if args.upload:
         name = args.name or Path(args.upload).name.split(".")[0]
         with open(args.upload, "rb") as f:
@@ -90,7 +91,7 @@ def ensure_scene(api: Api, args) -> dict:
     return api.call("GET", f"/v1/scenes/{args.scene}").json()
 
 
-def wait_ready(api: Api, scene: dict, stream) -> dict:
+def wait_ready(api: Api, scene: dict, stream: TextIO) -> dict:
     if scene["state"] == "generating":
         stream.write(f"generating scene {scene['name']} (preset {scene['generator']['preset']}) ...\n")
         stream.flush()
@@ -115,7 +116,7 @@ def progress_line(job: dict) -> str:
     return " | ".join(parts)
 
 
-def follow(api: Api, job_id: int, stream, poll_s: float = 2.0) -> dict:
+def follow(api: Api, job_id: int, stream: TextIO, poll_s: float = 2.0) -> dict:
     last = ""
     while True:
         job = api.call("GET", f"/v1/jobs/{job_id}").json()
@@ -166,7 +167,7 @@ def submit_command(args: argparse.Namespace) -> int:
     return 0 if job["state"] == "succeeded" else 1
 
 
-def add_submit(commands) -> None:
+def add_submit(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     sub = commands.add_parser("submit", help="submit a job to a running service and follow it to the end")
     sub.add_argument("--url", default=os.environ.get("LECO_URL", "http://127.0.0.1:8765"))
     sub.add_argument("--token", help="bearer token (default: $LECO_TOKEN, or the api-token file of --data-dir)")

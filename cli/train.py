@@ -6,9 +6,13 @@ import argparse
 import json
 import sys
 import time
+from typing import TYPE_CHECKING, TextIO
+
+if TYPE_CHECKING:
+    from workers.config import TrainConfig
 
 
-def format_progress(row: dict, cfg) -> str:
+def format_progress(row: dict, cfg: TrainConfig) -> str:
     """[phase] step s/total (p%) | rays/s | PSNR | ETA, from the latest metrics record."""
     phase, phase_step = row.get("phase", "?"), int(row.get("phase_step", 0))
     total = cfg.phase_steps(phase) if phase in cfg.phases else phase_step
@@ -25,7 +29,7 @@ def format_progress(row: dict, cfg) -> str:
 class ProgressPrinter:
     """Rewrites one line on a terminal; elsewhere prints a line at most every `every_s` seconds."""
 
-    def __init__(self, cfg, stream=None, every_s: float = 10.0):
+    def __init__(self, cfg: TrainConfig, stream: TextIO | None = None, every_s: float = 10.0) -> None:
         # sys.stderr looked up now, not at import: it may have been replaced since (pytest, redirects).
         self.cfg, self.stream, self.every_s = cfg, stream or sys.stderr, every_s
         self.tty = self.stream.isatty()
@@ -74,7 +78,7 @@ def eval_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_commands(commands) -> None:
+def add_commands(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from model.methods import METHODS
 
     train = commands.add_parser("train", help=f"train a scene with {' | '.join(METHODS)} (Ray Train workers)")

@@ -18,10 +18,14 @@ import threading
 import time
 import uuid
 from concurrent.futures import Future, ThreadPoolExecutor, wait
+from typing import TYPE_CHECKING
 
 from service import queue
 from service.jobs.attempt import execute
 from service.settings import Settings
+
+if TYPE_CHECKING:
+    from ray.job_submission import JobStatus, JobSubmissionClient
 
 log = logging.getLogger("leco.dispatcher")
 
@@ -161,7 +165,7 @@ class Dispatcher:
             return "failed"
         return "succeeded"
 
-    def _wait_terminal(self, client, sid: str, timeout_s: float | None):
+    def _wait_terminal(self, client: JobSubmissionClient, sid: str, timeout_s: float | None) -> JobStatus:
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while True:
             status = client.get_job_status(sid)

@@ -8,7 +8,7 @@ race without ever handing one job to two owners or moving a finished job.
 
 from __future__ import annotations
 
-from datetime import timedelta
+from datetime import datetime, timedelta
 from typing import cast
 
 from sqlalchemy import CursorResult, Result, select, update
@@ -104,7 +104,7 @@ def finish(db_url: str, job_id: int, attempt: int, state: str, error: str | None
     return True
 
 
-def close_phases(session: Session, job_id: int, state: str, now) -> None:
+def close_phases(session: Session, job_id: int, state: str, now: datetime) -> None:
     session.execute(update(JobPhase).where(JobPhase.job_id == job_id, JobPhase.state.in_(("queued", "running")))
                     .values(state=state, finished_at=now), execution_options={"synchronize_session": False})
 

@@ -10,6 +10,7 @@ import shutil
 import tempfile
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from sqlalchemy import select
 
@@ -17,6 +18,9 @@ from service.db import transaction
 from service.settings import Settings
 from service.tables import Scene
 from service.workpool import WorkPool
+
+if TYPE_CHECKING:
+    from model.scenes.scene import Scene as LoadedScene
 
 log = logging.getLogger("leco.scenes")
 
@@ -26,7 +30,7 @@ class SceneConflict(ValueError):
 
 
 # ----- the heavy parts: module-level functions of plain data, run in the scene pool's processes -----------
-def load_within_budget(path: Path, max_pixels: int, source: str = "LECO_MAX_SCENE_PIXELS"):
+def load_within_budget(path: Path, max_pixels: int, source: str = "LECO_MAX_SCENE_PIXELS") -> LoadedScene:
     """The scene at `path`, read from its image headers (nothing is decoded), its pixels counted against the
     per-scene budget (`source` names it): a registration is as fast for 2,000 photos as for 20."""
     from model.scenes import load_scene
@@ -81,7 +85,7 @@ def layout_of(path: Path, max_pixels: int) -> dict:
 
 
 # ----- in the API process: rows, files and the pool ---------------------------------------------------------
-def camera_layout(scene) -> dict:
+def camera_layout(scene: LoadedScene) -> dict:
     cameras = []
     for split, views in scene.splits.items():
         for center, forward in zip(views.cameras.centers.tolist(), views.cameras.forward.tolist()):
@@ -109,7 +113,7 @@ def read_layout(settings: Settings, scene_id: int, path: Path, pool: WorkPool) -
     return json.loads(target.read_text())
 
 
-def _new_row(settings: Settings, name: str, source: str, state: str, **fields) -> int:
+def _new_row(settings: Settings, name: str, source: str, state: str, **fields: object) -> int:
     with transaction(settings.db_url) as session:
         if session.scalar(select(Scene.id).where(Scene.name == name)) is not None:
             raise SceneConflict(f"a scene named {name!r} already exists: choose another name or delete it first")

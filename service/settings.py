@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -97,7 +97,7 @@ class Settings(BaseModel):
         return self.database_url is None or self.database_url.startswith("sqlite")
 
     @classmethod
-    def from_env(cls, **overrides) -> "Settings":
+    def from_env(cls, **overrides: Any) -> "Settings":
         env = os.environ
         values: dict = {}
         if env.get("LECO_DATA_DIR"):

@@ -194,7 +194,7 @@ class ArtifactStore:
             self._collect(sha)
         return len(shas)
 
-    def shas_of(self, session, job_ids: list[int]) -> set[str]:
+    def shas_of(self, session: Session, job_ids: list[int]) -> set[str]:
         """The blobs the jobs' artifacts point at, read in the caller's transaction (before it deletes the jobs,
         whose artifact rows go with them by ON DELETE CASCADE)."""
         return set(session.scalars(select(Artifact.sha256).where(Artifact.job_id.in_(job_ids))))

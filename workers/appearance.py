@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import contextlib
 from dataclasses import dataclass
+from typing import Iterator
 
 import torch
 from torch import nn
 
 from model.methods import Method
+from model.methods.base import Networks
 from model.scenes.rays import PixelTable, RayBatch
 from model.scenes.scene import Views
 
@@ -43,15 +45,15 @@ def scored_truth(views: Views, image: int, columns: tuple[int, int] | None) -> t
     return truth if columns is None else truth[:, columns[0] : columns[1]]
 
 
-def phase_embeddings(method: Method, models, phase: str) -> list[nn.Embedding]:
+def phase_embeddings(method: Method, models: Networks, phase: str) -> list[nn.Embedding]:
     return [m for module in method.trained_modules(models, phase) for m in module.modules()
             if isinstance(m, nn.Embedding)]
 
 
 @contextlib.contextmanager
-def only_trainable(models, params: list[torch.Tensor]):
+def only_trainable(models: nn.Module, params: list[torch.Tensor]) -> Iterator[None]:
     """Every parameter of `models` frozen but `params`, in eval mode; restored afterwards."""
-    previous = {p: p.requires_grad for p in models.parameters()}
+    previous: dict[torch.Tensor, bool] = {p: p.requires_grad for p in models.parameters()}
     was = models.training
     models.eval()
     for p in previous:
@@ -81,7 +83,7 @@ def fit_rays(views: Views, images: list[int], aabb: torch.Tensor, seed: int = 0)
     return table.rays(torch.cat(ids), aabb)
 
 
-def prepare_validation_appearance(method: Method, run_models, phase: str, views: Views, train_views: Views,
+def prepare_validation_appearance(method: Method, run_models: Networks, phase: str, views: Views, train_views: Views,
                                   images: list[int], aabb: torch.Tensor, device: torch.device, steps: int) -> FitResult:
     """Give `images` of `views` the appearance embeddings the protocol prescribes, in place. Training never
     reads these rows (validation indices come after the training ones), so setting them is harmless to it."""

@@ -16,13 +16,15 @@ from torch import Tensor
 
 from model.lpips import LPIPSScores
 from model.methods import Method
+from model.methods.base import Networks, Occupied
 from model.metrics import psnr, ssim
 from model.occupancy_eval import evaluate_occupancy, evaluate_occupancy_exact
 from model.sample_accounting import step_accounting, surface_accounting
 from model.samplers import stratified_edges
 from model.scenes.rays import PixelTable
-from model.scenes.scene import Views
+from model.scenes.scene import Scene, Views
 from workers.appearance import prepare_validation_appearance, protocol, right_columns, scored_truth
+from workers.config import TrainConfig
 from workers.pixels import attach_pixel_stores
 from workers.trained import load_run
 from workers.validation import render_image, save_triptych
@@ -34,7 +36,7 @@ ACCOUNTING_RAYS = 1 << 14  # validation rays the `rays` block counts (a seeded s
 ACCOUNTING_CHUNK = 4096  # rays per render_main call while counting
 
 
-def load_final(run_dir: Path, device: torch.device):
+def load_final(run_dir: Path, device: torch.device) -> tuple[TrainConfig, Scene, Method, Networks]:
     trained = load_run(run_dir, device)
     scene = trained.scene
     attach_pixel_stores(scene, ("val",) if "val" in scene.splits else ("train",))  # what evaluation reads
@@ -56,7 +58,8 @@ def write_ply(path: Path, points: np.ndarray, rgba: np.ndarray) -> None:
 
 
 @torch.no_grad()
-def export_point_cloud(path: Path, models, occupied, views, aabb, device, num_coarse: int) -> int:
+def export_point_cloud(path: Path, models: Networks, occupied: Occupied | None, views: Views, aabb: Tensor,
+                       device: torch.device, num_coarse: int) -> int:
     """Coarse samples of a seeded subset of validation rays that the occupancy keeps (all of them for the
     vanilla method), coloured by the main network; alpha = 1 - exp(-sigma * delta)."""
     table = PixelTable(views)
@@ -128,7 +131,7 @@ def aligned_weights(weights: Tensor, samples: int) -> Tensor | None:
 
 
 @torch.no_grad()
-def ray_accounting(method: Method, models, views: Views, aabb: Tensor, bins: int, device: torch.device,
+def ray_accounting(method: Method, models: Networks, views: Views, aabb: Tensor, bins: int, device: torch.device,
                    depth: Sequence[Tensor] | None, depth_source: str) -> dict[str, Any]:
     """What reaches the main network on validation rays with the final networks in eval mode (deterministic
     samplers), counted on `bins` coarse bins per hit ray as in training (model/sample_accounting.py); with depth
@@ -171,7 +174,7 @@ def ray_accounting(method: Method, models, views: Views, aabb: Tensor, bins: int
 NO_DEPTH = "the scene has no depth maps: no surface to check (leco bench takes them from the vanilla model)"
 
 
-def depth_source_of(scene, views: Views) -> str:
+def depth_source_of(scene: Scene, views: Views) -> str:
     """What the `rays` block's surfaces come from (synthetic scenes ship exact depth), or why there are none."""
     if views.depth is None:
         return NO_DEPTH

@@ -19,7 +19,8 @@ import numpy as np
 import torch
 
 from model.camera_paths import world_to_source_pose
-from model.scenes.scene import Scene
+from model.scenes.cameras import Cameras
+from model.scenes.scene import Scene, Views
 from workers.frames import appearance_row, render_frame
 from workers.render_config import EXPORT_PHASE, ExportConfig
 from workers.store import RunStore, check_stop
@@ -75,7 +76,7 @@ def read_ply_points(path: Path) -> np.ndarray:
     return np.stack([data["x"], data["y"], data["z"]], axis=1)
 
 
-def stride_cameras(views, stride: int):
+def stride_cameras(views: Views, stride: int) -> Cameras:
     """The views' cameras over every `stride`-th pixel: the same rays through those pixels' centres."""
     cameras = views.cameras
     if stride == 1:

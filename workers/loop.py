@@ -115,7 +115,7 @@ class RankRun:
                           phase=self.progress["phase"], step=step)
             self.session.report(metrics, Path(tmp))
 
-    def to_store(self, method: str, *args, **kwargs) -> None:
+    def to_store(self, method: str, *args: object, **kwargs: object) -> None:
         """Rank 0's report to the launcher's store. A write that failed for good (disk full, the database gone
         past its retries) is remembered, not raised: raising on one rank would leave the others waiting in a
         collective. `check_store` ends the run on every rank at the next step boundary."""

@@ -7,7 +7,7 @@ phase 1, the grid all along), its occupancy metrics. This gives the benchmark it
 from __future__ import annotations
 
 import time
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 from model.metrics import psnr, ssim
 from model.occupancy_eval import evaluate_occupancy, evaluate_occupancy_exact
@@ -15,11 +15,14 @@ from model.scenes.rays import PixelTable
 from workers.appearance import prepare_validation_appearance, right_columns, scored_truth
 from workers.validation import render_image
 
+if TYPE_CHECKING:
+    from workers.loop import RankRun
+
 OCCUPANCY_RESOLUTION = 64
 
 
 class PeriodicEval:
-    def __init__(self, run) -> None:
+    def __init__(self, run: RankRun) -> None:
         self.every = run.cfg.eval_every_s
         views = run.scene.splits.get("val", run.scene.train)
         self.views, self.table = views, PixelTable(views)
@@ -31,7 +34,7 @@ class PeriodicEval:
             return False
         return ending or int(after_s // self.every) > int(before_s // self.every)
 
-    def measure(self, run, phase: str) -> dict:
+    def measure(self, run: RankRun, phase: str) -> dict:
         started = time.perf_counter()
         scores = {"val_psnr": 0.0, "val_ssim": 0.0}
         images = list(range(self.count))

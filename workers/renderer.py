@@ -6,6 +6,7 @@ depth maps all go through it, and depth becomes a picture by one rule (`depth_ra
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Iterator
 
 import torch
 from torch import Tensor, nn
@@ -37,7 +38,7 @@ class Rendering:
         return torch.where(self.opacity >= min_opacity, distance, torch.inf)
 
 
-def chunks(rays: RayBatch, size: int):
+def chunks(rays: RayBatch, size: int) -> Iterator[RayBatch]:
     for start in range(0, len(rays), size):
         yield RayBatch(*(getattr(rays, f)[start : start + size] for f in RayBatch.__dataclass_fields__))
 

@@ -18,7 +18,7 @@ class MetricSink(Protocol):
     def write(self, step: int, metrics: dict[str, float | str | None]) -> None: ...
 
 
-def clean(value):
+def clean(value: float | str | None) -> float | str | None:
     """JSON has no NaN or Inf: they are written as null."""
     if isinstance(value, float) and not math.isfinite(value):
         return None

@@ -4,18 +4,23 @@ jitter), and the PNGs a person looks at: prediction, ground truth and depth side
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from PIL import Image
 
 from model.methods import Method
+from model.methods.base import Networks
 from model.scenes.rays import PixelTable
 from workers.renderer import Rendering, depth_grey, depth_range, render_rays, to_uint8
 
+if TYPE_CHECKING:
+    from workers.loop import RankRun
 
-def render_image(method: Method, models, phase: str, table: PixelTable, image: int, aabb,
-                 device, columns: tuple[int, int] | None = None) -> Rendering:
+
+def render_image(method: Method, models: Networks, phase: str, table: PixelTable, image: int, aabb: torch.Tensor,
+                 device: torch.device, columns: tuple[int, int] | None = None) -> Rendering:
     """A whole validation image, or its columns u0 <= u < u1, shaped (H, W')."""
     rendered = render_rays(method, models, phase, table.image_rays(image, aabb, columns), device)
     h = int(table.views.cameras.height[image])
@@ -30,7 +35,7 @@ def save_triptych(path: Path, prediction: Rendering, truth: torch.Tensor) -> Non
     tmp.replace(path)
 
 
-def write_validation_renders(run, step: int) -> Path:
+def write_validation_renders(run: RankRun, step: int) -> Path:
     """During training: the first validation view (or training view when the scene has no val split)."""
     views = run.scene.splits.get("val", run.scene.train)
     rendered = render_image(run.method, run.models, run.progress["phase"], PixelTable(views), 0, run.aabb, run.device)

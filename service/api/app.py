@@ -6,12 +6,14 @@ import logging
 import time
 from collections import Counter
 from contextlib import asynccontextmanager
+from typing import AsyncIterator
 
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from sqlalchemy.exc import InterfaceError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api import artifacts, camera_paths, dashboard, health, job_kinds, jobs, methods, scenes, work
 from service.api.gate import Gatekeeper
@@ -41,15 +43,15 @@ class RequestStats:
     middleware: Starlette's BaseHTTPMiddleware costs about a millisecond per request, which a poll-heavy API
     cannot afford."""
 
-    def __init__(self, app, stats: dict):
+    def __init__(self, app: ASGIApp, stats: dict) -> None:
         self.app, self.stats = app, stats
 
-    async def __call__(self, scope, receive, send):
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
         started, status = time.perf_counter(), 500
 
-        async def send_status(message):
+        async def send_status(message: Message) -> None:
             nonlocal status
             if message["type"] == "http.response.start":
                 status = message["status"]
@@ -67,7 +69,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings.from_env()
     check_schema(settings.db_url)  # raises SchemaError naming the command to run
     @asynccontextmanager
-    async def lifespan(app: FastAPI):
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         yield
         app.state.scene_pool.close()  # its worker processes end with the server
         app.state.view_pool.close()
@@ -96,23 +98,23 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(RequestStats, stats=app.state.http_stats)
 
     @app.exception_handler(Busy)
-    async def busy(request: Request, error: Busy):
+    async def busy(request: Request, error: Busy) -> JSONResponse:
         return JSONResponse({"detail": str(error)}, 429, headers={"Retry-After": str(RETRY_AFTER_S)})
 
     @app.exception_handler(WorkerLost)
-    async def worker_lost(request: Request, error: WorkerLost):
+    async def worker_lost(request: Request, error: WorkerLost) -> JSONResponse:
         return JSONResponse({"detail": str(error)}, 503, headers={"Retry-After": str(RETRY_AFTER_S)})
 
     @app.exception_handler(OperationalError)
     @app.exception_handler(InterfaceError)
-    async def database_unavailable(request: Request, error: Exception):
+    async def database_unavailable(request: Request, error: Exception) -> JSONResponse:
         # A database restart is not the client's fault nor a bug: 503 with a hint to retry, details in the log.
         log.warning("%s %s: database unavailable: %s", request.method, request.url.path, first_line(error))
         return JSONResponse({"detail": "the database is unavailable right now; retry in a few seconds"}, 503,
                             headers={"Retry-After": "2"})
 
     @app.exception_handler(RequestValidationError)
-    async def invalid_request(request: Request, error: RequestValidationError):
+    async def invalid_request(request: Request, error: RequestValidationError) -> JSONResponse:
         # FastAPI's own shape ({"detail": [{"loc", "msg", "type"}]}) without echoing the input back.
         errors = error.errors()
         detail: list[dict] = [{"loc": [bounded(part) for part in e["loc"]], "msg": bounded(e["msg"]),
@@ -123,7 +125,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return JSONResponse({"detail": detail}, 422)
 
     @app.exception_handler(StarletteHTTPException)
-    async def http_error(request: Request, error: StarletteHTTPException):
+    async def http_error(request: Request, error: StarletteHTTPException) -> Response:
         if error.status_code in (204, 304):  # no body allowed, as Starlette's own handler does
             return Response(status_code=error.status_code, headers=error.headers)
         return JSONResponse({"detail": bounded(error.detail)}, error.status_code, headers=error.headers)

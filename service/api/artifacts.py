@@ -27,7 +27,8 @@ def artifact_out(meta: dict) -> ArtifactOut:
             responses=links(200, artifact_links("/0")))
 def list_artifacts(job_id: RowId, settings: Settings = Depends(settings_of),
                    # Checked below (422 naming the kinds); the enum tells clients and the fuzz the choices.
-                   kind: str | None = Query(None, json_schema_extra={"enum": list(ARTIFACT_KINDS)})):
+                   kind: str | None = Query(None, json_schema_extra={"enum": list(ARTIFACT_KINDS)}),
+                   ) -> list[ArtifactOut]:
     if kind is not None and kind not in ARTIFACT_KINDS:
         raise HTTPException(422, [{"loc": ["query", "kind"], "type": "value_error",
                                    "msg": f"unknown kind {kind!r}: one of {', '.join(ARTIFACT_KINDS)}"}])
@@ -49,7 +50,7 @@ def find_artifact(settings: Settings, artifact_id: int) -> dict:
 
 @router.get("/artifacts/{artifact_id}", response_model=ArtifactOut, operation_id="getArtifact",
             responses=links(200, artifact_links()))
-def show_artifact(artifact_id: RowId, settings: Settings = Depends(settings_of)):
+def show_artifact(artifact_id: RowId, settings: Settings = Depends(settings_of)) -> ArtifactOut:
     return artifact_out(find_artifact(settings, artifact_id))
 
 
@@ -58,7 +59,7 @@ def show_artifact(artifact_id: RowId, settings: Settings = Depends(settings_of))
                   responses={206: {"description": "the requested byte range"}, 304: {"description": "ETag matched"},
                              416: {"description": "range not satisfiable"},
                              500: {"description": "the stored bytes failed their sha256 check"}})
-def download(artifact_id: RowId, request: Request, settings: Settings = Depends(settings_of)):
+def download(artifact_id: RowId, request: Request, settings: Settings = Depends(settings_of)) -> Response:
     meta = find_artifact(settings, artifact_id)
     etag = f'"{meta["sha256"]}"'
     if etag in [t.strip() for t in request.headers.get("if-none-match", "").split(",")]:

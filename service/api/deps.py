@@ -26,7 +26,7 @@ def scene_pool_of(request: Request) -> WorkPool:
     return request.app.state.scene_pool
 
 
-def not_found(what: str, ident) -> HTTPException:
+def not_found(what: str, ident: object) -> HTTPException:
     return HTTPException(404, f"{what} {ident!r} not found")
 
 

@@ -10,6 +10,8 @@ import hmac
 import json
 import re
 
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
 from service.workpool import RETRY_AFTER_S
 
 MAX_JSON_BODY = 64 * 1024  # a job request with every override is a few KiB
@@ -35,10 +37,10 @@ def token_ok(tokens: tuple[str, ...], authorization: str) -> bool:
 
 
 class Gatekeeper:
-    def __init__(self, app):
+    def __init__(self, app: ASGIApp) -> None:
         self.app = app
 
-    async def __call__(self, scope, receive, send):
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
         query = scope.get("query_string", b"").lower()
@@ -79,7 +81,7 @@ class Gatekeeper:
                 return await answer(send, 413, f"request body exceeds the limit of {limit} bytes here")
         body, replayed = b"".join(chunks), False
 
-        async def replay():
+        async def replay() -> Message:
             nonlocal replayed
             if not replayed:
                 replayed = True
@@ -89,7 +91,7 @@ class Gatekeeper:
         return await self.app(scope, replay, send)
 
 
-async def answer(send, status: int, detail: str, headers: dict | None = None) -> None:
+async def answer(send: Send, status: int, detail: str, headers: dict | None = None) -> None:
     payload = json.dumps({"detail": detail}).encode()
     raw = [(b"content-type", b"application/json"), (b"content-length", str(len(payload)).encode())]
     raw += [(k.encode(), v.encode()) for k, v in (headers or {}).items()]

@@ -5,6 +5,8 @@ videos it fetched with the token are shown through blob: URLs (img-src, media-sr
 
 from __future__ import annotations
 
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
 COMMON = [(b"x-content-type-options", b"nosniff"), (b"x-frame-options", b"DENY"),
           (b"referrer-policy", b"no-referrer")]
 DASHBOARD_CSP = (b"default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; "
@@ -13,16 +15,16 @@ DASHBOARD_CSP = (b"default-src 'self'; script-src 'self'; style-src 'self' 'unsa
 
 
 class SecurityHeaders:
-    def __init__(self, app):
+    def __init__(self, app: ASGIApp) -> None:
         self.app = app
 
-    async def __call__(self, scope, receive, send):
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
         extra = COMMON + ([(b"content-security-policy", DASHBOARD_CSP)] if scope["path"].startswith("/dashboard")
                           else [])
 
-        async def send_with_headers(message):
+        async def send_with_headers(message: Message) -> None:
             if message["type"] == "http.response.start":
                 message = {**message, "headers": list(message.get("headers", [])) + extra}
             await send(message)

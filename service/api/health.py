@@ -43,7 +43,7 @@ def ray_status(settings: Settings) -> tuple[bool, str]:
 
 
 @router.get("/readyz")
-def readyz(settings: Settings = Depends(settings_of)):
+def readyz(settings: Settings = Depends(settings_of)) -> JSONResponse:
     """Up or down per dependency and nothing more (it used to show the database URL or path);
     why a dependency is down goes to the log. With LECO_BACKEND=local no Ray is needed."""
     checks, ready = {}, True

@@ -12,6 +12,7 @@ from fastapi.encoders import jsonable_encoder
 from fastapi.responses import JSONResponse, Response
 from sqlalchemy import case, delete, func, select, true
 from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
 
 from model.memory_estimate import RUNTIME_BYTES, describe, estimate_peak_bytes
 from model.scenes.folders import folder_factor
@@ -34,7 +35,7 @@ router = APIRouter(prefix="/jobs", tags=["jobs"])
 STALE_IN_FLIGHT = timedelta(minutes=5)  # an in-flight key older than this belonged to a request that died
 
 
-def job_out(session, job: Job) -> JobOut:
+def job_out(session: Session, job: Job) -> JobOut:
     phases = session.scalars(select(JobPhase).where(JobPhase.job_id == job.id).order_by(JobPhase.position)).all()
     metrics: dict[str, dict[str, float]] = {}
     for phase in phases:  # one index lookup per phase (ix_metrics_job_phase_step), not a scan of the job's rows
@@ -139,8 +140,9 @@ def create_job(body: JobRequest, settings: Settings, idempotency_key: str | None
         return 201, payload
 
 
-def record_answer(session, key: str, status: int, payload: dict) -> None:
+def record_answer(session: Session, key: str, status: int, payload: dict) -> None:
     row = session.get(IdempotencyKey, key)
+    assert row is not None  # begin_idempotent inserted it
     row.state, row.status_code, row.response = "done", status, payload
 
 
@@ -148,7 +150,8 @@ def record_answer(session, key: str, status: int, payload: dict) -> None:
     **links(201, submitted_job_links()),
     409: {"description": "a request with this Idempotency-Key is still in flight"},
     422: {"description": "invalid body, or the Idempotency-Key was used with another body"}})
-def submit(body: JobRequest, request: Request, idempotency_key: str | None = Header(None, max_length=255)):
+def submit(body: JobRequest, request: Request,
+           idempotency_key: str | None = Header(None, max_length=255)) -> JSONResponse:
     settings = request.app.state.settings
     if idempotency_key is None:
         status, payload = create_job_or_error(body, settings)
@@ -257,7 +260,7 @@ def job_list_json(settings: Settings, state: str | None, scene: str | None, meth
                    next_offset=offset + limit if offset + limit < total else None).model_dump_json().encode()
 
 
-def get_job(session, job_id: int) -> Job:
+def get_job(session: Session, job_id: int) -> Job:
     job = session.get(Job, job_id)
     if job is None:
         raise not_found("job", job_id)

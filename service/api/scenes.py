@@ -7,6 +7,7 @@ from pathlib import Path
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from sqlalchemy import func, select
+from sqlalchemy.orm import Session
 
 from service import scenes as registry
 from service.api.deps import MAX_INT, not_found, scene_pool_of, settings_of
@@ -36,7 +37,7 @@ def _created_scene(settings: Settings, scene_id: int) -> SceneOut:
         return scene_out(row)
 
 
-def find_scene(session, ident: int | str) -> Scene | None:
+def find_scene(session: Session, ident: int | str) -> Scene | None:
     if isinstance(ident, int) or (str(ident).isascii() and str(ident).isdigit()):
         if len(str(ident)) > 10:  # more digits than a 32-bit id has (and past what int() parses at 4,300)
             return None

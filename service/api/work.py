@@ -13,7 +13,9 @@ from threading import Lock
 from fastapi import APIRouter, Body, HTTPException, Query, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.responses import JSONResponse, Response
+from pydantic import BaseModel
 from sqlalchemy import func, select
+from sqlalchemy.orm import Session
 
 from service.api.deps import RowId, not_found, poll_cache_of
 from service.api.jobs import job_out
@@ -35,7 +37,7 @@ def refuse(field: list, msg: str) -> HTTPException:
     return HTTPException(422, [{"loc": field, "type": "value_error", "msg": msg}])
 
 
-def finished_training_job(session, job_id: int, lock: bool = False) -> Job:
+def finished_training_job(session: Session, job_id: int, lock: bool = False) -> Job:
     """The job a render, export or view is made of: it must exist (404), be of a kind that trains networks and
     have succeeded (422 naming `job_id`). `lock`: its row is locked until the transaction ends, so a delete of
     it waits for a submit (and sees the new child) or goes first (and the submit finds no job)."""
@@ -51,7 +53,7 @@ def finished_training_job(session, job_id: int, lock: bool = False) -> Job:
     return job
 
 
-def parent_info(session, job: Job) -> Parent:
+def parent_info(session: Session, job: Job) -> Parent:
     info = session.scalar(select(Scene.info).where(Scene.id == job.scene_id)) or {}
     splits = info.get("splits", {})  # a point cloud is made of the training and validation views
     images = int(splits.get("train", {}).get("images") or info.get("cameras") or 0)
@@ -59,7 +61,7 @@ def parent_info(session, job: Job) -> Parent:
     return Parent(job_id=job.id, method=job.method, images=images, views=views)
 
 
-def submit_child(request: Request, job_id: int, kind: JobKind, cfg) -> JSONResponse:
+def submit_child(request: Request, job_id: int, kind: JobKind, cfg: BaseModel) -> JSONResponse:
     settings: Settings = request.app.state.settings
     with transaction(settings.db_url) as session:
         parent = finished_training_job(session, job_id, lock=True)
@@ -92,7 +94,7 @@ def add_kind_routes(router: APIRouter, kind: JobKind) -> None:
     """POST and GET /jobs/{job_id}/<kind>s: submit a job of `kind` made of a finished training job, list them."""
     title = kind.name.title().replace("-", "").replace("_", "")
 
-    def submit_route(job_id: RowId, request: Request, body=Body()) -> JSONResponse:
+    def submit_route(job_id: RowId, request: Request, body: BaseModel = Body()) -> JSONResponse:
         return submit_child(request, job_id, kind, body)
 
     def list_route(job_id: RowId, request: Request, limit: int = Query(50, ge=1, le=200),

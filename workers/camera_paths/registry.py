@@ -4,7 +4,7 @@ this package (a PathKind that builds its path) and one line here."""
 
 from __future__ import annotations
 
-from typing import Annotated, Callable, Union
+from typing import Annotated, Any, Callable, Union
 
 from pydantic import Field
 
@@ -46,7 +46,7 @@ def on_change(listener: Callable[[], None]) -> None:
     _listeners.append(listener)
 
 
-def path_type():
+def path_type() -> Any:  # a type built at run time, which no static type describes
     """The `path` field's type: any registered kind, told apart by its `kind` tag."""
     return Annotated[Union[tuple(PATH_KINDS.values())], Field(discriminator="kind")]
 
