@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import HTTPException, Path, Request
+from fastapi import Depends, HTTPException, Path, Request
 
 from service.api.poll_cache import PollCache
 from service.settings import Settings
@@ -16,6 +16,10 @@ from service.workpool import WorkPool
 # a thread hop per request that a poll-heavy API cannot afford.
 async def settings_of(request: Request) -> Settings:
     return request.app.state.settings
+
+
+# A route's settings, as a FastAPI dependency (a test can override `settings_of`).
+SettingsDep = Annotated[Settings, Depends(settings_of)]
 
 
 def poll_cache_of(request: Request) -> PollCache:

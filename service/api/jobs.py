@@ -17,7 +17,7 @@ from sqlalchemy.orm import Session
 from model.memory_estimate import RUNTIME_BYTES, describe, estimate_peak_bytes
 from model.scenes.folders import folder_factor
 from service import queue
-from service.api.deps import MAX_INT, RowId, not_found, poll_cache_of
+from service.api.deps import MAX_INT, RowId, SettingsDep, not_found, poll_cache_of
 from service.api.links import cancelled_job_links, deleted_job_links, job_links, links, submitted_job_links
 from service.api.methods import check_method_filter
 from service.api.scenes import find_scene
@@ -150,9 +150,8 @@ def record_answer(session: Session, key: str, status: int, payload: dict) -> Non
     **links(201, submitted_job_links()),
     409: {"description": "a request with this Idempotency-Key is still in flight"},
     422: {"description": "invalid body, or the Idempotency-Key was used with another body"}})
-def submit(body: JobRequest, request: Request,
+def submit(body: JobRequest, request: Request, settings: SettingsDep,
            idempotency_key: str | None = Header(None, max_length=255)) -> JSONResponse:
-    settings = request.app.state.settings
     if idempotency_key is None:
         status, payload = create_job_or_error(body, settings)
         return submitted(request, status, payload)
@@ -215,7 +214,8 @@ def begin_idempotent(settings: Settings, key: str, digest: str) -> JSONResponse 
 
 
 @router.get("", response_model=JobList, operation_id="listJobs", responses=links(200, job_links("/items/0")))
-async def list_jobs(request: Request, state: str | None = Query(None, pattern="^(" + "|".join(JOB_STATES) + ")$"),
+async def list_jobs(request: Request, settings: SettingsDep,
+                    state: str | None = Query(None, pattern="^(" + "|".join(JOB_STATES) + ")$"),
                     scene: str | None = None, method: str | None = Query(None, max_length=64),
                     # Checked below (422 naming the kinds); the enum tells clients and the fuzz the built-in ones.
                     kind: str | None = Query(None, max_length=64, json_schema_extra={"enum": list(KINDS)}),
@@ -224,7 +224,6 @@ async def list_jobs(request: Request, state: str | None = Query(None, pattern="^
     # The dashboard's jobs page polls this: served from the poll cache, at most LECO_POLL_CACHE_S old.
     check_method_filter(method)
     check_kind_filter(kind)
-    settings = request.app.state.settings
     body = await poll_cache_of(request).job_list(
         (state, scene, method, kind, trains, limit, offset),
         lambda: job_list_json(settings, state, scene, method, limit, offset, kind, trains))
@@ -273,18 +272,16 @@ def job_view_json(settings: Settings, job_id: int) -> bytes:
 
 
 @router.get("/{job_id}", response_model=JobOut, operation_id="getJob")
-async def show_job(job_id: RowId, request: Request) -> Response:
+async def show_job(job_id: RowId, request: Request, settings: SettingsDep) -> Response:
     # Polled by every open dashboard: served from the poll cache (service/api/poll_cache.py), at most
     # LECO_POLL_CACHE_S old, encoded once for all pollers.
-    settings = request.app.state.settings
     body = await poll_cache_of(request).job_view(job_id, lambda: job_view_json(settings, job_id))
     return Response(body, media_type="application/json")
 
 
 @router.post("/{job_id}/cancel", response_model=JobOut, operation_id="cancelJob", responses={
     **links(200, cancelled_job_links()), 409: {"description": "the job already ended"}})
-def cancel_job(job_id: RowId, request: Request) -> Response:
-    settings = request.app.state.settings
+def cancel_job(job_id: RowId, request: Request, settings: SettingsDep) -> Response:
     state = queue.cancel(settings.db_url, job_id)
     poll_cache_of(request).forget(job_id)  # the next poll shows the request
     if state is None:
@@ -296,8 +293,7 @@ def cancel_job(job_id: RowId, request: Request) -> Response:
 
 @router.delete("/{job_id}", status_code=204, operation_id="deleteJob", responses={
     **links(204, deleted_job_links()), 409: {"description": "the job has not ended"}})
-def delete_job(job_id: RowId, request: Request) -> None:
-    settings = request.app.state.settings
+def delete_job(job_id: RowId, request: Request, settings: SettingsDep) -> None:
     store = ArtifactStore(settings.db_url, settings.artifacts)
     # One transaction under the job's row lock: a render or export submitted meanwhile (which locks the same row)
     # is either seen here, and refused with the delete, or comes after it and finds no job. Never both.
@@ -323,12 +319,11 @@ def delete_job(job_id: RowId, request: Request) -> None:
 
 
 @router.get("/{job_id}/metrics", response_model=MetricsOut, operation_id="getJobMetrics")
-async def metrics(job_id: RowId, request: Request, phase: str | None = None, name: list[str] | None = Query(None),
-                  after_step: int = Query(-1, ge=-1, le=MAX_INT), max_points: int = Query(1000, ge=1, le=100_000)
-                  ) -> Response:
+async def metrics(job_id: RowId, request: Request, settings: SettingsDep, phase: str | None = None,
+                  name: list[str] | None = Query(None), after_step: int = Query(-1, ge=-1, le=MAX_INT),
+                  max_points: int = Query(1000, ge=1, le=100_000)) -> Response:
     # Polled with after_step by every open dashboard: served from the poll cache, never older than the job view
     # this process serves (see service/api/poll_cache.py).
-    settings = request.app.state.settings
     key = (phase, tuple(name or ()), after_step, max_points)
     body = await poll_cache_of(request).metrics(
         job_id, key, lambda: job_view_json(settings, job_id),

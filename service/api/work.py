@@ -17,7 +17,7 @@ from pydantic import BaseModel
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from service.api.deps import RowId, not_found, poll_cache_of
+from service.api.deps import RowId, SettingsDep, not_found, poll_cache_of
 from service.api.jobs import job_out
 from service.api.schemas import JobList, JobOut
 from service.db import reading, transaction
@@ -61,8 +61,7 @@ def parent_info(session: Session, job: Job) -> Parent:
     return Parent(job_id=job.id, method=job.method, images=images, views=views)
 
 
-def submit_child(request: Request, job_id: int, kind: JobKind, cfg: BaseModel) -> JSONResponse:
-    settings: Settings = request.app.state.settings
+def submit_child(request: Request, settings: Settings, job_id: int, kind: JobKind, cfg: BaseModel) -> JSONResponse:
     with transaction(settings.db_url) as session:
         parent = finished_training_job(session, job_id, lock=True)
         info = parent_info(session, parent)
@@ -77,8 +76,7 @@ def submit_child(request: Request, job_id: int, kind: JobKind, cfg: BaseModel) -
     return JSONResponse(payload, 201)
 
 
-def children(request: Request, job_id: int, kind: str, limit: int, offset: int) -> JobList:
-    settings: Settings = request.app.state.settings
+def children(settings: Settings, job_id: int, kind: str, limit: int, offset: int) -> JobList:
     with reading(settings.db_url) as session:
         if session.get(Job, job_id) is None:
             raise not_found("job", job_id)
@@ -94,12 +92,12 @@ def add_kind_routes(router: APIRouter, kind: JobKind) -> None:
     """POST and GET /jobs/{job_id}/<kind>s: submit a job of `kind` made of a finished training job, list them."""
     title = kind.name.title().replace("-", "").replace("_", "")
 
-    def submit_route(job_id: RowId, request: Request, body: BaseModel = Body()) -> JSONResponse:
-        return submit_child(request, job_id, kind, body)
+    def submit_route(job_id: RowId, request: Request, settings: SettingsDep, body: BaseModel = Body()) -> JSONResponse:
+        return submit_child(request, settings, job_id, kind, body)
 
-    def list_route(job_id: RowId, request: Request, limit: int = Query(50, ge=1, le=200),
+    def list_route(job_id: RowId, settings: SettingsDep, limit: int = Query(50, ge=1, le=200),
                    offset: int = Query(0, ge=0, le=2**31 - 1)) -> JobList:
-        return children(request, job_id, kind.name, limit, offset)
+        return children(settings, job_id, kind.name, limit, offset)
 
     submit_route.__annotations__["body"] = kind.config  # the kind's own schema, in the OpenAPI document too
     router.add_api_route(f"/{{job_id}}/{kind.route}", submit_route, methods=["POST"], status_code=201,
@@ -145,10 +143,9 @@ VIEW_RESPONSES: dict[int | str, dict] = {
     429: {"description": "the view renderers are busy: retry after Retry-After seconds"}}
 
 
-def view(job_id: RowId, body: ViewRequest, request: Request) -> Response:
+def view(job_id: RowId, body: ViewRequest, request: Request, settings: SettingsDep) -> Response:
     """One camera of a finished training job rendered to PNG (a preview: at most 640x480), by the method's own
     sampler, in one of the view pool's processes; repeated requests are answered from a small cache."""
-    settings: Settings = request.app.state.settings
     with reading(settings.db_url) as session:
         job = finished_training_job(session, job_id)
         try:
