@@ -34,13 +34,15 @@ def count(*modules: nn.Module) -> int:
 
 def switch_nerf(profile: Profile, num_images: int) -> SwitchNeRF:
     n = profile.network
-    return SwitchNeRF(num_images, n.width, n.num_experts, n.expert_layers, n.xyz_frequencies, n.dir_frequencies,
-                      n.appearance_dim, n.capacity_factor, n.density_noise)
+    return SwitchNeRF(num_images, width=n.width, num_experts=n.num_experts, expert_layers=n.expert_layers,
+                      xyz_frequencies=n.xyz_frequencies, dir_frequencies=n.dir_frequencies,
+                      appearance_dim=n.appearance_dim, capacity_factor=n.capacity_factor,
+                      density_noise=n.density_noise)
 
 
 def background(profile: Profile, num_images: int) -> BackgroundField:
     b, n = profile.background, profile.network
-    return BackgroundField(num_images, b.width, b.layers, dir_frequencies=n.dir_frequencies,
+    return BackgroundField(num_images, width=b.width, layers=b.layers, dir_frequencies=n.dir_frequencies,
                            appearance_dim=n.appearance_dim, density_noise=n.density_noise)
 
 

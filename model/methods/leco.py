@@ -35,12 +35,13 @@ from model.warm_start import warm_start_main
 
 
 def hmoe(profile: Profile, num_images: int) -> HMoE:
-    n = profile.network
-    return HMoE(num_images, n.width, n.num_experts, n.expert_layers, n.xyz_frequencies, n.dir_frequencies,
-                n.appearance_dim, profile.occupancy.homogeneous, n.density_noise,
-                profile.occupancy.empty_gate_grad, profile.occupancy.gate_width,
-                profile.occupancy.gate_relu_every_layer, profile.occupancy.empty_expert_layers,
-                profile.guided.placement)
+    n, o = profile.network, profile.occupancy
+    return HMoE(num_images, width=n.width, num_scene_experts=n.num_experts, expert_layers=n.expert_layers,
+                xyz_frequencies=n.xyz_frequencies, dir_frequencies=n.dir_frequencies,
+                appearance_dim=n.appearance_dim, homogeneous=o.homogeneous, density_noise=n.density_noise,
+                empty_gate_grad=o.empty_gate_grad, gate_width=o.gate_width,
+                gate_relu_every_layer=o.gate_relu_every_layer, empty_expert_layers=o.empty_expert_layers,
+                placement_head=profile.guided.placement)
 
 
 class LeCOMethod(Method):
