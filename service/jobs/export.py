@@ -3,11 +3,8 @@ its files stored by name at the end, so a retried attempt replaces them."""
 
 from __future__ import annotations
 
-import shutil
-
 from service.jobs.attempt import Attempt
-from service.jobs.parent import load_parent
-from service.jobs.paths import run_dir_for
+from service.jobs.parent import parent_of
 from workers.export import FILES, TRANSFORM
 from workers.export import export as export_geometry
 from workers.render_config import EXPORT_PHASE, ExportConfig
@@ -15,10 +12,7 @@ from workers.render_config import EXPORT_PHASE, ExportConfig
 
 def export(attempt: Attempt) -> None:
     job, store = attempt.job, attempt.store
-    folder = run_dir_for(attempt.settings, job.id, attempt.number)
-    shutil.rmtree(folder, ignore_errors=True)
-    assert job.parent_id is not None
-    trained = load_parent(attempt.settings, job.parent_id, attempt.scene_path, folder)
+    folder, trained = parent_of(attempt)
     cfg = ExportConfig.model_validate(job.config)
     store.phase_started(EXPORT_PHASE)
     export_geometry(trained, cfg, folder, store)

@@ -10,11 +10,13 @@ from typing import TYPE_CHECKING
 from sqlalchemy import select
 
 from service.db import reading, retrying
+from service.jobs.paths import run_dir_for
 from service.settings import Settings
 from service.store import ArtifactStore, describe
 from service.tables import Artifact
 
 if TYPE_CHECKING:
+    from service.jobs.attempt import Attempt
     from workers.trained import Trained
 
 FINAL_NAMES = ("final/models.pt", "final/occupancy.pt")  # what a render needs of its training job
@@ -41,3 +43,13 @@ def load_parent(settings: Settings, parent_id: int, scene_path: str, folder: Pat
     from workers.trained import load_trained  # PyTorch: in the process that renders, not the API's
 
     return load_trained(final_files(settings, parent_id, folder), scene_path)
+
+
+def parent_of(attempt: Attempt) -> tuple[Path, Trained]:
+    """A fresh folder for an attempt of a job made of a training job, and that training job's networks."""
+    job = attempt.job
+    folder = run_dir_for(attempt.settings, job.id, attempt.number)
+    shutil.rmtree(folder, ignore_errors=True)
+    if job.parent_id is None:
+        raise ValueError(f"job {job.id} is a {job.kind} job without the training job it is made of")
+    return folder, load_parent(attempt.settings, job.parent_id, attempt.scene_path, folder)

@@ -4,11 +4,9 @@ its files stored by name at the end, so a retried attempt replaces them."""
 from __future__ import annotations
 
 import logging
-import shutil
 
 from service.jobs.attempt import Attempt
-from service.jobs.parent import load_parent
-from service.jobs.paths import run_dir_for
+from service.jobs.parent import parent_of
 from workers.render_config import RENDER_PHASE, RenderConfig
 from workers.render_job import outputs, render_video
 
@@ -17,10 +15,7 @@ log = logging.getLogger("leco.render")
 
 def render(attempt: Attempt) -> None:
     job, store = attempt.job, attempt.store
-    folder = run_dir_for(attempt.settings, job.id, attempt.number)
-    shutil.rmtree(folder, ignore_errors=True)
-    assert job.parent_id is not None
-    trained = load_parent(attempt.settings, job.parent_id, attempt.scene_path, folder)
+    folder, trained = parent_of(attempt)
     cfg = RenderConfig.model_validate(job.config)
     summary = render_video(trained, cfg, folder / "video.mp4", store, log=lambda text: log.debug(text))
     files = outputs(folder / "video.mp4")
