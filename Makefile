@@ -24,6 +24,7 @@ run: $(STAMP)
 # Lint and types first (seconds), then the suite.
 test: $(STAMP)
 	$(BIN)/ruff check model workers service bench cli tests
+	$(BIN)/ruff format --check model workers service bench cli tests
 	$(BIN)/mypy
 	$(BIN)/python -m pytest -q --durations=15
 

@@ -1,4 +1,5 @@
-"""Numbers derived from the runs: time to reach a PSNR, speed-ups, per-variant means over seeds, targets."""
+"""Numbers derived from the runs: time to reach a PSNR, speed-ups, per-variant means over seeds,
+targets."""
 
 from __future__ import annotations
 
@@ -14,12 +15,18 @@ def roles() -> tuple[str | None, str | None]:
 
 
 def main_curve(run: dict) -> list[tuple[float, float]]:
-    """(training seconds, validation PSNR) of the main network; LeCO's times include its occupancy phase."""
-    return [(p["wall_time_s"], p["val_psnr"]) for p in run["curve"] if p.get("phase") == "main" and "val_psnr" in p]
+    """(training seconds, validation PSNR) of the main network; LeCO's times include its occupancy
+    phase."""
+    return [
+        (p["wall_time_s"], p["val_psnr"])
+        for p in run["curve"]
+        if p.get("phase") == "main" and "val_psnr" in p
+    ]
 
 
 def time_to_psnr(points: list[tuple[float, float]], target: float) -> float | None:
-    """First training time at which the curve reaches `target`, linearly interpolated between evaluations."""
+    """First training time at which the curve reaches `target`, linearly interpolated between
+    evaluations."""
     previous = None
     for t, value in points:
         if value >= target:
@@ -49,12 +56,15 @@ def get(summary: dict, path: str):
 
 def per_variant(runs: list[dict], path: str) -> dict[str, tuple[float | None, float | None]]:
     names = dict.fromkeys(r["variant"] for r in runs)
-    return {n: mean_std([get(r["summary"], path) for r in runs if r["variant"] == n]) for n in names}
+    return {
+        n: mean_std([get(r["summary"], path) for r in runs if r["variant"] == n]) for n in names
+    }
 
 
 def layer_recalls(runs: list[dict]) -> dict[str, list[dict]]:
-    """Per variant with an occupancy scored by height layer: each layer's z range, reference cells and recall
-    (mean and std over seeds; None where no seed had reference cells there). Summaries without layers: left out."""
+    """Per variant with an occupancy scored by height layer: each layer's z range, reference cells
+    and recall (mean and std over seeds; None where no seed had reference cells there). Summaries
+    without layers: left out."""
     out: dict[str, list[dict]] = {}
     for name in dict.fromkeys(r["variant"] for r in runs):
         scored = [get(r["summary"], "occupancy.layers") for r in runs if r["variant"] == name]
@@ -64,24 +74,38 @@ def layer_recalls(runs: list[dict]) -> dict[str, list[dict]]:
         rows = []
         for i, layer in enumerate(scored[0]):
             mean, std = mean_std([layers[i]["recall"] for layers in scored])
-            rows.append({"z_min": layer["z_min"], "z_max": layer["z_max"], "reference_cells": layer["reference_cells"],
-                         "recall": mean, "recall_std": std})
+            rows.append(
+                {
+                    "z_min": layer["z_min"],
+                    "z_max": layer["z_max"],
+                    "reference_cells": layer["reference_cells"],
+                    "recall": mean,
+                    "recall_std": std,
+                }
+            )
         out[name] = rows
     return out
 
 
-def measured_or_blank(runs: list[dict], name: str, path: str, parent: str) -> tuple[float | None, float | None] | str:
-    """A figure's mean over the variant's seeds; where none has it, "–" when the runs measured `parent` (the
-    figure does not apply to this method, e.g. the fallback share of a method without one) and "n/a" when they
-    did not (a summary written before the figure existed)."""
+def measured_or_blank(
+    runs: list[dict], name: str, path: str, parent: str
+) -> tuple[float | None, float | None] | str:
+    """A figure's mean over the variant's seeds; where none has it, "–" when the runs measured
+    `parent` (the figure does not apply to this method, e.g. the fallback share of a method without
+    one) and "n/a" when they did not (a summary written before the figure existed)."""
     value = mean_std([get(r["summary"], path) for r in runs if r["variant"] == name])
     if value[0] is not None:
         return value
-    return "–" if any(get(r["summary"], parent) is not None for r in runs if r["variant"] == name) else "n/a"
+    return (
+        "–"
+        if any(get(r["summary"], parent) is not None for r in runs if r["variant"] == name)
+        else "n/a"
+    )
 
 
 def equal_psnr(runs: list[dict]) -> list[dict]:
-    """Per seed: the best validation PSNR every compared method reached, and when each reached it."""
+    """Per seed: the best validation PSNR every compared method reached, and when each reached
+    it."""
     out = []
     main = [r for r in runs if not r["ablation"]]
     for seed in sorted({r["seed"] for r in main}):
@@ -89,14 +113,20 @@ def equal_psnr(runs: list[dict]) -> list[dict]:
         if len(group) < 2:
             continue
         target = min(max(v for _, v in main_curve(r)) for r in group)
-        out.append({"seed": seed, "target_psnr": target,
-                    "time_s": {r["variant"]: time_to_psnr(main_curve(r), target) for r in group}})
+        out.append(
+            {
+                "seed": seed,
+                "target_psnr": target,
+                "time_s": {r["variant"]: time_to_psnr(main_curve(r), target) for r in group},
+            }
+        )
     return out
 
 
 def to_baseline_best(runs: list[dict], base: str) -> list[float | None]:
-    """Per seed: the baseline's time to its own best validation PSNR over LeCO's time to that PSNR (None where
-    LeCO never reached it). The issue's "vanilla's final PSNR in half its time" is this at >= 2."""
+    """Per seed: the baseline's time to its own best validation PSNR over LeCO's time to that PSNR
+    (None where LeCO never reached it). The issue's "vanilla's final PSNR in half its time" is this
+    at >= 2."""
     out, ours = [], roles()[0]
     main = [r for r in runs if not r["ablation"]]
     for seed in sorted({r["seed"] for r in main}):
@@ -113,7 +143,8 @@ def ratio(a: float | None, b: float | None) -> float | None:
 
 
 def speedups(runs: list[dict], equal: list[dict]) -> dict[str, dict]:
-    """LeCO over each baseline: rays/s, time to equal PSNR (mean over seeds), samples per ray, memory."""
+    """LeCO over each baseline: rays/s, time to equal PSNR (mean over seeds), samples per ray,
+    memory."""
     names = list(dict.fromkeys(r["variant"] for r in runs if not r["ablation"]))
     ours = roles()[0]
     if ours is None or ours not in names:
@@ -147,8 +178,8 @@ def _above(a: float | None, b: float | None) -> bool | None:
 
 
 def targets(runs: list[dict], speed: dict) -> list[dict]:
-    """The issue's targets, each with what was measured and whether it was met (None: not measurable here):
-    against the reference method, then against every baseline that learns an occupancy."""
+    """The issue's targets, each with what was measured and whether it was met (None: not measurable
+    here): against the reference method, then against every baseline that learns an occupancy."""
     names = {r["variant"] for r in runs if not r["ablation"]}
     ours, ref = roles()
     psnr = per_variant(runs, "val.psnr")
@@ -163,32 +194,58 @@ def targets(runs: list[dict], speed: dict) -> list[dict]:
     fmt = lambda v, spec: "n/a" if v is None else format(v, spec)
     if ours is not None and ref is not None and {ours, ref} <= names:
         s = speed[ref]
-        add("guided phase rays/s >= 2.5x vanilla Switch-NeRF", f"{fmt(s['rays_per_s'], '.2f')}x",
-            None if s["rays_per_s"] is None else s["rays_per_s"] >= 2.5)
+        add(
+            "guided phase rays/s >= 2.5x vanilla Switch-NeRF",
+            f"{fmt(s['rays_per_s'], '.2f')}x",
+            None if s["rays_per_s"] is None else s["rays_per_s"] >= 2.5,
+        )
         best = s["time_to_its_best_psnr_per_seed"]
-        add("reaches vanilla's best PSNR in at most half of vanilla's time (per seed)",
+        add(
+            "reaches vanilla's best PSNR in at most half of vanilla's time (per seed)",
             ", ".join("never" if b is None else f"{b:.2f}x" for b in best) or "n/a",
-            None if not best else all(b is not None and b >= 2 for b in best))
-        add("main-network samples per ray <= 25% of vanilla", f"{fmt(s['samples_per_ray_fraction'], '.1%')}",
-            None if s["samples_per_ray_fraction"] is None else s["samples_per_ray_fraction"] <= 0.25)
-        add("validation PSNR >= vanilla's at equal budget",
-            f"{fmt(psnr[ours][0], '.2f')} vs {fmt(psnr[ref][0], '.2f')} dB", _at_least(psnr[ours][0], psnr[ref][0]))
+            None if not best else all(b is not None and b >= 2 for b in best),
+        )
+        add(
+            "main-network samples per ray <= 25% of vanilla",
+            f"{fmt(s['samples_per_ray_fraction'], '.1%')}",
+            None
+            if s["samples_per_ray_fraction"] is None
+            else s["samples_per_ray_fraction"] <= 0.25,
+        )
+        add(
+            "validation PSNR >= vanilla's at equal budget",
+            f"{fmt(psnr[ours][0], '.2f')} vs {fmt(psnr[ref][0], '.2f')} dB",
+            _at_least(psnr[ours][0], psnr[ref][0]),
+        )
         memory = s["peak_memory_fraction"] if _on_gpu(runs) else s["activation_memory_fraction"]
-        add("peak training memory <= half of vanilla's" + ("" if _on_gpu(runs) else " (autograd activations, CPU)"),
-            f"{fmt(memory, '.1%')} of vanilla's", None if memory is None else memory <= 0.5)
+        add(
+            "peak training memory <= half of vanilla's"
+            + ("" if _on_gpu(runs) else " (autograd activations, CPU)"),
+            f"{fmt(memory, '.1%')} of vanilla's",
+            None if memory is None else memory <= 0.5,
+        )
     if ours is None or ours not in names:
         return rows
     for other in [n for n in METHODS if n in names and n != ours and METHODS[n].has_occupancy]:
         label = METHODS[other].label
-        add(f"validation PSNR >= {label}'s at equal budget",
-            f"{fmt(psnr[ours][0], '.2f')} vs {fmt(psnr[other][0], '.2f')} dB", _at_least(psnr[ours][0], psnr[other][0]))
-        add(f"occupancy F1 above {label}'s", f"{fmt(f1[ours][0], '.3f')} vs {fmt(f1[other][0], '.3f')}",
-            _above(f1[ours][0], f1[other][0]))
+        add(
+            f"validation PSNR >= {label}'s at equal budget",
+            f"{fmt(psnr[ours][0], '.2f')} vs {fmt(psnr[other][0], '.2f')} dB",
+            _at_least(psnr[ours][0], psnr[other][0]),
+        )
+        add(
+            f"occupancy F1 above {label}'s",
+            f"{fmt(f1[ours][0], '.3f')} vs {fmt(f1[other][0], '.3f')}",
+            _above(f1[ours][0], f1[other][0]),
+        )
         bound = METHODS[other].occupancy_size_target
         if bound is not None:
             p = ratio(params[ours][0], params[other][0])
-            add(f"occupancy parameters <= {bound:.0%} of {label}'s", f"{fmt(p, '.1%')}",
-                None if p is None else p <= bound)
+            add(
+                f"occupancy parameters <= {bound:.0%} of {label}'s",
+                f"{fmt(p, '.1%')}",
+                None if p is None else p <= bound,
+            )
     r = occ_ratio[ours][0]
     add("LeCO occupancy ratio <= 20%", fmt(r, ".1%"), None if r is None else r <= 0.20)
     return rows

@@ -1,5 +1,6 @@
-"""`leco bench`: train LeCO, vanilla Switch-NeRF and the occupancy grid on one scene at the same profile, seed
-and wall-clock budget, then write results.json, report.md and figures/ (see docs/BENCHMARKS.md)."""
+"""`leco bench`: train LeCO, vanilla Switch-NeRF and the occupancy grid on one scene at the same
+profile, seed and wall-clock budget, then write results.json, report.md and figures/ (see
+docs/BENCHMARKS.md)."""
 
 from __future__ import annotations
 
@@ -27,24 +28,43 @@ def bench_command(args: argparse.Namespace) -> int:
         # The sweep's points are relative to the profile the runs train, --set included.
         swept = None
         if args.sweep:
-            swept = TrainConfig(method=with_role("reference"), profile=args.profile,
-                                overrides=overrides).resolved_profile()
-        variants = select([m.strip() for m in args.methods.split(",") if m.strip()], args.ablation, args.ladder,
-                          swept)
+            swept = TrainConfig(
+                method=with_role("reference"), profile=args.profile, overrides=overrides
+            ).resolved_profile()
+        variants = select(
+            [m.strip() for m in args.methods.split(",") if m.strip()],
+            args.ablation,
+            args.ladder,
+            swept,
+        )
     except (ValueError, ValidationError) as error:
         raise SystemExit(f"leco bench: {error}") from None
     scene_dir, out = Path(args.scene), Path(args.out)
-    scene = load_scene(scene_dir, downscale=args.downscale)  # a broken scene fails here, naming what is wrong
+    # a broken scene fails here, naming what is wrong
+    scene = load_scene(scene_dir, downscale=args.downscale)
     every = args.eval_every_s or (args.budget_min * 60 / 15 if args.budget_min else 30.0)
-    plan = Plan(scene=scene_dir, profile=args.profile, out=out, budget_min=args.budget_min, seeds=seeds,
-                eval_every_s=every, eval_views=args.eval_views, backend=args.backend, workers=args.workers,
-                use_gpu=args.gpu, overrides=overrides, downscale=args.downscale)
+    plan = Plan(
+        scene=scene_dir,
+        profile=args.profile,
+        out=out,
+        budget_min=args.budget_min,
+        seeds=seeds,
+        eval_every_s=every,
+        eval_views=args.eval_views,
+        backend=args.backend,
+        workers=args.workers,
+        use_gpu=args.gpu,
+        overrides=overrides,
+        downscale=args.downscale,
+    )
     try:
         for variant in variants:  # every config is valid before the first run starts
             config_for(variant, plan, seeds[0])
     except ValidationError as error:
-        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'config'}: {e['msg'].removeprefix('Value error, ')}"
-                             for e in error.errors())
+        problems = "; ".join(
+            f"{'.'.join(map(str, e['loc'])) or 'config'}: {e['msg'].removeprefix('Value error, ')}"
+            for e in error.errors()
+        )
         raise SystemExit(f"leco bench: {problems}") from None
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
@@ -53,7 +73,9 @@ def bench_command(args: argparse.Namespace) -> int:
     except BenchError as error:
         raise SystemExit(f"leco bench: {error}") from None
 
-    reference = "none (the scene has no ground truth or depth maps, and no vanilla run to take depth from)"
+    reference = (
+        "none (the scene has no ground truth or depth maps, and no vanilla run to take depth from)"
+    )
     if scene.occupancy is not None:
         reference = "exact ground truth (gt/), on the cells the validation views observe"
     elif any(v.depth is not None for v in scene.splits.values()):
@@ -62,32 +84,61 @@ def bench_command(args: argparse.Namespace) -> int:
         from bench.reference import against_vanilla
 
         for seed in seeds:
-            switch = [r for r in runs if r["variant"] == with_role("reference") and r["seed"] == seed]
+            switch = [
+                r for r in runs if r["variant"] == with_role("reference") and r["seed"] == seed
+            ]
             same_seed = [r for r in runs if r["seed"] == seed]
             scored = [r for r in same_seed if METHODS[r["method"]].has_occupancy]
             if switch:
-                log(f"[bench] seed {seed}: occupancy and surfaces against the trained vanilla model's depth")
-                found = against_vanilla(Path(switch[0]["run_dir"]), [Path(r["run_dir"]) for r in scored],
-                                        [Path(r["run_dir"]) for r in same_seed])
+                log(
+                    f"[bench] seed {seed}: occupancy and surfaces against the trained vanilla "
+                    "model's depth"
+                )
+                found = against_vanilla(
+                    Path(switch[0]["run_dir"]),
+                    [Path(r["run_dir"]) for r in scored],
+                    [Path(r["run_dir"]) for r in same_seed],
+                )
                 for r in scored:
-                    r["summary"]["occupancy"] = {**(r["summary"].get("occupancy") or {}),
-                                                 **found["occupancy"][r["run_dir"]]}
+                    r["summary"]["occupancy"] = {
+                        **(r["summary"].get("occupancy") or {}),
+                        **found["occupancy"][r["run_dir"]],
+                    }
                 for r in same_seed:
                     r["summary"]["rays"] = found["rays"][r["run_dir"]]
-                reference = "depth maps of the validation views rendered by the trained vanilla Switch-NeRF"
+                reference = (
+                    "depth maps of the validation views rendered by the trained vanilla Switch-NeRF"
+                )
 
     equal = analysis.equal_psnr(runs)
     speed = analysis.speedups(runs, equal)
     results = {
-        "plan": {"scene": str(scene_dir), "profile": args.profile, "budget_min": args.budget_min, "seeds": seeds,
-                 "methods": [v.name for v in variants], "eval_every_s": every, "eval_views": args.eval_views,
-                 "backend": args.backend, "workers": args.workers, "gpu": args.gpu, "overrides": overrides,
-                 # the factor the runs trained and were scored at (the scene's own when none was asked for)
-                 "downscale": scene.downscale, "downscale_asked": args.downscale},
+        "plan": {
+            "scene": str(scene_dir),
+            "profile": args.profile,
+            "budget_min": args.budget_min,
+            "seeds": seeds,
+            "methods": [v.name for v in variants],
+            "eval_every_s": every,
+            "eval_views": args.eval_views,
+            "backend": args.backend,
+            "workers": args.workers,
+            "gpu": args.gpu,
+            "overrides": overrides,
+            # the factor the runs trained and were scored at (the scene's own when none was asked
+            # for)
+            "downscale": scene.downscale,
+            "downscale_asked": args.downscale,
+        },
         "command": command_line(args),
-        "machine": report.machine(), "finished_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-        "bench_wall_s": time.perf_counter() - started, "occupancy_reference": reference,
-        "runs": runs, "equal_psnr": equal, "speedups": speed, "targets": analysis.targets(runs, speed),
+        "machine": report.machine(),
+        "finished_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "bench_wall_s": time.perf_counter() - started,
+        "occupancy_reference": reference,
+        "runs": runs,
+        "equal_psnr": equal,
+        "speedups": speed,
+        "targets": analysis.targets(runs, speed),
     }
     results["figures"] = plots.all_figures(runs, out / "figures")
     report.write_results(results, out)
@@ -101,18 +152,38 @@ def parse_seeds(text: str) -> list[int]:
     try:
         seeds = [int(s) for s in text.split(",")]
     except ValueError:
-        raise ValueError(f"--seeds {text!r}: expected comma-separated non-negative integers, e.g. 0,1,2") from None
+        raise ValueError(
+            f"--seeds {text!r}: expected comma-separated non-negative integers, e.g. 0,1,2"
+        ) from None
     if any(s < 0 for s in seeds):
         raise ValueError(f"--seeds {text!r}: seeds must be non-negative")
     return seeds
 
 
 def command_line(args: argparse.Namespace) -> str:
-    """The invocation, rebuilt from the parsed arguments (so it is exact however the command was called)."""
-    words = ["leco", "bench", "--scene", args.scene, "--profile", args.profile, "--out", args.out,
-             "--methods", args.methods, "--seeds", args.seeds, "--eval-views", str(args.eval_views)]
-    for flag, value in (("--budget-min", args.budget_min), ("--eval-every-s", args.eval_every_s),
-                        ("--downscale", args.downscale)):
+    """The invocation, rebuilt from the parsed arguments (so it is exact however the command was
+    called)."""
+    words = [
+        "leco",
+        "bench",
+        "--scene",
+        args.scene,
+        "--profile",
+        args.profile,
+        "--out",
+        args.out,
+        "--methods",
+        args.methods,
+        "--seeds",
+        args.seeds,
+        "--eval-views",
+        str(args.eval_views),
+    ]
+    for flag, value in (
+        ("--budget-min", args.budget_min),
+        ("--eval-every-s", args.eval_every_s),
+        ("--downscale", args.downscale),
+    ):
         if value is not None:
             words += [flag, str(value)]
     if args.backend != "local":
@@ -127,34 +198,69 @@ def command_line(args: argparse.Namespace) -> str:
 def add_commands(commands) -> None:
     from model.methods import METHODS
 
-    bench = commands.add_parser("bench", help="every registered method on one scene (LeCO, vanilla Switch-NeRF, "
-                                              "the occupancy grid, proposal networks): report, plots")
+    bench = commands.add_parser(
+        "bench",
+        help="every registered method on one scene (LeCO, vanilla Switch-NeRF, the occupancy grid, "
+        "proposal networks): report, plots",
+    )
     bench.add_argument("--scene", required=True, help="scene folder (any supported format)")
     bench.add_argument("--profile", default="cpu", help="smoke | cpu | paper (default: cpu)")
     bench.add_argument("--out", required=True, help="output folder; finished runs in it are reused")
-    bench.add_argument("--budget-min", type=float, default=None,
-                       help="wall-clock training budget per method in minutes (LeCO's includes its occupancy "
-                            "phase); without it every method runs the profile's step counts")
-    bench.add_argument("--methods", default=",".join(METHODS),
-                       help=f"comma-separated, from: {', '.join(METHODS)} (default: all of them)")
-    bench.add_argument("--ladder", action="store_true",
-                       help="also train the ablation ladder: LeCO from the paper's formulation to the profile's "
-                            "defaults, one change at a time (bench/variants.py RUNGS)")
-    bench.add_argument("--sweep", action="store_true",
-                       help="also train each method at a leaner and a richer sampling budget (and LeCO with "
-                            "transmittance culling): PSNR against samples per ray and rays/s in the report")
-    bench.add_argument("--ablation", action="store_true",
-                       help="also train the ablations: homogeneous MoE and HMoE without the density loss")
+    bench.add_argument(
+        "--budget-min",
+        type=float,
+        default=None,
+        help="wall-clock training budget per method in minutes (LeCO's includes its occupancy "
+        "phase); without it every method runs the profile's step counts",
+    )
+    bench.add_argument(
+        "--methods",
+        default=",".join(METHODS),
+        help=f"comma-separated, from: {', '.join(METHODS)} (default: all of them)",
+    )
+    bench.add_argument(
+        "--ladder",
+        action="store_true",
+        help="also train the ablation ladder: LeCO from the paper's formulation to the profile's "
+        "defaults, one change at a time (bench/variants.py RUNGS)",
+    )
+    bench.add_argument(
+        "--sweep",
+        action="store_true",
+        help="also train each method at a leaner and a richer sampling budget (and LeCO with "
+        "transmittance culling): PSNR against samples per ray and rays/s in the report",
+    )
+    bench.add_argument(
+        "--ablation",
+        action="store_true",
+        help="also train the ablations: homogeneous MoE and HMoE without the density loss",
+    )
     bench.add_argument("--seeds", default="0", help="comma-separated seeds, e.g. 0,1,2")
-    bench.add_argument("--eval-every-s", type=float, default=None,
-                       help="validation every this many training seconds (default: budget/15, or 30 s)")
-    bench.add_argument("--eval-views", type=int, default=4, help="validation views scored during training")
-    bench.add_argument("--backend", default="local", choices=["local", "ray"],
-                       help="local (default): one process per method; ray: Ray Train workers")
+    bench.add_argument(
+        "--eval-every-s",
+        type=float,
+        default=None,
+        help="validation every this many training seconds (default: budget/15, or 30 s)",
+    )
+    bench.add_argument(
+        "--eval-views", type=int, default=4, help="validation views scored during training"
+    )
+    bench.add_argument(
+        "--backend",
+        default="local",
+        choices=["local", "ray"],
+        help="local (default): one process per method; ray: Ray Train workers",
+    )
     bench.add_argument("--workers", type=int, default=1, help="data-parallel workers (ray backend)")
     bench.add_argument("--gpu", action="store_true", help="train on GPUs")
-    bench.add_argument("--downscale", type=int, default=None,
-                       help="integer factor for images and intrinsics, in training and evaluation alike "
-                            "(default: the scene's own scale; the paper uses 4 on Mega-NeRF scenes)")
-    bench.add_argument("--set", action="append", metavar="KEY=VALUE", help="profile override for every method")
+    bench.add_argument(
+        "--downscale",
+        type=int,
+        default=None,
+        help="integer factor for images and intrinsics, in training and evaluation alike (default: "
+        "the scene's own scale; the paper uses 4 on Mega-NeRF scenes)",
+    )
+    bench.add_argument(
+        "--set", action="append", metavar="KEY=VALUE", help="profile override for every method"
+    )
     bench.set_defaults(func=bench_command)

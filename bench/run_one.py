@@ -1,5 +1,5 @@
-"""One benchmark run in its own process (`python -m bench.run_one SPEC_JSON`), so that each method's peak
-memory is its own and no method inherits another's warmed-up allocator or threads."""
+"""One benchmark run in its own process (`python -m bench.run_one SPEC_JSON`), so that each method's
+peak memory is its own and no method inherits another's warmed-up allocator or threads."""
 
 from __future__ import annotations
 

@@ -1,8 +1,7 @@
 """Running the variants back to back, each in its own process, at the same profile, seed and budget.
 
-A run folder that already holds a finished run of the same spec is reused, so an interrupted benchmark
-continues where it stopped instead of starting over.
-"""
+A run folder that already holds a finished run of the same spec is reused, so an interrupted
+benchmark continues where it stopped instead of starting over."""
 
 from __future__ import annotations
 
@@ -47,10 +46,19 @@ def config_for(variant: Variant, plan: Plan, seed: int) -> TrainConfig:
     overrides = {**(plan.overrides or {}), **variant.overrides}
     if plan.budget_min is not None:
         overrides["main_steps"] = UNBOUNDED_STEPS
-    return TrainConfig(method=variant.method, profile=plan.profile, overrides=overrides, budget_min=plan.budget_min,
-                       seed=seed, eval_every_s=plan.eval_every_s, eval_views=plan.eval_views,
-                       checkpoint_every=CHECKPOINT_EVERY, workers=plan.workers, use_gpu=plan.use_gpu,
-                       downscale=plan.downscale)
+    return TrainConfig(
+        method=variant.method,
+        profile=plan.profile,
+        overrides=overrides,
+        budget_min=plan.budget_min,
+        seed=seed,
+        eval_every_s=plan.eval_every_s,
+        eval_views=plan.eval_views,
+        checkpoint_every=CHECKPOINT_EVERY,
+        workers=plan.workers,
+        use_gpu=plan.use_gpu,
+        downscale=plan.downscale,
+    )
 
 
 def run_dir_for(plan: Plan, variant: Variant, seed: int) -> Path:
@@ -58,7 +66,8 @@ def run_dir_for(plan: Plan, variant: Variant, seed: int) -> Path:
 
 
 def finished(run_dir: Path, cfg: TrainConfig, scene: Path) -> dict | None:
-    """The summary of a finished run of exactly this spec in run_dir, else None (a different spec is an error)."""
+    """The summary of a finished run of exactly this spec in run_dir, else None (a different spec is
+    an error)."""
     record, summary = run_dir / "run.json", run_dir / "summary.json"
     if not record.exists():
         return None
@@ -76,28 +85,64 @@ def run_variant(variant: Variant, plan: Plan, seed: int, log=print) -> dict:
         log(f"[bench] {variant.name} seed {seed}: finished earlier, reusing {run_dir}")
     else:
         run_dir.mkdir(parents=True, exist_ok=True)
-        spec = {"config": cfg.model_dump(mode="json"), "scene": str(plan.scene), "run_dir": str(run_dir),
-                "backend": plan.backend}
-        log(f"[bench] {variant.name} seed {seed}: training ({cfg.budget_min or 'no'} min budget) -> {run_dir}")
+        spec = {
+            "config": cfg.model_dump(mode="json"),
+            "scene": str(plan.scene),
+            "run_dir": str(run_dir),
+            "backend": plan.backend,
+        }
+        log(
+            f"[bench] {variant.name} seed {seed}: training ({cfg.budget_min or 'no'} min budget) "
+            f"-> {run_dir}"
+        )
         started = time.perf_counter()
         with (run_dir / "bench.log").open("w") as out:
-            code = subprocess.run([sys.executable, "-m", "bench.run_one", json.dumps(spec)], stdout=out,
-                                  stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"}).returncode
+            code = subprocess.run(
+                [sys.executable, "-m", "bench.run_one", json.dumps(spec)],
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            ).returncode
         if code != 0:
             tail = (run_dir / "bench.log").read_text().strip().splitlines()[-5:]
-            raise BenchError(f"{variant.name} (seed {seed}) failed with exit code {code}; the last lines of "
-                             f"{run_dir / 'bench.log'}:\n" + "\n".join(tail))
+            raise BenchError(
+                f"{variant.name} (seed {seed}) failed with exit code {code}; the last lines of "
+                f"{run_dir / 'bench.log'}:\n" + "\n".join(tail)
+            )
         summary = json.loads((run_dir / "summary.json").read_text())
-        log(f"[bench] {variant.name} seed {seed}: done in {time.perf_counter() - started:.0f} s, "
-            f"val PSNR {summary['val']['psnr']:.2f}")
-    return {"variant": variant.name, "method": variant.method, "label": variant.label, "ablation": variant.ablation,
-            "ladder": variant.ladder, "sweep": variant.sweep,
-            "seed": seed, "run_dir": str(run_dir), "summary": summary,
-            "curve": curve(read_metrics(run_dir / "metrics.jsonl"))}
+        log(
+            f"[bench] {variant.name} seed {seed}: done in {time.perf_counter() - started:.0f} s, "
+            f"val PSNR {summary['val']['psnr']:.2f}"
+        )
+    return {
+        "variant": variant.name,
+        "method": variant.method,
+        "label": variant.label,
+        "ablation": variant.ablation,
+        "ladder": variant.ladder,
+        "sweep": variant.sweep,
+        "seed": seed,
+        "run_dir": str(run_dir),
+        "summary": summary,
+        "curve": curve(read_metrics(run_dir / "metrics.jsonl")),
+    }
 
 
 def curve(rows: list[dict]) -> list[dict]:
     """The run's periodic validation points and per-step series the report and plots need."""
-    keep = ("step", "phase", "phase_step", "wall_time_s", "val_psnr", "val_ssim", "occupancy_f1",
-            "occupancy_precision", "occupancy_recall", "fraction_empty", "samples_per_ray", "rays_per_s", "psnr")
+    keep = (
+        "step",
+        "phase",
+        "phase_step",
+        "wall_time_s",
+        "val_psnr",
+        "val_ssim",
+        "occupancy_f1",
+        "occupancy_precision",
+        "occupancy_recall",
+        "fraction_empty",
+        "samples_per_ray",
+        "rays_per_s",
+        "psnr",
+    )
     return [{k: r.get(k) for k in keep if r.get(k) is not None} for r in rows]

@@ -1,4 +1,5 @@
-"""The `leco` command line. Subcommands import their layer lazily so `leco scene ...` stays light."""
+"""The `leco` command line. Subcommands import their layer lazily so `leco scene ...` stays
+light."""
 
 from __future__ import annotations
 
@@ -37,15 +38,26 @@ def model_info_command(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from model.methods import METHODS  # read when the parser is built, so a method registered before counts
+    # read when the parser is built, so a method registered before counts
+    from model.methods import METHODS
 
-    parser = argparse.ArgumentParser(prog="leco", description="LeCO-NeRF service: scenes, training, benchmarks.")
+    parser = argparse.ArgumentParser(
+        prog="leco", description="LeCO-NeRF service: scenes, training, benchmarks."
+    )
     commands = parser.add_subparsers(dest="command", required=True)
 
-    scene = commands.add_parser("scene", help="generate or inspect scenes").add_subparsers(dest="action", required=True)
-    synth = scene.add_parser("synth", help="generate a synthetic city with exact ground truth (Mega-NeRF format + gt/)")
-    synth.add_argument("--preset", default="city", help="tiny | city | large | xl (default: city; xl is the 2,000-view "
-                       "scale scene: 640x480, about 1 GB on disk and 5 minutes to write)")
+    scene = commands.add_parser("scene", help="generate or inspect scenes").add_subparsers(
+        dest="action", required=True
+    )
+    synth = scene.add_parser(
+        "synth", help="generate a synthetic city with exact ground truth (Mega-NeRF format + gt/)"
+    )
+    synth.add_argument(
+        "--preset",
+        default="city",
+        help="tiny | city | large | xl (default: city; xl is the 2,000-view scale scene: 640x480, "
+        "about 1 GB on disk and 5 minutes to write)",
+    )
     synth.add_argument("--seed", type=int, default=0)
     synth.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
     synth.set_defaults(func=scene_synth)
@@ -56,11 +68,17 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("--downscale", type=int, default=None, help="integer image downscale factor")
     info.set_defaults(func=scene_info)
 
-    model = commands.add_parser("model", help="inspect model sizes").add_subparsers(dest="action", required=True)
-    minfo = model.add_parser("info", help="parameter count of every component of a method under a profile")
+    model = commands.add_parser("model", help="inspect model sizes").add_subparsers(
+        dest="action", required=True
+    )
+    minfo = model.add_parser(
+        "info", help="parameter count of every component of a method under a profile"
+    )
     minfo.add_argument("--method", default="leco", help=" | ".join(METHODS))
     minfo.add_argument("--profile", default="paper", help="paper | cpu | smoke")
-    minfo.add_argument("--images", type=int, default=100, help="images in the scene (appearance embeddings)")
+    minfo.add_argument(
+        "--images", type=int, default=100, help="images in the scene (appearance embeddings)"
+    )
     minfo.add_argument("--json", action="store_true")
     minfo.set_defaults(func=model_info_command)
 
@@ -94,10 +112,20 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except ValidationError as exc:  # a job config the schema refuses: name each field
-        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'config'}: {e['msg']}" for e in exc.errors())
+        problems = "; ".join(
+            f"{'.'.join(map(str, e['loc'])) or 'config'}: {e['msg']}" for e in exc.errors()
+        )
         print(f"leco: error: invalid job config: {problems}", file=sys.stderr)
         return 2
-    except (SceneError, FileExistsError, FileNotFoundError, ValueError, RunError, SchemaError, ClientError) as exc:
+    except (
+        SceneError,
+        FileExistsError,
+        FileNotFoundError,
+        ValueError,
+        RunError,
+        SchemaError,
+        ClientError,
+    ) as exc:
         print(f"leco: error: {exc}", file=sys.stderr)
         return 2
 

@@ -1,4 +1,5 @@
-"""`leco serve` (API + dispatcher + local Ray), `leco dispatch` (dispatcher only), `leco db upgrade`."""
+"""`leco serve` (API + dispatcher + local Ray), `leco dispatch` (dispatcher only), `leco db
+upgrade`."""
 
 from __future__ import annotations
 
@@ -39,16 +40,17 @@ def db_upgrade(args: argparse.Namespace) -> int:
 
 
 def prepare(settings: Settings, upgrade_embedded: bool) -> None:
-    """The embedded default migrates for the user; any other database must already be at the schema. Then
-    whatever a crash left in the artifact store goes (staged files an hour old, blobs no row references)."""
+    """The embedded default migrates for the user; any other database must already be at the schema.
+    Then whatever a crash left in the artifact store goes (staged files an hour old, blobs no row
+    references)."""
     from service.db import check_schema, upgrade
 
     if upgrade_embedded and settings.embedded and settings.database_url is None:
         upgrade(settings.db_url)
     check_schema(settings.db_url)
     collect_orphans(settings)
-    # Training pixel stores (model/scenes/pixel_store.py) live on the data volume, shared by every job and,
-    # through the environment Ray's workers inherit, by every rank on this node.
+    # Training pixel stores (model/scenes/pixel_store.py) live on the data volume, shared by every
+    # job and, through the environment Ray's workers inherit, by every rank on this node.
     os.environ.setdefault("LECO_PIXEL_CACHE", str(settings.data_dir.resolve() / "pixel-cache"))
 
 
@@ -61,14 +63,19 @@ def collect_orphans(settings: Settings) -> dict:
     if removed["staged"] or removed["blobs"]:
         logging.getLogger("leco.store").warning(
             "removed %d staged file(s) and %d unreferenced blob(s) (%d bytes) left by a crash",
-            removed["staged"], removed["blobs"], removed["bytes"])
+            removed["staged"],
+            removed["blobs"],
+            removed["bytes"],
+        )
     return removed
 
 
 def db_gc(args: argparse.Namespace) -> int:
     removed = collect_orphans(settings_from(args))
-    print(f"artifact store: removed {removed['staged']} staged file(s) and {removed['blobs']} unreferenced "
-          f"blob(s), {removed['bytes']:,} bytes")
+    print(
+        f"artifact store: removed {removed['staged']} staged file(s) and {removed['blobs']} "
+        f"unreferenced blob(s), {removed['bytes']:,} bytes"
+    )
     return 0
 
 
@@ -81,8 +88,9 @@ def start_ray(settings: Settings) -> None:
 
 
 def releasing_server(config: uvicorn.Config, on_exit: Callable[[], None] | None) -> uvicorn.Server:
-    """uvicorn's server, which on SIGTERM or Ctrl-C first calls `on_exit` (returning the running jobs to the
-    queue) and then shuts down gracefully. A subclass made here so that uvicorn is imported only to serve."""
+    """uvicorn's server, which on SIGTERM or Ctrl-C first calls `on_exit` (returning the running
+    jobs to the queue) and then shuts down gracefully. A subclass made here so that uvicorn is
+    imported only to serve."""
     import uvicorn
 
     class ReleasingServer(uvicorn.Server):
@@ -106,8 +114,10 @@ def serve(args: argparse.Namespace) -> int:
     overrides = {}
     token = None
     if args.no_auth and not loopback(args.host):
-        raise SystemExit(f"leco serve: --no-auth with --host {args.host} would open the API to the network; "
-                         "use it only with a loopback host (127.0.0.1, ::1, localhost)")
+        raise SystemExit(
+            f"leco serve: --no-auth with --host {args.host} would open the API to the network; use "
+            "it only with a loopback host (127.0.0.1, ::1, localhost)"
+        )
     if not args.no_auth and "LECO_API_TOKENS" not in os.environ:
         token = secrets.token_urlsafe(24)
         while token.startswith("-"):  # `leco submit --token -x...` would read it as an option
@@ -125,27 +135,46 @@ def serve(args: argparse.Namespace) -> int:
     if not args.no_dispatcher:
         dispatcher = Dispatcher(settings, slots=args.slots)
         threading.Thread(target=dispatcher.run_forever, daemon=True, name="leco-dispatcher").start()
-    print(f"LeCO-NeRF service at http://{args.host}:{args.port} (API docs: /docs; data: {settings.data_dir.resolve()})",
-          flush=True)
+    print(
+        f"LeCO-NeRF service at http://{args.host}:{args.port} (API docs: /docs; data: "
+        f"{settings.data_dir.resolve()})",
+        flush=True,
+    )
     if token:
-        # The file only: stdout ends up in log files (make run's serve.log), and tokens are never logged.
-        print(f"API token in {(settings.data_dir / TOKEN_FILE).resolve()} (mode 600; leco submit reads it)", flush=True)
-    # Everything imported and built so far lives as long as the process: keep it out of the collector's sweeps,
-    # or each full collection (hundreds of thousands of objects: torch, SQLAlchemy, pydantic) stalls every
-    # request in flight for ~100 ms.
+        # The file only: stdout ends up in log files (make run's serve.log), and tokens are never
+        # logged.
+        print(
+            f"API token in {(settings.data_dir / TOKEN_FILE).resolve()} (mode 600; leco submit "
+            "reads it)",
+            flush=True,
+        )
+    # Everything imported and built so far lives as long as the process: keep it out of the
+    # collector's sweeps, or each full collection (hundreds of thousands of objects: torch,
+    # SQLAlchemy, pydantic) stalls every request in flight for ~100 ms.
     gc.freeze()
     from service.api.connections import connection_budget, guarded_protocol
 
-    protocol = guarded_protocol(settings.header_timeout_s, connection_budget(settings.max_connections))
-    # The client address the per-client limits count is the one a trusted proxy forwards (X-Forwarded-For);
-    # uvicorn trusts only 127.0.0.1 unless told (a sidecar proxy in the same pod is 127.0.0.1).
-    config = uvicorn.Config(app, host=args.host, port=args.port, log_level="warning", http=protocol,
-                            proxy_headers=True, forwarded_allow_ips=args.trusted_proxies)
+    protocol = guarded_protocol(
+        settings.header_timeout_s, connection_budget(settings.max_connections)
+    )
+    # The client address the per-client limits count is the one a trusted proxy forwards
+    # (X-Forwarded-For); uvicorn trusts only 127.0.0.1 unless told (a sidecar proxy in the same pod
+    # is 127.0.0.1).
+    config = uvicorn.Config(
+        app,
+        host=args.host,
+        port=args.port,
+        log_level="warning",
+        http=protocol,
+        proxy_headers=True,
+        forwarded_allow_ips=args.trusted_proxies,
+    )
     server = releasing_server(config, on_exit=dispatcher.release_all if dispatcher else None)
     try:
         server.run()
     except KeyboardInterrupt:
-        pass  # uvicorn raises Ctrl-C again once it has shut down; the jobs are already back in the queue
+        # uvicorn raises Ctrl-C again once it has shut down; the jobs are already back in the queue
+        pass
     finally:
         if dispatcher is not None:
             dispatcher.shutdown()
@@ -176,29 +205,56 @@ def dispatch(args: argparse.Namespace) -> int:
 
 
 def add_commands(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    db = (commands.add_parser("db", help="database schema and artifact store upkeep")
-          .add_subparsers(dest="action", required=True))
-    up = db.add_parser("upgrade", help="apply the Alembic migrations (DATABASE_URL, or the embedded SQLite)")
-    up.add_argument("--data-dir", help="embedded data folder (default: $LECO_DATA_DIR or ./leco-data)")
+    db = commands.add_parser("db", help="database schema and artifact store upkeep").add_subparsers(
+        dest="action", required=True
+    )
+    up = db.add_parser(
+        "upgrade", help="apply the Alembic migrations (DATABASE_URL, or the embedded SQLite)"
+    )
+    up.add_argument(
+        "--data-dir", help="embedded data folder (default: $LECO_DATA_DIR or ./leco-data)"
+    )
     up.set_defaults(func=db_upgrade)
-    gc = db.add_parser("gc", help="remove what a crash left in the artifact store (staged files, unreferenced blobs)")
-    gc.add_argument("--data-dir", help="embedded data folder (default: $LECO_DATA_DIR or ./leco-data)")
+    gc = db.add_parser(
+        "gc",
+        help="remove what a crash left in the artifact store (staged files, unreferenced blobs)",
+    )
+    gc.add_argument(
+        "--data-dir", help="embedded data folder (default: $LECO_DATA_DIR or ./leco-data)"
+    )
     gc.set_defaults(func=db_gc)
 
-    srv = commands.add_parser("serve", help="run the API, a dispatcher and a local Ray (SQLite by default)")
+    srv = commands.add_parser(
+        "serve", help="run the API, a dispatcher and a local Ray (SQLite by default)"
+    )
     srv.add_argument("--host", default="127.0.0.1")
     srv.add_argument("--port", type=int, default=8765)
-    srv.add_argument("--data-dir", help="embedded data folder (default: $LECO_DATA_DIR or ./leco-data)")
-    srv.add_argument("--slots", type=int, default=1, help="jobs this dispatcher runs at once (default 1)")
-    srv.add_argument("--no-auth", action="store_true", help="no bearer token (only for a loopback-only service)")
-    srv.add_argument("--no-dispatcher", action="store_true", help="API only; run `leco dispatch` elsewhere")
-    srv.add_argument("--trusted-proxies", default="127.0.0.1",
-                     help="addresses whose X-Forwarded-For names the client (comma-separated, or '*' when only a "
-                          "proxy can reach the API; default 127.0.0.1)")
+    srv.add_argument(
+        "--data-dir", help="embedded data folder (default: $LECO_DATA_DIR or ./leco-data)"
+    )
+    srv.add_argument(
+        "--slots", type=int, default=1, help="jobs this dispatcher runs at once (default 1)"
+    )
+    srv.add_argument(
+        "--no-auth", action="store_true", help="no bearer token (only for a loopback-only service)"
+    )
+    srv.add_argument(
+        "--no-dispatcher", action="store_true", help="API only; run `leco dispatch` elsewhere"
+    )
+    srv.add_argument(
+        "--trusted-proxies",
+        default="127.0.0.1",
+        help="addresses whose X-Forwarded-For names the client (comma-separated, or '*' when only "
+        "a proxy can reach the API; default 127.0.0.1)",
+    )
     srv.set_defaults(func=serve)
 
-    dsp = commands.add_parser("dispatch", help="run a dispatcher only (claims and runs queued jobs)")
-    dsp.add_argument("--data-dir", help="embedded data folder (default: $LECO_DATA_DIR or ./leco-data)")
+    dsp = commands.add_parser(
+        "dispatch", help="run a dispatcher only (claims and runs queued jobs)"
+    )
+    dsp.add_argument(
+        "--data-dir", help="embedded data folder (default: $LECO_DATA_DIR or ./leco-data)"
+    )
     dsp.add_argument("--slots", type=int, default=1)
     dsp.set_defaults(func=dispatch)
 
@@ -219,7 +275,8 @@ def loopback(host: str) -> bool:
 
 
 def write_private(path: Path, text: str) -> None:
-    """Created 0600 from the first byte (never readable by others, not even briefly) and swapped in atomically."""
+    """Created 0600 from the first byte (never readable by others, not even briefly) and swapped in
+    atomically."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     try:

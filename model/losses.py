@@ -9,13 +9,15 @@ EPS = 1e-10
 
 
 def dispatch_fractions(probs: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
-    """f: fraction of points sent to each expert (not differentiable); p: mean gate value per expert."""
+    """f: fraction of points sent to each expert (not differentiable); p: mean gate value per
+    expert."""
     f = torch.bincount(index, minlength=probs.shape[1]).float() / max(len(index), 1)
     return f, probs.mean(dim=0) if len(probs) else probs.new_zeros(probs.shape[1])
 
 
 def balance_loss(probs: Tensor, index: Tensor) -> Tensor:
-    """Switch Transformer balance loss L_b = E * sum_i f_i p_i: 1 when the experts share points equally."""
+    """Switch Transformer balance loss L_b = E * sum_i f_i p_i: 1 when the experts share points
+    equally."""
     f, p = dispatch_fractions(probs, index)
     return probs.shape[1] * (f * p).sum()
 
@@ -29,9 +31,9 @@ def imbalanced_gate_loss(probs: Tensor, index: Tensor, v: float) -> Tensor:
 
 
 def density_loss(probs: Tensor, index: Tensor, sigma: Tensor) -> Tensor:
-    """L_d = (|Y| / |X|) sum_X g sigma / sum_Y g sigma, sigma detached (Eq. 2). X: points sent to E_e,
-    g their E_e gate; Y: points sent to scene experts, g the sum of the n scene gates. Zero (with a
-    gradient path) when X or Y is empty: there is no ratio to push down."""
+    """L_d = (|Y| / |X|) sum_X g sigma / sum_Y g sigma, sigma detached (Eq. 2). X: points sent to
+    E_e, g their E_e gate; Y: points sent to scene experts, g the sum of the n scene gates. Zero
+    (with a gradient path) when X or Y is empty: there is no ratio to push down."""
     n = probs.shape[1] - 1
     empty = index == n
     num_x, num_y = int(empty.sum()), int((~empty).sum())
@@ -44,21 +46,25 @@ def density_loss(probs: Tensor, index: Tensor, sigma: Tensor) -> Tensor:
 
 
 def visibility_loss(probs: Tensor, weights: Tensor) -> Tensor:
-    """L_v = -sum_i w_i log(1 - p_e,i) / sum_i w_i, w_i = T_i alpha_i detached: the samples a ray actually
-    shows are sent away from E_e in proportion to how much they show (not in the paper)."""
+    """L_v = -sum_i w_i log(1 - p_e,i) / sum_i w_i, w_i = T_i alpha_i detached: the samples a ray
+    actually shows are sent away from E_e in proportion to how much they show (not in the paper)."""
     w = weights.detach().float().reshape(-1)
     not_empty = (1.0 - probs[:, -1]).clamp(min=EPS)
     return -(w * torch.log(not_empty)).sum() / (w.sum() + EPS)
 
 
 def rendering_loss(rgb: Tensor, target: Tensor) -> Tensor:
-    """Mean squared colour error over rays (the paper sums; the mean keeps the scale batch-independent)."""
+    """Mean squared colour error over rays (the paper sums; the mean keeps the scale
+    batch-independent)."""
     return ((rgb.float() - target.float()) ** 2).mean()
 
 
-def gate_statistics(probs: Tensor, index: Tensor, sigma: Tensor, alpha: Tensor | None = None) -> dict[str, float]:
-    """The paper's Fig. 5 numbers: share of points per expert and to E_e, mean density (and alpha) of
-    E_e points against scene-expert points, and their ratio. Missing groups read as NaN, never a crash."""
+def gate_statistics(
+    probs: Tensor, index: Tensor, sigma: Tensor, alpha: Tensor | None = None
+) -> dict[str, float]:
+    """The paper's Fig. 5 numbers: share of points per expert and to E_e, mean density (and alpha)
+    of E_e points against scene-expert points, and their ratio. Missing groups read as NaN, never a
+    crash."""
     n = probs.shape[1] - 1
     f, _ = dispatch_fractions(probs, index)
     empty = index == n

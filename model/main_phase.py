@@ -1,12 +1,14 @@
 """The main Switch-NeRF network's step under each sampler (paper section 3.4 and the baselines):
 
 - `vanilla`: stratified coarse + inverse-CDF fine through the same network, all composited together;
-- `guided` (LeCO): coarse bins -> the occupancy network O -> kept bins split or placed (model/guided_render.py);
-- `grid`: nerfacc-style marching through the occupancy grid (the grid itself is updated by the caller).
+- `guided` (LeCO): coarse bins -> the occupancy network O -> kept bins split or placed
+  (model/guided_render.py);
+- `grid`: nerfacc-style marching through the occupancy grid (the grid itself is updated by the
+  caller).
 
-Every sampler renders the background behind the foreground, so the three differ only in which foreground
-points the main network sees. Loss = L_r + balance_weight * balance loss (Switch-NeRF, 5e-4).
-"""
+Every sampler renders the background behind the foreground, so the three differ only in which
+foreground points the main network sees. Loss = L_r + balance_weight * balance loss (Switch-NeRF,
+5e-4)."""
 
 from __future__ import annotations
 
@@ -25,7 +27,13 @@ from model.occupancy_phase import field_on_edges, render_background
 from model.profiles import Profile
 from model.rendering import Rendered, composite_batched, composite_packed, packed_transmittance
 from model.sample_accounting import step_accounting
-from model.samplers import PackedSamples, inverse_cdf_edges, merge_edges, pack_edges, stratified_edges
+from model.samplers import (
+    PackedSamples,
+    inverse_cdf_edges,
+    merge_edges,
+    pack_edges,
+    stratified_edges,
+)
 from model.scenes.rays import RayBatch
 
 
@@ -34,15 +42,20 @@ class MainRender:
     rendered: Rendered
     out: FieldOutput | None  # None when no ray had a foreground sample
     samples_per_ray: float  # main-network samples per ray (the cost the samplers compete on)
-    occupancy_ratio: float | None  # kept fraction of coarse samples (guided) or of march steps (grid)
+    # kept fraction of coarse samples (guided) or of march steps (grid)
+    occupancy_ratio: float | None
     occupancy_loss: Tensor | None = None  # O's own loss when it keeps learning (guided.online)
-    # The main network's samples, packed (zero-length intervals of a batched sampler included: they cost too);
-    # model/sample_accounting.py counts what reached the main network from them. None: not known.
+    # The main network's samples, packed (zero-length intervals of a batched sampler included: they
+    # cost too); model/sample_accounting.py counts what reached the main network from them. None:
+    # not known.
     samples: PackedSamples | None = None
-    stats: dict[str, float] = dataclass_field(default_factory=dict)  # a sampler's own figures, logged as they are
+    # a sampler's own figures, logged as they are
+    stats: dict[str, float] = dataclass_field(default_factory=dict)
 
 
-def field_on_packed(field: SwitchNeRF, rays: RayBatch, samples: PackedSamples) -> FieldOutput | None:
+def field_on_packed(
+    field: SwitchNeRF, rays: RayBatch, samples: PackedSamples
+) -> FieldOutput | None:
     if len(samples) == 0:
         return None
     i = samples.ray_index
@@ -50,41 +63,69 @@ def field_on_packed(field: SwitchNeRF, rays: RayBatch, samples: PackedSamples) -
     return field(xyz, rays.directions[i], rays.image_index[i])
 
 
-def composite_field(out: FieldOutput | None, rays: RayBatch, samples: PackedSamples, behind: Tensor) -> Rendered:
+def composite_field(
+    out: FieldOutput | None, rays: RayBatch, samples: PackedSamples, behind: Tensor
+) -> Rendered:
     r = len(rays)
     if out is None:  # every ray is background only
         empty = torch.zeros(0, device=behind.device)
-        return composite_packed(empty, torch.zeros(0, 3, device=behind.device), empty, empty,
-                                torch.zeros(0, dtype=torch.long, device=behind.device), r, behind)
-    return composite_packed(out.sigma, out.rgb, samples.mids, samples.deltas, samples.ray_index, r, behind)
+        return composite_packed(
+            empty,
+            torch.zeros(0, 3, device=behind.device),
+            empty,
+            empty,
+            torch.zeros(0, dtype=torch.long, device=behind.device),
+            r,
+            behind,
+        )
+    return composite_packed(
+        out.sigma, out.rgb, samples.mids, samples.deltas, samples.ray_index, r, behind
+    )
 
 
-def render_batched(field, rays: RayBatch, edges: Tensor, behind: Tensor) -> tuple[Rendered, FieldOutput]:
+def render_batched(
+    field, rays: RayBatch, edges: Tensor, behind: Tensor
+) -> tuple[Rendered, FieldOutput]:
     out, mids, deltas = field_on_edges(field, rays, edges)
     r, n = deltas.shape
-    return composite_batched(out.sigma.reshape(r, n), out.rgb.reshape(r, n, 3), mids, deltas, behind), out
+    return composite_batched(
+        out.sigma.reshape(r, n), out.rgb.reshape(r, n, 3), mids, deltas, behind
+    ), out
 
 
-def render_vanilla(field: SwitchNeRF, background: BackgroundField, rays: RayBatch, profile: Profile,
-                   generator: torch.Generator | None) -> MainRender:
+def render_vanilla(
+    field: SwitchNeRF,
+    background: BackgroundField,
+    rays: RayBatch,
+    profile: Profile,
+    generator: torch.Generator | None,
+) -> MainRender:
     cfg = profile.vanilla
     behind = render_background(background, rays, profile.background.samples, generator).rgb
     coarse = stratified_edges(rays.near, rays.far, cfg.coarse_samples, generator)
     if cfg.fine_samples == 0:
         rendered, out = render_batched(field, rays, coarse, behind)
-        return MainRender(rendered, out, float(cfg.coarse_samples), None, samples=pack_edges(coarse))
+        return MainRender(
+            rendered, out, float(cfg.coarse_samples), None, samples=pack_edges(coarse)
+        )
     with torch.no_grad():  # coarse weights only place the fine samples
         weights = render_batched(field, rays, coarse, behind)[0].weights
     edges = merge_edges(coarse, inverse_cdf_edges(coarse, weights, cfg.fine_samples, generator))
     rendered, out = render_batched(field, rays, edges, behind)
     # Coarse points run the network twice (once without gradient to place the fine ones).
-    return MainRender(rendered, out, float(cfg.coarse_samples + edges.shape[1] - 1), None, samples=pack_edges(edges))
+    return MainRender(
+        rendered,
+        out,
+        float(cfg.coarse_samples + edges.shape[1] - 1),
+        None,
+        samples=pack_edges(edges),
+    )
 
 
 def cull_occluded(field: SwitchNeRF, rays: RayBatch, samples: PackedSamples, eps: float) -> Tensor:
-    """nerfacc's early stop for a learned sampler: one gradient-free pass of the main field finds the samples
-    its current density already hides (T_i < eps), so the pass with gradient runs on the visible ones only.
-    Returns the mask of the samples to keep."""
+    """nerfacc's early stop for a learned sampler: one gradient-free pass of the main field finds
+    the samples its current density already hides (T_i < eps), so the pass with gradient runs on the
+    visible ones only. Returns the mask of the samples to keep."""
     if len(samples) == 0:
         return torch.ones(0, dtype=torch.bool, device=rays.near.device)
     with torch.no_grad():
@@ -99,24 +140,41 @@ def grid_step_size(grid: OccupancyGrid, march_steps: int) -> float:
     return float((grid.aabb[1] - grid.aabb[0]).norm()) / march_steps
 
 
-def render_grid(field: SwitchNeRF, background: BackgroundField, rays: RayBatch, profile: Profile,
-                grid: OccupancyGrid, generator: torch.Generator | None) -> MainRender:
+def render_grid(
+    field: SwitchNeRF,
+    background: BackgroundField,
+    rays: RayBatch,
+    profile: Profile,
+    grid: OccupancyGrid,
+    generator: torch.Generator | None,
+) -> MainRender:
     behind = render_background(background, rays, profile.background.samples, generator).rgb
     step = grid_step_size(grid, profile.grid.march_steps)
     samples = grid.sample(rays.origins, rays.directions, rays.near, rays.far, step, generator)
     possible = float(((rays.far - rays.near) / step).ceil().clamp(min=0).sum())
     out = field_on_packed(field, rays, samples)
-    return MainRender(composite_field(out, rays, samples, behind), out, len(samples) / len(rays),
-                      len(samples) / max(possible, 1.0), samples=samples)
+    return MainRender(
+        composite_field(out, rays, samples, behind),
+        out,
+        len(samples) / len(rays),
+        len(samples) / max(possible, 1.0),
+        samples=samples,
+    )
 
 
-def main_loss(render: MainRender, rays: RayBatch, balance_weight: float,
-              bins: int | None = None) -> tuple[Tensor, dict]:
-    """L_r + balance_weight * balance loss, and the parts as floats; with `bins`, what reached the main network
-    counted on that many coarse bins per hit ray (model/sample_accounting.py), the same way for every method."""
+def main_loss(
+    render: MainRender, rays: RayBatch, balance_weight: float, bins: int | None = None
+) -> tuple[Tensor, dict]:
+    """L_r + balance_weight * balance loss, and the parts as floats; with `bins`, what reached the
+    main network counted on that many coarse bins per hit ray (model/sample_accounting.py), the same
+    way for every method."""
     l_r = rendering_loss(render.rendered.rgb, rays.rgb)
     loss = l_r
-    parts = {"rendering_loss": float(l_r.detach()), "samples_per_ray": render.samples_per_ray, **render.stats}
+    parts = {
+        "rendering_loss": float(l_r.detach()),
+        "samples_per_ray": render.samples_per_ray,
+        **render.stats,
+    }
     if bins is not None and render.samples is not None:
         parts.update(step_accounting(render.samples, rays.near, rays.far, bins))
     if render.out is not None:

@@ -1,11 +1,12 @@
 """A job's peak training memory per rank, estimated before it runs, so the API can refuse a job that
-cannot fit where it would run instead of letting a worker be OOM-killed. Parameter counts come from the
-profile's numbers (model/sizes.py, no PyTorch), so the estimate costs nothing whatever sizes a request asks for.
-Activations use the bytes autograd keeps per main-network sample, which matches the measured
-`activation_memory_mb` of the `cpu` profile within 5% for vanilla Switch-NeRF (98 estimated vs 103 MB); a
-validation render holds a chunk of rays' samples at once without gradient, which is what sets a small run's
-peak. Against measured peak RSS on the city (`cpu`, docs/BENCHMARKS.md): vanilla 1,340 MiB estimated vs
-1,507-1,529 measured, LeCO 1,123 vs 849-1,085, the grid 2,393 vs 1,133 (its bound keeps every march step)."""
+cannot fit where it would run instead of letting a worker be OOM-killed. Parameter counts come from
+the profile's numbers (model/sizes.py, no PyTorch), so the estimate costs nothing whatever sizes a
+request asks for. Activations use the bytes autograd keeps per main-network sample, which matches
+the measured `activation_memory_mb` of the `cpu` profile within 5% for vanilla Switch-NeRF (98
+estimated vs 103 MB); a validation render holds a chunk of rays' samples at once without gradient,
+which is what sets a small run's peak. Against measured peak RSS on the city (`cpu`,
+docs/BENCHMARKS.md): vanilla 1,340 MiB estimated vs 1,507-1,529 measured, LeCO 1,123 vs 849-1,085,
+the grid 2,393 vs 1,133 (its bound keeps every march step)."""
 
 from __future__ import annotations
 
@@ -15,13 +16,15 @@ from model.profiles import Profile
 
 BYTES_PER_PARAMETER = 16  # fp32 weights, gradients and Adam's two moments
 FROZEN_BYTES_PER_PARAMETER = 4  # LeCO's frozen occupancy network in the main phase
-RUNTIME_BYTES = 700 * 2**20  # the process itself (Python, torch, rays tables of a `cpu`-size scene): measured
+# the process itself (Python, torch, rays tables of a `cpu`-size scene): measured
+RUNTIME_BYTES = 700 * 2**20
 EVAL_CHUNK = 4096  # rays per forward pass of a validation render (workers/validation.py CHUNK)
 
 
 def saved_bytes_per_sample(width: int, layers: int) -> int:
-    """What backward keeps for one sample through an expert network: each layer's input and ReLU mask, the
-    input layer, gate and heads (about six more width-sized tensors), and the encodings."""
+    """What backward keeps for one sample through an expert network: each layer's input and ReLU
+    mask, the input layer, gate and heads (about six more width-sized tensors), and the
+    encodings."""
     return 4 * ((2 * layers + 6) * width + 100)
 
 
@@ -31,37 +34,53 @@ def live_bytes_per_sample(width: int) -> int:
 
 
 def estimate_peak_bytes(method: str, profile: Profile, num_images: int) -> dict:
-    """Per-rank peak bytes and its parts (each naming the settings that drive it): the worst phase of the
-    method's (its registry entry's memory model, model/methods/costs.py) for each part."""
+    """Per-rank peak bytes and its parts (each naming the settings that drive it): the worst phase
+    of the method's (its registry entry's memory model, model/methods/costs.py) for each part."""
     n, b = profile.network, profile.background
     phases: dict[str, PhaseMemory] = get_method(method).memory(profile, num_images)
     per_sample = saved_bytes_per_sample(n.width, n.expert_layers)
     behind = profile.rays_per_device * b.samples * 4 * (2 * b.layers * b.width + 100)
     rays = profile.rays_per_device
-    training = {k: rays * (p.samples_per_ray * per_sample + p.extra_bytes_per_ray) + behind for k, p in phases.items()}
-    render = max(EVAL_CHUNK * (p.render_samples_per_ray or p.samples_per_ray) * live_bytes_per_sample(n.width)
-                 for p in phases.values())
+    training = {
+        k: rays * (p.samples_per_ray * per_sample + p.extra_bytes_per_ray) + behind
+        for k, p in phases.items()
+    }
+    render = max(
+        EVAL_CHUNK
+        * (p.render_samples_per_ray or p.samples_per_ray)
+        * live_bytes_per_sample(n.width)
+        for p in phases.values()
+    )
     parts = {
-        "parameters": max(p.trained * BYTES_PER_PARAMETER + p.frozen * FROZEN_BYTES_PER_PARAMETER
-                          for p in phases.values()),
+        "parameters": max(
+            p.trained * BYTES_PER_PARAMETER + p.frozen * FROZEN_BYTES_PER_PARAMETER
+            for p in phases.values()
+        ),
         "activations": max(max(training.values()), render),
         "estimator": max(p.extra_bytes for p in phases.values()),  # e.g. an occupancy grid's cells
         "runtime": RUNTIME_BYTES,
     }
-    return {"parts": parts, "total": sum(parts.values()), "parameters": max(p.trained for p in phases.values()),
-            "training_activations": max(training.values())}
+    return {
+        "parts": parts,
+        "total": sum(parts.values()),
+        "parameters": max(p.trained for p in phases.values()),
+        "training_activations": max(training.values()),
+    }
 
 
 DRIVERS = {
-    "parameters": "network.width, network.num_experts, network.expert_layers, network.appearance_dim",
+    "parameters": "network.width, network.num_experts, network.expert_layers, "
+    "network.appearance_dim",
     "activations": "rays_per_device (or a validation render's 4,096 rays) x samples per ray "
-                   "(vanilla.*_samples, guided.coarse_samples x guided.split, "
-                   "grid.march_steps, occupancy.samples_per_ray) x network.width x network.expert_layers",
+    "(vanilla.*_samples, guided.coarse_samples x guided.split, grid.march_steps, "
+    "occupancy.samples_per_ray) x network.width x network.expert_layers",
     "estimator": "grid.resolution (the occupancy grid's cells)",
 }
 
 
 def describe(estimate: dict) -> str:
     gib = lambda x: f"{x / 2**30:.2f} GiB"
-    parts = sorted(((v, k) for k, v in estimate["parts"].items() if k in DRIVERS and v), reverse=True)
+    parts = sorted(
+        ((v, k) for k, v in estimate["parts"].items() if k in DRIVERS and v), reverse=True
+    )
     return "; ".join(f"{k} {gib(v)} ({DRIVERS[k]})" for v, k in parts)

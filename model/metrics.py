@@ -24,11 +24,12 @@ def _gaussian_window(size: int = 11, sigma: float = 1.5) -> Tensor:
 
 
 def ssim(pred: Tensor, target: Tensor, k1: float = 0.01, k2: float = 0.03) -> float:
-    """Mean SSIM of two (H, W, 3) images in [0, 1] (valid-region filtering, as in the NeRF papers' code)."""
+    """Mean SSIM of two (H, W, 3) images in [0, 1] (valid-region filtering, as in the NeRF papers'
+    code)."""
     x = pred.float().permute(2, 0, 1)[None]
     y = target.float().permute(2, 0, 1)[None]
-    # An image narrower than the 11-pixel window (a small view downscaled, then halved by the validation
-    # protocol) takes the largest odd window that fits instead of failing.
+    # An image narrower than the 11-pixel window (a small view downscaled, then halved by the
+    # validation protocol) takes the largest odd window that fits instead of failing.
     size = min(11, (min(x.shape[-2:]) - 1) // 2 * 2 + 1)
     window = _gaussian_window(size).to(x.device)[None, None].expand(3, 1, size, size)
     blur = lambda z: F.conv2d(z, window, groups=3)
@@ -37,13 +38,17 @@ def ssim(pred: Tensor, target: Tensor, k1: float = 0.01, k2: float = 0.03) -> fl
     var_y = blur(y * y) - mu_y**2
     cov = blur(x * y) - mu_x * mu_y
     c1, c2 = k1**2, k2**2
-    ssim_map = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
+    ssim_map = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / (
+        (mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2)
+    )
     return float(ssim_map.mean())
 
 
-def occupancy_metrics(predicted: Tensor, reference: Tensor, mask: Tensor | None = None) -> dict[str, float]:
-    """Accuracy, precision, recall, F1 of a predicted boolean grid against a reference grid (optionally only
-    where `mask` is true, e.g. the region the validation rays observe)."""
+def occupancy_metrics(
+    predicted: Tensor, reference: Tensor, mask: Tensor | None = None
+) -> dict[str, float]:
+    """Accuracy, precision, recall, F1 of a predicted boolean grid against a reference grid
+    (optionally only where `mask` is true, e.g. the region the validation rays observe)."""
     p, r = predicted.bool().reshape(-1), reference.bool().reshape(-1)
     if mask is not None:
         keep = mask.bool().reshape(-1)

@@ -10,8 +10,13 @@ from model.profiles import Profile
 def model_info(method: str, profile: Profile, num_images: int = 100) -> dict:
     """Per-component parameter counts (appearance embeddings for `num_images` images)."""
     components = get_method(method)(profile).components(num_images)
-    return {"method": method, "profile": profile.name, "num_images": num_images, "components": components,
-            "total": sum(components.values())}
+    return {
+        "method": method,
+        "profile": profile.name,
+        "num_images": num_images,
+        "components": components,
+        "total": sum(components.values()),
+    }
 
 
 def format_model_info(info: dict) -> str:

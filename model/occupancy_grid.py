@@ -1,11 +1,11 @@
-"""The "S+Grid" baseline: nerfacc's OccGridEstimator semantics re-implemented in plain PyTorch (nerfacc's
-sampling needs CUDA). One level over the foreground box; every cost it has (update queries, the culling
-pass) is explicit so benchmarks can charge it to the grid.
+"""The "S+Grid" baseline: nerfacc's OccGridEstimator semantics re-implemented in plain PyTorch
+(nerfacc's sampling needs CUDA). One level over the foreground box; every cost it has (update
+queries, the culling pass) is explicit so benchmarks can charge it to the grid.
 
-Update (every `every` steps): during warm-up every cell is queried; afterwards a random quarter of all cells
-plus up to a quarter as many occupied cells, each at a jittered point inside the cell; occupancy keeps
-max(decay * old, density * step_size); a cell is occupied when its value exceeds min(mean, threshold).
-"""
+Update (every `every` steps): during warm-up every cell is queried; afterwards a random quarter of
+all cells plus up to a quarter as many occupied cells, each at a jittered point inside the cell;
+occupancy keeps max(decay * old, density * step_size); a cell is occupied when its value exceeds
+min(mean, threshold)."""
 
 from __future__ import annotations
 
@@ -22,12 +22,18 @@ class OccupancyGrid:
         self.aabb = aabb.float()
         self.resolution = resolution
         self.values = torch.zeros(resolution**3)
-        self.binary = torch.ones(resolution**3, dtype=torch.bool)  # everything may be occupied until updated
+        # everything may be occupied until updated
+        self.binary = torch.ones(resolution**3, dtype=torch.bool)
         self.queries = 0  # density evaluations spent on updates, for honest cost accounting
 
     def to(self, device: torch.device | str) -> "OccupancyGrid":
-        """Moves the grid to the main network's device (its random draws stay on the CPU generator)."""
-        self.aabb, self.values, self.binary = self.aabb.to(device), self.values.to(device), self.binary.to(device)
+        """Moves the grid to the main network's device (its random draws stay on the CPU
+        generator)."""
+        self.aabb, self.values, self.binary = (
+            self.aabb.to(device),
+            self.values.to(device),
+            self.binary.to(device),
+        )
         return self
 
     @property
@@ -47,9 +53,17 @@ class OccupancyGrid:
         return self.binary[index] & inside
 
     @torch.no_grad()
-    def update(self, step: int, density_fn: Callable[[Tensor], Tensor], step_size: float,
-               threshold: float = 0.01, decay: float = 0.95, warmup_steps: int = 256, every: int = 16,
-               generator: torch.Generator | None = None) -> bool:
+    def update(
+        self,
+        step: int,
+        density_fn: Callable[[Tensor], Tensor],
+        step_size: float,
+        threshold: float = 0.01,
+        decay: float = 0.95,
+        warmup_steps: int = 256,
+        every: int = 16,
+        generator: torch.Generator | None = None,
+    ) -> bool:
         """Returns True when this step updated the grid."""
         if step % every:
             return False
@@ -67,11 +81,18 @@ class OccupancyGrid:
         jitter = torch.rand(len(cells), 3, generator=generator)
         cells, unit = cells.to(device), ((ijk + jitter) / r).to(device)
         points = self.aabb[0] + unit * (self.aabb[1] - self.aabb[0])
-        value = torch.cat([density_fn(points[s : s + 65536]).float().reshape(-1) for s in range(0, len(points), 65536)])
+        value = torch.cat(
+            [
+                density_fn(points[s : s + 65536]).float().reshape(-1)
+                for s in range(0, len(points), 65536)
+            ]
+        )
         self.queries += len(points)
-        # Duplicate cells in one update: the largest value wins, as with nerfacc's scatter of maxima.
-        fresh = torch.zeros(n, device=device).scatter_reduce_(0, cells, value * step_size, reduce="amax",
-                                                              include_self=False)
+        # Duplicate cells in one update: the largest value wins, as with nerfacc's scatter of
+        # maxima.
+        fresh = torch.zeros(n, device=device).scatter_reduce_(
+            0, cells, value * step_size, reduce="amax", include_self=False
+        )
         touched = torch.zeros(n, dtype=torch.bool, device=device)
         touched[cells] = True
         self.values = torch.where(touched, torch.maximum(self.values * decay, fresh), self.values)
@@ -79,14 +100,28 @@ class OccupancyGrid:
         return True
 
     @torch.no_grad()
-    def sample(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor, step_size: float,
-               generator: torch.Generator | None = None) -> PackedSamples:
-        """March each ray's foreground segment with a fixed step and keep the intervals whose midpoints lie in
-        occupied cells (packed, grouped by ray)."""
+    def sample(
+        self,
+        origins: Tensor,
+        directions: Tensor,
+        near: Tensor,
+        far: Tensor,
+        step_size: float,
+        generator: torch.Generator | None = None,
+    ) -> PackedSamples:
+        """March each ray's foreground segment with a fixed step and keep the intervals whose
+        midpoints lie in occupied cells (packed, grouped by ray)."""
         steps = int(torch.ceil(((far - near).max() / step_size)).clamp(min=1))
-        offset = (torch.rand(len(near), 1, generator=generator, device=near.device) * step_size
-                  if generator is not None else 0.0)
-        starts = near[:, None] + offset + step_size * torch.arange(steps, dtype=near.dtype, device=near.device)
+        offset = (
+            torch.rand(len(near), 1, generator=generator, device=near.device) * step_size
+            if generator is not None
+            else 0.0
+        )
+        starts = (
+            near[:, None]
+            + offset
+            + step_size * torch.arange(steps, dtype=near.dtype, device=near.device)
+        )
         ends = torch.minimum(starts + step_size, far[:, None])
         valid = ends > starts
         mids = 0.5 * (starts + ends)
@@ -96,16 +131,23 @@ class OccupancyGrid:
         return PackedSamples(starts[ray, k], ends[ray, k], ray)
 
 
-def cull_by_transmittance(samples: PackedSamples, sigma: Tensor, num_rays: int, early_stop_eps: float = 1e-4,
-                          alpha_threshold: float = 0.0) -> PackedSamples:
+def cull_by_transmittance(
+    samples: PackedSamples,
+    sigma: Tensor,
+    num_rays: int,
+    early_stop_eps: float = 1e-4,
+    alpha_threshold: float = 0.0,
+) -> PackedSamples:
     """nerfacc's optional no-gradient pass: drop samples behind an opaque point (transmittance below
-    early_stop_eps) or nearly transparent ones (alpha below alpha_threshold). `sigma` comes from an extra
-    no-grad query of the main network: that query is part of the grid method's cost."""
+    early_stop_eps) or nearly transparent ones (alpha below alpha_threshold). `sigma` comes from an
+    extra no-grad query of the main network: that query is part of the grid method's cost."""
     from model.rendering import packed_weights
 
     with torch.no_grad():
         weights, _ = packed_weights(sigma, samples.deltas, samples.ray_index, num_rays)
         alpha = -torch.expm1(-(sigma * samples.deltas).clamp(min=0))
-        transmittance = torch.where(alpha > 0, weights / alpha.clamp(min=1e-12), torch.ones_like(alpha))
+        transmittance = torch.where(
+            alpha > 0, weights / alpha.clamp(min=1e-12), torch.ones_like(alpha)
+        )
         keep = (transmittance >= early_stop_eps) & (alpha >= alpha_threshold)
     return PackedSamples(samples.starts[keep], samples.ends[keep], samples.ray_index[keep])

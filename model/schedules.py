@@ -1,5 +1,6 @@
-"""Schedules over a phase's progress in [0, 1]: the fraction of its steps or of its wall-clock allotment spent,
-whichever is larger, so a run under a time budget reaches the final value when its time runs out."""
+"""Schedules over a phase's progress in [0, 1]: the fraction of its steps or of its wall-clock
+allotment spent, whichever is larger, so a run under a time budget reaches the final value when its
+time runs out."""
 
 from __future__ import annotations
 
@@ -13,8 +14,11 @@ def log_linear(start: float, final: float | None, progress: float) -> float:
     return start * (final / start) ** min(max(progress, 0.0), 1.0)
 
 
-def phase_progress(step: int, total_steps: int, elapsed_s: float, allotted_s: float | None) -> float:
-    """How far a phase is: steps done over its step count, or training seconds over its time allotment."""
+def phase_progress(
+    step: int, total_steps: int, elapsed_s: float, allotted_s: float | None
+) -> float:
+    """How far a phase is: steps done over its step count, or training seconds over its time
+    allotment."""
     progress = step / max(total_steps, 1)
     if allotted_s is not None and allotted_s > 0:
         progress = max(progress, elapsed_s / allotted_s)

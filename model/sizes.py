@@ -1,9 +1,9 @@
 """Parameter counts of the networks in model/fields, from a profile's numbers alone (no torch).
 
-The API checks a job's memory before accepting it and must not load PyTorch to do so; these formulas follow
-the layer lists in model/fields, and tests/test_sizes.py holds them equal to the counts of networks built on
-PyTorch's meta device for every profile and the settings that change a network's shape.
-"""
+The API checks a job's memory before accepting it and must not load PyTorch to do so; these formulas
+follow the layer lists in model/fields, and tests/test_sizes.py holds them equal to the counts of
+networks built on PyTorch's meta device for every profile and the settings that change a network's
+shape."""
 
 from __future__ import annotations
 
@@ -33,37 +33,60 @@ def scene_head(width: int, dir_dim: int, appearance_dim: int) -> int:
 def switch_nerf(profile: Profile, num_images: int) -> int:
     n = profile.network
     gate = 2 * linear(n.width, n.width) + 2 * n.width + linear(n.width, n.num_experts, bias=False)
-    return (num_images * n.appearance_dim + linear(encoded(n.xyz_frequencies), n.width) + gate
-            + n.num_experts * expert(n.width, n.expert_layers)
-            + scene_head(n.width, encoded(n.dir_frequencies), n.appearance_dim))
+    return (
+        num_images * n.appearance_dim
+        + linear(encoded(n.xyz_frequencies), n.width)
+        + gate
+        + n.num_experts * expert(n.width, n.expert_layers)
+        + scene_head(n.width, encoded(n.dir_frequencies), n.appearance_dim)
+    )
 
 
 def background(profile: Profile, num_images: int) -> int:
     b, n = profile.background, profile.network
     dims = [encoded(BACKGROUND_FREQUENCIES, in_dim=4)] + [b.width] * b.layers
     trunk = sum(linear(a, c) for a, c in zip(dims[:-1], dims[1:]))
-    colour = linear(b.width + encoded(n.dir_frequencies) + n.appearance_dim, b.width // 2) + linear(b.width // 2, 3)
+    colour = linear(b.width + encoded(n.dir_frequencies) + n.appearance_dim, b.width // 2) + linear(
+        b.width // 2, 3
+    )
     return num_images * n.appearance_dim + trunk + linear(b.width, 1) + colour
 
 
 def occupancy_network(profile: Profile) -> int:
-    """O: the shared input layer, its inner layers, LayerNorm and n + 1 gate logits (model/fields/hmoe.py)."""
+    """O: the shared input layer, its inner layers, LayerNorm and n + 1 gate logits
+    (model/fields/hmoe.py)."""
     n, o = profile.network, profile.occupancy
     inner = o.gate_width or n.width
-    return (linear(encoded(n.xyz_frequencies), n.width) + linear(n.width, inner) + linear(inner, inner)
-            + 2 * inner + linear(inner, n.num_experts + 1) + (linear(inner, 1) if profile.guided.placement else 0))
+    return (
+        linear(encoded(n.xyz_frequencies), n.width)
+        + linear(n.width, inner)
+        + linear(inner, inner)
+        + 2 * inner
+        + linear(inner, n.num_experts + 1)
+        + (linear(inner, 1) if profile.guided.placement else 0)
+    )
 
 
 def hmoe(profile: Profile, num_images: int) -> int:
-    """Phase 1's HMoE: O, the scene experts and head, the empty-space expert and head, appearance."""
+    """Phase 1's HMoE: O, the scene experts and head, the empty-space expert and head,
+    appearance."""
     n, o = profile.network, profile.occupancy
     empty_layers = n.expert_layers if o.homogeneous else o.empty_expert_layers
-    return (occupancy_network(profile) + num_images * n.appearance_dim
-            + n.num_experts * expert(n.width, n.expert_layers)
-            + scene_head(n.width, encoded(n.dir_frequencies), n.appearance_dim)
-            + expert(n.width, empty_layers) + linear(n.width, 1) + linear(n.width, 3))
+    return (
+        occupancy_network(profile)
+        + num_images * n.appearance_dim
+        + n.num_experts * expert(n.width, n.expert_layers)
+        + scene_head(n.width, encoded(n.dir_frequencies), n.appearance_dim)
+        + expert(n.width, empty_layers)
+        + linear(n.width, 1)
+        + linear(n.width, 3)
+    )
 
 
 def proposal(width: int, layers: int, xyz_frequencies: int) -> int:
     """One proposal density MLP (model/fields/proposal.py)."""
-    return linear(encoded(xyz_frequencies), width) + (layers - 1) * linear(width, width) + linear(width, 1)
+    return (
+        linear(encoded(xyz_frequencies), width)
+        + (layers - 1) * linear(width, width)
+        + linear(width, 1)
+    )

@@ -1,8 +1,9 @@
 """Safe extraction of a user-uploaded dataset archive (tar, tar.gz, tar.bz2, tar.xz or zip).
 
-We never call extractall: every member is first checked (path, type, declared size), and only then written
-by hand, one chunk at a time, into a folder we create ourselves, so no link, device or `..` can reach the
-disk and a lying header cannot write more than it declared. On any failure the destination is removed."""
+We never call extractall: every member is first checked (path, type, declared size), and only then
+written by hand, one chunk at a time, into a folder we create ourselves, so no link, device or `..`
+can reach the disk and a lying header cannot write more than it declared. On any failure the
+destination is removed."""
 
 from __future__ import annotations
 
@@ -22,34 +23,38 @@ from typing import IO, Callable, Iterator
 
 
 class ArchiveError(ValueError):
-    """An archive a user uploaded that we refuse, with a message naming the member and what is wrong."""
+    """An archive a user uploaded that we refuse, with a message naming the member and what is
+    wrong."""
 
 
 MAX_MEMBERS = 20_000
-MAX_TOTAL_BYTES = 2 * 2**30          # uncompressed, all members together
-MAX_RATIO = 200                       # uncompressed / compressed: beyond it we call it a zip bomb
-MAX_DEPTH = 32                        # folders in a member's path
-MAX_PATH_BYTES = 1024                 # a member's whole path (PATH_MAX is 4096), and 255 per component
-MAX_ZIP_DIRECTORY_BYTES = 64 * 2**20  # the central directory zipfile parses whole when it opens a zip
+MAX_TOTAL_BYTES = 2 * 2**30  # uncompressed, all members together
+MAX_RATIO = 200  # uncompressed / compressed: beyond it we call it a zip bomb
+MAX_DEPTH = 32  # folders in a member's path
+# a member's whole path (PATH_MAX is 4096), and 255 per component
+MAX_PATH_BYTES = 1024
+# the central directory zipfile parses whole when it opens a zip
+MAX_ZIP_DIRECTORY_BYTES = 64 * 2**20
 
 CHUNK = 1 << 20
-# What a broken archive raises while we read it. tarfile and zipfile wrap only part of it: gzip and lzma
-# raise their own errors, bz2 reports bad data as a bare OSError. Only reads are wrapped (see _reading),
-# so a full disk on our side is never blamed on the upload.
+# What a broken archive raises while we read it. tarfile and zipfile wrap only part of it: gzip and
+# lzma raise their own errors, bz2 reports bad data as a bare OSError. Only reads are wrapped (see
+# _reading), so a full disk on our side is never blamed on the upload.
 CORRUPT = (tarfile.TarError, zipfile.BadZipFile, EOFError, zlib.error, lzma.LZMAError, OSError)
-# Leading bytes of gzip, bzip2, xz and zip: such a file that neither tarfile nor zipfile opens is broken,
-# not something else (a zip cut short loses the directory at its end, so is_zipfile says no).
+# Leading bytes of gzip, bzip2, xz and zip: such a file that neither tarfile nor zipfile opens is
+# broken, not something else (a zip cut short loses the directory at its end, so is_zipfile says
+# no).
 ARCHIVE_MAGIC = (b"\x1f\x8b", b"BZh", b"\xfd7zXZ\x00", b"PK\x03\x04")
 ZIP_METHODS = {zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED, zipfile.ZIP_BZIP2, zipfile.ZIP_LZMA}
 
 
 @dataclass(frozen=True)
 class Entry:
-    name: str                          # as stored in the archive, for messages
+    name: str  # as stored in the archive, for messages
     is_dir: bool
-    size: int                          # declared uncompressed size
+    size: int  # declared uncompressed size
     open: Callable[[], IO[bytes]]
-    parts: tuple[str, ...] = ()        # the checked relative path, filled in by _plan
+    parts: tuple[str, ...] = ()  # the checked relative path, filled in by _plan
 
 
 @dataclass(frozen=True)
@@ -63,18 +68,29 @@ class Limits:
         if total > self.total_bytes:
             raise _refuse(name, f"archive {verb} more than {self.total_bytes:,} bytes uncompressed")
         if total > self.ratio * self.archive_size:
-            raise _refuse(name, f"archive {verb} {total:,} bytes from {self.archive_size:,} on disk "
-                                f"(more than {self.ratio:g}x): looks like a zip bomb")
+            raise _refuse(
+                name,
+                f"archive {verb} {total:,} bytes from {self.archive_size:,} on disk (more than "
+                f"{self.ratio:g}x): looks like a zip bomb",
+            )
 
 
-def extract_archive(archive: Path, dest: Path, *, max_members: int = MAX_MEMBERS,
-                    max_total_bytes: int = MAX_TOTAL_BYTES, max_ratio: float = MAX_RATIO) -> Path:
-    """Extracts `archive` into `dest` (which must not exist yet; it is created) and returns the scene root:
-    the single top-level folder when the archive holds exactly one (ignoring macOS `__MACOSX` and `.DS_Store`
-    junk), else `dest`. On any error it raises ArchiveError and removes `dest` entirely: nothing half-written."""
+def extract_archive(
+    archive: Path,
+    dest: Path,
+    *,
+    max_members: int = MAX_MEMBERS,
+    max_total_bytes: int = MAX_TOTAL_BYTES,
+    max_ratio: float = MAX_RATIO,
+) -> Path:
+    """Extracts `archive` into `dest` (which must not exist yet; it is created) and returns the
+    scene root: the single top-level folder when the archive holds exactly one (ignoring macOS
+    `__MACOSX` and `.DS_Store` junk), else `dest`. On any error it raises ArchiveError and removes
+    `dest` entirely: nothing half-written."""
     archive, dest = Path(archive), Path(dest)
     limits = Limits(max_members, max_total_bytes, max_ratio, archive.stat().st_size)
-    dest.mkdir(parents=True)  # FileExistsError before the try: never remove a folder that was not ours
+    # FileExistsError before the try: never remove a folder that was not ours
+    dest.mkdir(parents=True)
     try:
         with _reading():
             handle, entries = _open_archive(archive, limits)
@@ -89,9 +105,11 @@ def extract_archive(archive: Path, dest: Path, *, max_members: int = MAX_MEMBERS
     return tops[0] if len(tops) == 1 and tops[0].is_dir() else dest
 
 
-def _open_archive(archive: Path, limits: Limits) -> tuple[tarfile.TarFile | zipfile.ZipFile, Iterator[Entry]]:
-    # Tar first: is_zipfile looks for a zip directory near the end, which a plain tar whose last member is
-    # a .zip also has; a tar header's checksum cannot pass on a zip's first bytes.
+def _open_archive(
+    archive: Path, limits: Limits
+) -> tuple[tarfile.TarFile | zipfile.ZipFile, Iterator[Entry]]:
+    # Tar first: is_zipfile looks for a zip directory near the end, which a plain tar whose last
+    # member is a .zip also has; a tar header's checksum cannot pass on a zip's first bytes.
     if tarfile.is_tarfile(archive):
         tar = tarfile.open(archive, "r:*")
         return tar, _tar_entries(tar, limits)
@@ -102,7 +120,9 @@ def _open_archive(archive: Path, limits: Limits) -> tuple[tarfile.TarFile | zipf
     with archive.open("rb") as f:
         head = f.read(8)
     if head.startswith(ARCHIVE_MAGIC):
-        raise ArchiveError("archive is truncated or corrupt: it starts like one but cannot be opened")
+        raise ArchiveError(
+            "archive is truncated or corrupt: it starts like one but cannot be opened"
+        )
     raise ArchiveError("not a tar or zip archive")
 
 
@@ -118,11 +138,13 @@ def _tar_entries(tar: tarfile.TarFile, limits: Limits) -> Iterator[Entry]:
             raise _refuse(info.name, "FIFOs are not allowed")
         if not (info.isreg() or info.isdir()):
             raise _refuse(info.name, f"not a regular file or a folder (tar type {info.type!r})")
-        yield Entry(info.name, info.isdir(), info.size if info.isreg() else 0, _tar_opener(tar, info))
-    # tarfile stops at its end marker; reading on to the end lets gzip and xz check their CRCs, so a flipped
-    # byte in the data is refused here, before anything is written. Whatever follows the end marker is
-    # decompressed too, so every byte of the stream counts against the limits (153 bytes of bzip2 can
-    # hide 64 MiB of zeros there).
+        yield Entry(
+            info.name, info.isdir(), info.size if info.isreg() else 0, _tar_opener(tar, info)
+        )
+    # tarfile stops at its end marker; reading on to the end lets gzip and xz check their CRCs, so a
+    # flipped byte in the data is refused here, before anything is written. Whatever follows the end
+    # marker is decompressed too, so every byte of the stream counts against the limits (153 bytes
+    # of bzip2 can hide 64 MiB of zeros there).
     stream = tar.fileobj
     while stream.read(CHUNK):
         limits.check_total("(data after the last member)", stream.tell(), "decompresses to")
@@ -134,12 +156,13 @@ def _tar_opener(tar: tarfile.TarFile, info: tarfile.TarInfo) -> Callable[[], IO[
         if src is None:  # tarfile gives a reader to every regular file, and only those are opened
             raise _refuse(info.name, "not a regular file")
         return src
+
     return open_member
 
 
 def _check_zip_directory(archive: Path, limits: Limits) -> None:
-    """Reads the end-of-central-directory record (zip64's too) ourselves, so a directory claiming millions
-    of entries or gigabytes is refused before zipfile parses it whole into memory."""
+    """Reads the end-of-central-directory record (zip64's too) ourselves, so a directory claiming
+    millions of entries or gigabytes is refused before zipfile parses it whole into memory."""
     with archive.open("rb") as f:
         f.seek(0, os.SEEK_END)
         size = f.tell()
@@ -148,17 +171,21 @@ def _check_zip_directory(archive: Path, limits: Limits) -> None:
         at = tail.rfind(b"PK\x05\x06")
         if at < 0 or len(tail) - at < 22:
             return  # zipfile will call it corrupt
-        _, _, _, _, entries, directory, _, _ = struct.unpack("<4s4H2LH", tail[at:at + 22])
-        locator = tail[at - 20:at] if at >= 20 else b""
+        _, _, _, _, entries, directory, _, _ = struct.unpack("<4s4H2LH", tail[at : at + 22])
+        locator = tail[at - 20 : at] if at >= 20 else b""
         if (entries == 0xFFFF or directory == 0xFFFFFFFF) and locator.startswith(b"PK\x06\x07"):
             f.seek(struct.unpack("<4sLQL", locator)[2])
             record = f.read(56)
             if len(record) == 56 and record.startswith(b"PK\x06\x06"):
                 entries, directory = struct.unpack("<4sQ2H2L4Q", record)[7:9]
     if entries > limits.members:
-        raise ArchiveError(f"zip directory lists {entries:,} members; the limit is {limits.members:,}")
+        raise ArchiveError(
+            f"zip directory lists {entries:,} members; the limit is {limits.members:,}"
+        )
     if directory > MAX_ZIP_DIRECTORY_BYTES:
-        raise ArchiveError(f"zip directory is {directory:,} bytes; the limit is {MAX_ZIP_DIRECTORY_BYTES:,}")
+        raise ArchiveError(
+            f"zip directory is {directory:,} bytes; the limit is {MAX_ZIP_DIRECTORY_BYTES:,}"
+        )
 
 
 def _zip_entries(zf: zipfile.ZipFile) -> Iterator[Entry]:
@@ -204,13 +231,18 @@ def _safe_parts(name: str) -> tuple[str, ...]:
     if len(parts) > MAX_DEPTH:
         raise _refuse(shown, f"path is {len(parts)} folders deep; the limit is {MAX_DEPTH}")
     if len(name.encode()) > MAX_PATH_BYTES or any(len(p.encode()) > 255 for p in parts):
-        raise _refuse(shown, f"path is longer than {MAX_PATH_BYTES} bytes or has a name over 255 bytes")
+        raise _refuse(
+            shown, f"path is longer than {MAX_PATH_BYTES} bytes or has a name over 255 bytes"
+        )
     return parts
 
 
 def _is_junk(parts: tuple[str, ...]) -> bool:
-    # Finder's metadata: the __MACOSX tree, .DS_Store, and AppleDouble `._name` files beside real ones.
-    return bool(parts) and (parts[0] == "__MACOSX" or parts[-1] == ".DS_Store" or parts[-1].startswith("._"))
+    # Finder's metadata: the __MACOSX tree, .DS_Store, and AppleDouble `._name` files beside real
+    # ones.
+    return bool(parts) and (
+        parts[0] == "__MACOSX" or parts[-1] == ".DS_Store" or parts[-1].startswith("._")
+    )
 
 
 def _extract(plan: list[Entry], dest: Path, limits: Limits) -> None:
@@ -226,15 +258,16 @@ def _extract(plan: list[Entry], dest: Path, limits: Limits) -> None:
 
 def _make_dirs(entry: Entry, folder: Path) -> None:
     try:
-        folder.mkdir(parents=True, exist_ok=True)  # only folders we made ourselves: no links to follow
+        # only folders we made ourselves: no links to follow
+        folder.mkdir(parents=True, exist_ok=True)
     except (FileExistsError, NotADirectoryError):
         raise _refuse(entry.name, "path clashes with a file extracted earlier") from None
 
 
 def _write_file(entry: Entry, target: Path, written: int, limits: Limits) -> int:
     """Copies one member in chunks; returns the bytes written so far, all members together."""
-    # O_EXCL: a duplicate member cannot overwrite, O_NOFOLLOW: never through a link; 0o644 whatever the
-    # archive says (no setuid, no executables).
+    # O_EXCL: a duplicate member cannot overwrite, O_NOFOLLOW: never through a link; 0o644 whatever
+    # the archive says (no setuid, no executables).
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
     try:
         fd = os.open(target, flags, 0o644)
@@ -253,7 +286,9 @@ def _write_file(entry: Entry, target: Path, written: int, limits: Limits) -> int
             size += len(chunk)
             written += len(chunk)
             if size > entry.size:
-                raise _refuse(entry.name, f"holds more than the {entry.size:,} bytes its header declares")
+                raise _refuse(
+                    entry.name, f"holds more than the {entry.size:,} bytes its header declares"
+                )
             limits.check_total(entry.name, written, "expands to")
             out.write(chunk)
 

@@ -1,7 +1,7 @@
-"""Engines, sessions and the schema version. SQLite (the embedded default) runs in WAL mode with a busy
-timeout and foreign keys on, so the API, the dispatcher and the training processes can share one file;
-PostgreSQL is selected by DATABASE_URL. Migrations are applied only by `leco db upgrade` (or by
-`leco serve` on the embedded default, for the user), never implicitly by the API."""
+"""Engines, sessions and the schema version. SQLite (the embedded default) runs in WAL mode with a
+busy timeout and foreign keys on, so the API, the dispatcher and the training processes can share
+one file; PostgreSQL is selected by DATABASE_URL. Migrations are applied only by `leco db upgrade`
+(or by `leco serve` on the embedded default, for the user), never implicitly by the API."""
 
 from __future__ import annotations
 
@@ -26,8 +26,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("leco.db")
 T = TypeVar("T")
-# Errors of the connection, not of the statement: the server restarting or refusing connections, a dropped
-# connection, SQLite's lock timeout. Worth retrying; a constraint or syntax error is not.
+# Errors of the connection, not of the statement: the server restarting or refusing connections, a
+# dropped connection, SQLite's lock timeout. Worth retrying; a constraint or syntax error is not.
 UNAVAILABLE = (OperationalError, InterfaceError)
 
 MIGRATIONS = Path(__file__).resolve().parents[1] / "migrations"
@@ -59,13 +59,17 @@ def engine_for(url: str) -> Engine:
 
 
 def _sqlite_begin(conn: Connection) -> None:
-    # Writers take the lock up front (BEGIN IMMEDIATE waits out busy_timeout); a deferred transaction that reads
-    # and then writes can fail at once with "database is locked" when another writer got in between.
-    conn.exec_driver_sql("BEGIN IMMEDIATE" if conn.get_execution_options().get("writes", True) else "BEGIN")
+    # Writers take the lock up front (BEGIN IMMEDIATE waits out busy_timeout); a deferred
+    # transaction that reads and then writes can fail at once with "database is locked" when another
+    # writer got in between.
+    conn.exec_driver_sql(
+        "BEGIN IMMEDIATE" if conn.get_execution_options().get("writes", True) else "BEGIN"
+    )
 
 
 def _sqlite_pragmas(dbapi_connection: sqlite3.Connection, _record: ConnectionPoolEntry) -> None:
-    dbapi_connection.isolation_level = None  # autocommit at the driver; SQLAlchemy's "begin" event opens transactions
+    # autocommit at the driver; SQLAlchemy's "begin" event opens transactions
+    dbapi_connection.isolation_level = None
     cursor = dbapi_connection.cursor()
     cursor.execute("PRAGMA journal_mode=WAL")
     cursor.execute("PRAGMA busy_timeout=30000")
@@ -100,18 +104,26 @@ class DatabaseUnavailable(StoreWriteError):
 
 
 def retrying(what: str, call: Callable[[], T], budget_s: float) -> T:
-    """Runs `call` (one whole transaction), again after a pause while the database is unavailable, for up to
-    `budget_s` seconds (Settings.retry_s: LECO_DB_RETRY_S). The dispatcher and training use it so that a database
-    restart pauses them instead of failing jobs; the API does not (it answers 503 at once)."""
+    """Runs `call` (one whole transaction), again after a pause while the database is unavailable,
+    for up to `budget_s` seconds (Settings.retry_s: LECO_DB_RETRY_S). The dispatcher and training
+    use it so that a database restart pauses them instead of failing jobs; the API does not (it
+    answers 503 at once)."""
     deadline, pause = time.monotonic() + budget_s, 0.2
     while True:
         try:
             return call()
         except UNAVAILABLE as error:
             if time.monotonic() + pause > deadline:
-                raise DatabaseUnavailable(f"the database was unavailable for {budget_s:.0f} s while {what}: "
-                                          f"{first_line(error)}") from error
-            log.warning("database unavailable while %s (retrying in %.1f s): %s", what, pause, first_line(error))
+                raise DatabaseUnavailable(
+                    f"the database was unavailable for {budget_s:.0f} s while {what}: "
+                    f"{first_line(error)}"
+                ) from error
+            log.warning(
+                "database unavailable while %s (retrying in %.1f s): %s",
+                what,
+                pause,
+                first_line(error),
+            )
             time.sleep(pause)
             pause = min(pause * 2, 5.0)
 
@@ -160,8 +172,10 @@ def check_schema(url: str) -> None:
     head, current = head_revision(), current_revision(url)
     if current != head:
         where = "an empty database" if current is None else f"revision {current}"
-        raise SchemaError(f"the database ({redact(url)}) is at {where}, this code needs revision {head}: "
-                          "run `leco db upgrade` (with the same DATABASE_URL) first")
+        raise SchemaError(
+            f"the database ({redact(url)}) is at {where}, this code needs revision {head}: run "
+            "`leco db upgrade` (with the same DATABASE_URL) first"
+        )
 
 
 def redact(url: str) -> str:

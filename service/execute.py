@@ -1,5 +1,5 @@
-"""`python -m service.execute --job-id N --attempt A`: one claimed attempt of a job, as a Ray job on a cluster
-runs it (the embedded dispatcher calls service.jobs.attempt.execute directly)."""
+"""`python -m service.execute --job-id N --attempt A`: one claimed attempt of a job, as a Ray job on
+a cluster runs it (the embedded dispatcher calls service.jobs.attempt.execute directly)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
-"""Registering scenes: a synthetic city from its generator parameters (generated in a background thread,
-never in the request), or an uploaded archive validated with the loaders' own checks before anything is
-stored. A scene folder appears under the scenes root complete, or not at all."""
+"""Registering scenes: a synthetic city from its generator parameters (generated in a background
+thread, never in the request), or an uploaded archive validated with the loaders' own checks before
+anything is stored. A scene folder appears under the scenes root complete, or not at all."""
 
 from __future__ import annotations
 
@@ -29,10 +29,14 @@ class SceneConflict(ValueError):
     pass
 
 
-# ----- the heavy parts: module-level functions of plain data, run in the scene pool's processes -----------
-def load_within_budget(path: Path, max_pixels: int, source: str = "LECO_MAX_SCENE_PIXELS") -> LoadedScene:
-    """The scene at `path`, read from its image headers (nothing is decoded), its pixels counted against the
-    per-scene budget (`source` names it): a registration is as fast for 2,000 photos as for 20."""
+# ----- the heavy parts: module-level functions of plain data, run in the scene pool's processes
+# -----------
+def load_within_budget(
+    path: Path, max_pixels: int, source: str = "LECO_MAX_SCENE_PIXELS"
+) -> LoadedScene:
+    """The scene at `path`, read from its image headers (nothing is decoded), its pixels counted
+    against the per-scene budget (`source` names it): a registration is as fast for 2,000 photos as
+    for 20."""
     from model.scenes import load_scene
     from model.scenes.limits import pixel_budget
 
@@ -40,7 +44,9 @@ def load_within_budget(path: Path, max_pixels: int, source: str = "LECO_MAX_SCEN
         return load_scene(path)
 
 
-def describe_folder(path: Path, max_pixels: int, source: str = "LECO_MAX_SCENE_PIXELS") -> tuple[dict, dict]:
+def describe_folder(
+    path: Path, max_pixels: int, source: str = "LECO_MAX_SCENE_PIXELS"
+) -> tuple[dict, dict]:
     """The scene's summary for its row and its camera layout (for /cameras), from one load."""
     from model.scenes.info import describe
 
@@ -48,10 +54,11 @@ def describe_folder(path: Path, max_pixels: int, source: str = "LECO_MAX_SCENE_P
     return describe(scene), camera_layout(scene)
 
 
-# Real captures and renders hold at most a few decoded pixels per byte of PNG or JPEG (lego 1.0 on average and 1.6
-# in its densest image, fern 0.6, the synthetic city 0.5): an archive may declare at most this many, so a small
-# upload cannot register a scene that later decodes to gigabytes (1 MiB: at most one 4096 x 4096 image's worth of
-# pixels, 48 MB as RGB; decoding it grows a process by well under 256 MB, tests/test_decode_memory.py).
+# Real captures and renders hold at most a few decoded pixels per byte of PNG or JPEG (lego 1.0 on
+# average and 1.6 in its densest image, fern 0.6, the synthetic city 0.5): an archive may declare at
+# most this many, so a small upload cannot register a scene that later decodes to gigabytes (1 MiB:
+# at most one 4096 x 4096 image's worth of pixels, 48 MB as RGB; decoding it grows a process by well
+# under 256 MB, tests/test_decode_memory.py).
 MAX_PIXELS_PER_UPLOAD_BYTE = 16
 
 
@@ -59,12 +66,16 @@ def upload_pixel_budget(max_scene_pixels: int, archive_bytes: int) -> tuple[int,
     """The pixels an upload of `archive_bytes` may decode, and what sets that budget."""
     by_size = MAX_PIXELS_PER_UPLOAD_BYTE * archive_bytes
     if by_size < max_scene_pixels:
-        return by_size, f"{MAX_PIXELS_PER_UPLOAD_BYTE} pixels per byte of the {archive_bytes:,}-byte upload"
+        return (
+            by_size,
+            f"{MAX_PIXELS_PER_UPLOAD_BYTE} pixels per byte of the {archive_bytes:,}-byte upload",
+        )
     return max_scene_pixels, "LECO_MAX_SCENE_PIXELS"
 
 
 def read_upload(archive: Path, dest: Path, max_pixels: int) -> tuple[Path, dict, dict]:
-    """Extracts the archive into `dest` and loads the scene: its root folder, summary and camera layout."""
+    """Extracts the archive into `dest` and loads the scene: its root folder, summary and camera
+    layout."""
     from service.archives import extract_archive
 
     budget, source = upload_pixel_budget(max_pixels, archive.stat().st_size)
@@ -75,7 +86,8 @@ def read_upload(archive: Path, dest: Path, max_pixels: int) -> tuple[Path, dict,
 def generate_folder(preset: str, seed: int, path: Path, max_pixels: int) -> tuple[dict, dict]:
     from model.scenes.synthetic import generate
 
-    if not path.exists():  # generation is deterministic and atomic: a finished folder is the same scene
+    # generation is deterministic and atomic: a finished folder is the same scene
+    if not path.exists():
         generate(preset, seed, path)
     return describe_folder(path, max_pixels)
 
@@ -84,13 +96,18 @@ def layout_of(path: Path, max_pixels: int) -> dict:
     return camera_layout(load_within_budget(path, max_pixels))
 
 
-# ----- in the API process: rows, files and the pool ---------------------------------------------------------
+# ----- in the API process: rows, files and the pool
+# ---------------------------------------------------------
 def camera_layout(scene: LoadedScene) -> dict:
     cameras = []
     for split, views in scene.splits.items():
         for center, forward in zip(views.cameras.centers.tolist(), views.cameras.forward.tolist()):
             cameras.append({"split": split, "center": center, "forward": forward})
-    return {"frame": "normalised world (z up)", "aabb": scene.bounds.aabb.tolist(), "cameras": cameras}
+    return {
+        "frame": "normalised world (z up)",
+        "aabb": scene.bounds.aabb.tolist(),
+        "cameras": cameras,
+    }
 
 
 def layout_path(settings: Settings, scene_id: int) -> Path:
@@ -105,8 +122,9 @@ def write_layout(path: Path, layout: dict) -> None:
 
 
 def read_layout(settings: Settings, scene_id: int, path: Path, pool: WorkPool) -> dict:
-    """The layout written at registration; a scene registered before layouts were written is loaded once
-    (within the pixel budget, in the pool; the caller holds a running place) and its layout kept."""
+    """The layout written at registration; a scene registered before layouts were written is loaded
+    once (within the pixel budget, in the pool; the caller holds a running place) and its layout
+    kept."""
     target = layout_path(settings, scene_id)
     if not target.is_file():
         write_layout(target, pool.call(layout_of, path, settings.max_scene_pixels))
@@ -116,7 +134,9 @@ def read_layout(settings: Settings, scene_id: int, path: Path, pool: WorkPool) -
 def _new_row(settings: Settings, name: str, source: str, state: str, **fields: object) -> int:
     with transaction(settings.db_url) as session:
         if session.scalar(select(Scene.id).where(Scene.name == name)) is not None:
-            raise SceneConflict(f"a scene named {name!r} already exists: choose another name or delete it first")
+            raise SceneConflict(
+                f"a scene named {name!r} already exists: choose another name or delete it first"
+            )
         row = Scene(name=name, source=source, state=state, path="", **fields)
         session.add(row)
         session.flush()
@@ -124,12 +144,20 @@ def _new_row(settings: Settings, name: str, source: str, state: str, **fields: o
         return row.id
 
 
-def register_synthetic(settings: Settings, name: str, preset: str, seed: int, pool: WorkPool) -> int:
+def register_synthetic(
+    settings: Settings, name: str, preset: str, seed: int, pool: WorkPool
+) -> int:
     """Raises Busy when the scene pool is full (before anything is stored) or SceneConflict."""
     pool.admit()
     try:
-        scene_id = _new_row(settings, name, "synthetic", "generating", generator={"preset": preset, "seed": seed},
-                            format="meganerf")
+        scene_id = _new_row(
+            settings,
+            name,
+            "synthetic",
+            "generating",
+            generator={"preset": preset, "seed": seed},
+            format="meganerf",
+        )
     except BaseException:
         pool.release()
         raise
@@ -137,9 +165,15 @@ def register_synthetic(settings: Settings, name: str, preset: str, seed: int, po
     return scene_id
 
 
-def start_generation(settings: Settings, scene_id: int, pool: WorkPool, admitted: bool) -> threading.Thread:
-    thread = threading.Thread(target=_generate, args=(settings, scene_id, pool, admitted), daemon=True,
-                              name=f"leco-scene-{scene_id}")
+def start_generation(
+    settings: Settings, scene_id: int, pool: WorkPool, admitted: bool
+) -> threading.Thread:
+    thread = threading.Thread(
+        target=_generate,
+        args=(settings, scene_id, pool, admitted),
+        daemon=True,
+        name=f"leco-scene-{scene_id}",
+    )
     thread.start()
     return thread
 
@@ -157,13 +191,19 @@ def _generate(settings: Settings, scene_id: int, pool: WorkPool, admitted: bool)
 def _generate_now(settings: Settings, scene_id: int, pool: WorkPool) -> None:
     with transaction(settings.db_url) as session:
         row = session.get(Scene, scene_id)
-        # The API refuses to delete a scene while it is generating, and synthetic scenes always have a generator.
+        # The API refuses to delete a scene while it is generating, and synthetic scenes always have
+        # a generator.
         if row is None or row.generator is None:
             raise RuntimeError(f"scene {scene_id}: no row with a generator to generate it from")
         path, generator = Path(row.path), dict(row.generator)
     try:
-        info, layout = pool.call(generate_folder, generator["preset"], int(generator["seed"]), path,
-                                 settings.max_scene_pixels)
+        info, layout = pool.call(
+            generate_folder,
+            generator["preset"],
+            int(generator["seed"]),
+            path,
+            settings.max_scene_pixels,
+        )
         write_layout(layout_path(settings, scene_id), layout)
         state, error = "ready", None
     except Exception as exc:
@@ -176,8 +216,8 @@ def _generate_now(settings: Settings, scene_id: int, pool: WorkPool) -> None:
 
 
 def resume_generation(settings: Settings, pool: WorkPool) -> list[int]:
-    """Scenes left 'generating' by a process that stopped: generate them again (through the pool, waiting
-    for places in their own threads)."""
+    """Scenes left 'generating' by a process that stopped: generate them again (through the pool,
+    waiting for places in their own threads)."""
     with transaction(settings.db_url) as session:
         ids = list(session.scalars(select(Scene.id).where(Scene.state == "generating")))
     for scene_id in ids:
@@ -186,16 +226,20 @@ def resume_generation(settings: Settings, pool: WorkPool) -> list[int]:
 
 
 def register_upload(settings: Settings, name: str, archive: Path, pool: WorkPool) -> int:
-    """Extracts and loads the archive in a scratch folder (in the pool's process); only a scene that loads is
-    moved into place and gets a row. Raises ArchiveError / SceneError (the user's archive), WorkerLost or
-    SceneConflict (the name). The caller holds a running place in the scene pool."""
+    """Extracts and loads the archive in a scratch folder (in the pool's process); only a scene that
+    loads is moved into place and gets a row. Raises ArchiveError / SceneError (the user's archive),
+    WorkerLost or SceneConflict (the name). The caller holds a running place in the scene pool."""
     with transaction(settings.db_url) as session:
         if session.scalar(select(Scene.id).where(Scene.name == name)) is not None:
-            raise SceneConflict(f"a scene named {name!r} already exists: choose another name or delete it first")
+            raise SceneConflict(
+                f"a scene named {name!r} already exists: choose another name or delete it first"
+            )
     settings.scenes_dir.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(dir=settings.scenes_dir, prefix=".upload-"))
     try:
-        root, info, layout = pool.call(read_upload, archive, scratch / "x", settings.max_scene_pixels)
+        root, info, layout = pool.call(
+            read_upload, archive, scratch / "x", settings.max_scene_pixels
+        )
         scene_id = _new_row(settings, name, "upload", "ready", format=info["format"], info=info)
         target = settings.scenes_dir / f"scene-{scene_id}"
         try:

@@ -1,5 +1,5 @@
-"""The service's database schema (SQLAlchemy 2). Alembic migrations in migrations/ create exactly this;
-a test compares the migrated database with these models."""
+"""The service's database schema (SQLAlchemy 2). Alembic migrations in migrations/ create exactly
+this; a test compares the migrated database with these models."""
 
 from __future__ import annotations
 
@@ -48,14 +48,16 @@ class UTCDateTime(TypeDecorator):
         return value.replace(tzinfo=timezone.utc) if value is not None else None
 
 
-# SQLite gives a new row the largest id + 1 unless the table is AUTOINCREMENT: deleting the newest job would hand
-# its id to the next one, and whoever still held the old id (a client, a dashboard, an idempotent replay) would be
-# shown another job. PostgreSQL's sequences never reuse an id.
+# SQLite gives a new row the largest id + 1 unless the table is AUTOINCREMENT: deleting the newest
+# job would hand its id to the next one, and whoever still held the old id (a client, a dashboard,
+# an idempotent replay) would be shown another job. PostgreSQL's sequences never reuse an id.
 NEVER_REUSED = {"sqlite_autoincrement": True}
 
 
 def one_of(column: str, values: tuple[str, ...]) -> CheckConstraint:
-    return CheckConstraint(f"{column} IN ({', '.join(repr(v) for v in values)})", name=f"{column}_valid")
+    return CheckConstraint(
+        f"{column} IN ({', '.join(repr(v) for v in values)})", name=f"{column}_valid"
+    )
 
 
 class Base(DeclarativeBase):
@@ -80,19 +82,27 @@ class Scene(Base):
 
 class Job(Base):
     __tablename__ = "jobs"
-    __table_args__ = (one_of("state", JOB_STATES), Index("ix_jobs_state_id", "state", "id"), NEVER_REUSED)
+    __table_args__ = (
+        one_of("state", JOB_STATES),
+        Index("ix_jobs_state_id", "state", "id"),
+        NEVER_REUSED,
+    )
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
-    # An entry of the job-kind registry (service/jobs/kinds.py), which the API checks before writing.
+    # An entry of the job-kind registry (service/jobs/kinds.py), which the API checks before
+    # writing.
     kind: Mapped[str] = mapped_column(String(16), default="train", server_default="train")
-    # The finished training job a render or export works on; deleting it deletes them (the API refuses while
-    # one has not ended).
-    parent_id: Mapped[int | None] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
+    # The finished training job a render or export works on; deleting it deletes them (the API
+    # refuses while one has not ended).
+    parent_id: Mapped[int | None] = mapped_column(
+        ForeignKey("jobs.id", ondelete="CASCADE"), index=True
+    )
     scene_id: Mapped[int] = mapped_column(ForeignKey("scenes.id", ondelete="RESTRICT"), index=True)
     state: Mapped[str] = mapped_column(String(16), default="queued")
     method: Mapped[str] = mapped_column(String(16))
     profile: Mapped[str] = mapped_column(String(32))
-    config: Mapped[dict] = mapped_column(JSON)  # TrainConfig, RenderConfig or ExportConfig (by kind), as submitted
+    # TrainConfig, RenderConfig or ExportConfig (by kind), as submitted
+    config: Mapped[dict] = mapped_column(JSON)
     phase: Mapped[str | None] = mapped_column(String(16))  # current phase
     step: Mapped[int] = mapped_column(Integer, default=0)  # global step of the latest metrics
     total_steps: Mapped[int] = mapped_column(Integer)
@@ -126,24 +136,33 @@ class Metric(Base):
     """One value per (job, phase, name, step): a replayed step overwrites, never duplicates."""
 
     __tablename__ = "metrics"
-    # Polling reads "steps after N" and "the latest step of each phase"; both would scan the job's rows without these.
-    __table_args__ = (Index("ix_metrics_job_step", "job_id", "step"),
-                      Index("ix_metrics_job_phase_step", "job_id", "phase", "step"))
+    # Polling reads "steps after N" and "the latest step of each phase"; both would scan the job's
+    # rows without these.
+    __table_args__ = (
+        Index("ix_metrics_job_step", "job_id", "step"),
+        Index("ix_metrics_job_phase_step", "job_id", "phase", "step"),
+    )
 
     job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True)
     phase: Mapped[str] = mapped_column(String(16), primary_key=True)
     name: Mapped[str] = mapped_column(String(64), primary_key=True)
     step: Mapped[int] = mapped_column(Integer, primary_key=True)
     value: Mapped[float] = mapped_column(Float)
-    wall_time_s: Mapped[float | None] = mapped_column(Float)  # training time of the run at this step
-    attempt: Mapped[int | None] = mapped_column(Integer)  # the attempt that wrote it (the fencing token)
+    # training time of the run at this step
+    wall_time_s: Mapped[float | None] = mapped_column(Float)
+    # the attempt that wrote it (the fencing token)
+    attempt: Mapped[int | None] = mapped_column(Integer)
 
 
 class Artifact(Base):
     """Metadata only: the bytes live under the artifact root, named by their sha256."""
 
     __tablename__ = "artifacts"
-    __table_args__ = (UniqueConstraint("job_id", "kind", "name"), one_of("kind", ARTIFACT_KINDS), NEVER_REUSED)
+    __table_args__ = (
+        UniqueConstraint("job_id", "kind", "name"),
+        one_of("kind", ARTIFACT_KINDS),
+        NEVER_REUSED,
+    )
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
@@ -155,7 +174,8 @@ class Artifact(Base):
     sha256: Mapped[str] = mapped_column(String(64), index=True)
     content_type: Mapped[str] = mapped_column(String(128))
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
-    attempt: Mapped[int | None] = mapped_column(Integer)  # the attempt that wrote it (the fencing token)
+    # the attempt that wrote it (the fencing token)
+    attempt: Mapped[int | None] = mapped_column(Integer)
 
 
 class IdempotencyKey(Base):

@@ -1,6 +1,7 @@
-"""The process side of `POST /v1/jobs/{id}/view`: one camera of a finished training job rendered to PNG
-(workers/view.py) in a process of the view pool, never in the API process. Each process keeps the networks of
-the last few jobs it rendered loaded, so the viewer's next frame costs a render, not a load."""
+"""The process side of `POST /v1/jobs/{id}/view`: one camera of a finished training job rendered to
+PNG (workers/view.py) in a process of the view pool, never in the API process. Each process keeps
+the networks of the last few jobs it rendered loaded, so the viewer's next frame costs a render, not
+a load."""
 
 from __future__ import annotations
 
@@ -29,10 +30,14 @@ def trained_job(settings: Settings, job_id: int) -> Trained:
         return _loaded[job_id]
     with reading(settings.db_url) as session:
         job = session.get(Job, job_id)
-        scene_path = session.scalar(select(Scene.path).where(Scene.id == job.scene_id)) if job else None
+        scene_path = (
+            session.scalar(select(Scene.path).where(Scene.id == job.scene_id)) if job else None
+        )
     if job is None or scene_path is None:
         raise FileNotFoundError(f"job {job_id} or its scene no longer exists")
-    trained = load_parent(settings, job_id, scene_path, Path(settings.data_dir) / "views" / f"job-{job_id}")
+    trained = load_parent(
+        settings, job_id, scene_path, Path(settings.data_dir) / "views" / f"job-{job_id}"
+    )
     _loaded[job_id] = trained
     while len(_loaded) > LOADED_JOBS:
         _loaded.popitem(last=False)
@@ -40,7 +45,8 @@ def trained_job(settings: Settings, job_id: int) -> Trained:
 
 
 def render_view(settings: Settings, job_id: int, body: dict) -> tuple[bytes, float]:
-    """(PNG bytes, seconds the render took) of the camera in `body` (a workers.render_config.ViewRequest)."""
+    """(PNG bytes, seconds the render took) of the camera in `body` (a
+    workers.render_config.ViewRequest)."""
     from workers.view import render_view_png  # PyTorch: loaded in the view pool's process
 
     return render_view_png(trained_job(settings, job_id), ViewRequest.model_validate(body))

@@ -1,8 +1,9 @@
 """A small bounded pool for heavy work the API must start itself (extracting and decoding an upload,
-generating a synthetic scene): at most `workers` run at once and `queue` more wait; beyond that a request is
-refused at once with `Busy` (the API answers 429 with Retry-After) instead of piling up threads, disk and
-memory. The work itself runs in the pool's own processes (`call`), so decoding a large upload never holds
-the API process's interpreter lock: requests keep being answered while it runs."""
+generating a synthetic scene): at most `workers` run at once and `queue` more wait; beyond that a
+request is refused at once with `Busy` (the API answers 429 with Retry-After) instead of piling up
+threads, disk and memory. The work itself runs in the pool's own processes (`call`), so decoding a
+large upload never holds the API process's interpreter lock: requests keep being answered while it
+runs."""
 
 from __future__ import annotations
 
@@ -23,7 +24,8 @@ class Busy(RuntimeError):
 
 
 class WorkerLost(RuntimeError):
-    """The process running the work stopped (killed, most likely out of memory) before it answered."""
+    """The process running the work stopped (killed, most likely out of memory) before it
+    answered."""
 
 
 class WorkPool:
@@ -36,8 +38,8 @@ class WorkPool:
         self._lock = threading.Lock()
 
     def admit(self, wait: bool = False) -> None:
-        """Take a place (running or waiting), or raise Busy (wait: block for one instead); `release` gives it
-        back."""
+        """Take a place (running or waiting), or raise Busy (wait: block for one instead); `release`
+        gives it back."""
         with self._places:
             while self.full:
                 if not wait:
@@ -53,8 +55,10 @@ class WorkPool:
             self._places.notify()
 
     def busy(self) -> Busy:
-        return Busy(f"{self.workers} {self.what} are running and {self.queue} waiting, the most this server "
-                    f"takes at once; retry in {RETRY_AFTER_S} s")
+        return Busy(
+            f"{self.workers} {self.what} are running and {self.queue} waiting, the most this "
+            f"server takes at once; retry in {RETRY_AFTER_S} s"
+        )
 
     @property
     def full(self) -> bool:
@@ -76,14 +80,19 @@ class WorkPool:
             yield
 
     def call(self, fn: Callable[..., Any], *args: Any) -> Any:
-        """fn(*args) in one of the pool's processes; the caller holds a running place. fn and its arguments
-        cross a process boundary: a module-level function, plain data."""
+        """fn(*args) in one of the pool's processes; the caller holds a running place. fn and its
+        arguments cross a process boundary: a module-level function, plain data."""
         with self._lock:
-            if self._executor is None:  # spawned, not forked: the API process has threads and open sockets
-                # Niced: decoding is background work, and the API answering its pollers must win the cores.
-                self._executor = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                                     initializer=os.nice,
-                                                     initargs=(NICE,))
+            # spawned, not forked: the API process has threads and open sockets
+            if self._executor is None:
+                # Niced: decoding is background work, and the API answering its pollers must win the
+                # cores.
+                self._executor = ProcessPoolExecutor(
+                    self.workers,
+                    mp_context=multiprocessing.get_context("spawn"),
+                    initializer=os.nice,
+                    initargs=(NICE,),
+                )
             executor = self._executor
         try:
             return executor.submit(fn, *args).result()
@@ -92,8 +101,10 @@ class WorkPool:
                 if self._executor is executor:
                     self._executor = None
             executor.shutdown(wait=False, cancel_futures=True)
-            raise WorkerLost(f"the process doing one of the {self.what} stopped before it finished "
-                             "(out of memory?); nothing was stored") from None
+            raise WorkerLost(
+                f"the process doing one of the {self.what} stopped before it finished (out of "
+                "memory?); nothing was stored"
+            ) from None
 
     def close(self) -> None:
         with self._lock:

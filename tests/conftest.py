@@ -1,5 +1,5 @@
-"""Shared fixtures: the real scenes in ../shared/datasets (tests skip, saying why, when it is absent), and
-the service's databases (SQLite, and the machine's PostgreSQL)."""
+"""Shared fixtures: the real scenes in ../shared/datasets (tests skip, saying why, when it is
+absent), and the service's databases (SQLite, and the machine's PostgreSQL)."""
 
 import itertools
 import threading
@@ -15,14 +15,16 @@ SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "datasets"
 def shared_dataset(name: str) -> Path:
     path = SHARED / name
     if not path.is_dir():
-        pytest.skip(f"shared dataset {name} not found at {path} (it ships beside the checkout in ../shared)")
+        pytest.skip(
+            f"shared dataset {name} not found at {path} (it ships beside the checkout in ../shared)"
+        )
     return path
 
 
 @pytest.fixture(scope="session", autouse=True)
 def pixel_cache(tmp_path_factory) -> Path:
-    """Training pixel stores (model/scenes/pixel_store.py) go to a folder of this session, never to the
-    user's ~/.cache; services and Ray workers the tests start inherit it."""
+    """Training pixel stores (model/scenes/pixel_store.py) go to a folder of this session, never to
+    the user's ~/.cache; services and Ray workers the tests start inherit it."""
     import os
 
     cache = tmp_path_factory.mktemp("pixel-cache")
@@ -42,7 +44,8 @@ def fern_dir() -> Path:
 
 @pytest.fixture(scope="session")
 def tiny_scene(tmp_path_factory):
-    """The tiny synthetic city (seed 0), generated once per session: exact depth maps and occupancy."""
+    """The tiny synthetic city (seed 0), generated once per session: exact depth maps and
+    occupancy."""
     from model.scenes import load_scene
     from model.scenes.synthetic import generate
 
@@ -60,7 +63,8 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-# ----- the service: every database test runs on SQLite and on the machine's real PostgreSQL ----------------
+# ----- the service: every database test runs on SQLite and on the machine's real PostgreSQL
+# ----------------
 PG_ADMIN = "host=127.0.0.1 port=5432 user=postgres dbname=postgres"
 
 
@@ -106,12 +110,15 @@ def database_url(request, tmp_path):
 
 @pytest.fixture
 def service_settings(database_url, tmp_path):
-    """Service settings on a migrated database of each kind, with a private data folder and artifact root."""
+    """Service settings on a migrated database of each kind, with a private data folder and artifact
+    root."""
     from service.db import upgrade
     from service.settings import Settings
 
     upgrade(database_url)
-    return Settings(data_dir=tmp_path / "data", database_url=database_url, local_cpus=2, lease_s=5.0)
+    return Settings(
+        data_dir=tmp_path / "data", database_url=database_url, local_cpus=2, lease_s=5.0
+    )
 
 
 @contextmanager

@@ -1,4 +1,5 @@
-"""Every broken dataset fails with a SceneError naming the file and the problem; loading writes nothing."""
+"""Every broken dataset fails with a SceneError naming the file and the problem; loading writes
+nothing."""
 
 import json
 import shutil
@@ -12,7 +13,10 @@ from model.scenes import SceneError, load_scene
 
 
 def snapshot(folder):
-    return {str(p.relative_to(folder)): (p.stat().st_size, p.stat().st_mtime_ns) for p in sorted(folder.rglob("*"))}
+    return {
+        str(p.relative_to(folder)): (p.stat().st_size, p.stat().st_mtime_ns)
+        for p in sorted(folder.rglob("*"))
+    }
 
 
 def expect(root, match, file=None):
@@ -26,7 +30,9 @@ def expect(root, match, file=None):
     return info.value
 
 
-# --- Blender ----------------------------------------------------------------------------------------------
+# --- Blender
+# -------------------------------------------------------------------------------------------------
+
 
 @pytest.fixture
 def blender(tmp_path, lego_dir):
@@ -66,7 +72,8 @@ def test_blender_unreadable_image(blender):
 
 
 def png_claiming(width: int, height: int) -> bytes:
-    """A real 1x1 PNG whose header (IHDR, CRC fixed) claims another size: a decompression bomb's header."""
+    """A real 1x1 PNG whose header (IHDR, CRC fixed) claims another size: a decompression bomb's
+    header."""
     import io
     import struct
     import zlib
@@ -82,8 +89,13 @@ def png_claiming(width: int, height: int) -> bytes:
 
 def test_blender_image_with_huge_dimensions_is_refused_before_decoding(blender):
     (blender / "train" / "r_1.png").write_bytes(png_claiming(12_000, 10_000))  # our limit
-    expect(blender, "image claims 12000x10000 pixels, more pixels than the 100 megapixel limit", "r_1.png")
-    (blender / "train" / "r_1.png").write_bytes(png_claiming(60_000, 60_000))  # PIL's guard, earlier
+    expect(
+        blender,
+        "image claims 12000x10000 pixels, more pixels than the 100 megapixel limit",
+        "r_1.png",
+    )
+    # PIL's guard, earlier
+    (blender / "train" / "r_1.png").write_bytes(png_claiming(60_000, 60_000))
     expect(blender, "image claims more pixels than the 100 megapixel limit", "r_1.png")
 
 
@@ -99,8 +111,10 @@ def test_blender_image_size_mismatch(blender):
 
 
 def test_blender_nan_pose(blender):
-    edit_json(blender / "transforms_train.json",
-              lambda d: d["frames"][1]["transform_matrix"][0].__setitem__(3, float("nan")))
+    edit_json(
+        blender / "transforms_train.json",
+        lambda d: d["frames"][1]["transform_matrix"][0].__setitem__(3, float("nan")),
+    )
     expect(blender, r"camera pose \(frame 1\) has non-finite values", "transforms_train.json")
 
 
@@ -108,6 +122,7 @@ def test_blender_non_rigid_pose(blender):
     def shear(d):
         m = d["frames"][2]["transform_matrix"]
         m[0][1] += 0.3
+
     edit_json(blender / "transforms_train.json", shear)
     expect(blender, r"camera pose \(frame 2\) is not rigid", "transforms_train.json")
 
@@ -132,7 +147,9 @@ def test_blender_empty_split(blender):
     expect(blender, "split has no frames", "transforms_val.json")
 
 
-# --- Mega-NeRF --------------------------------------------------------------------------------------------
+# --- Mega-NeRF
+# -------------------------------------------------------------------------------------------------
+
 
 def look_at_drb(position):
     """OpenGL c2w in Mega-NeRF's down-right-back frame, looking at the origin, 'up' = -x."""
@@ -148,16 +165,20 @@ def look_at_drb(position):
 def meganerf(tmp_path):
     """Three views written by hand in the Mega-NeRF layout, aimed at one ground point."""
     root = tmp_path / "mega"
-    torch.save({"origin_drb": torch.zeros(3, dtype=torch.float64), "pose_scale_factor": 10.0},
-               root.mkdir() or root / "coordinates.pt")
+    torch.save(
+        {"origin_drb": torch.zeros(3, dtype=torch.float64), "pose_scale_factor": 10.0},
+        root.mkdir() or root / "coordinates.pt",
+    )
     for split in ("train", "val"):
         (root / split / "metadata").mkdir(parents=True)
         (root / split / "rgbs").mkdir()
     positions = ([-1.0, 0.5, 0.0], [-1.0, -0.5, 0.0], [-1.0, 0.0, 0.5])  # 10 m up (x is down)
     for i, split in enumerate(("train", "train", "val")):
         c2w = look_at_drb(positions[i])
-        torch.save({"W": 16, "H": 12, "intrinsics": torch.tensor([20.0, 20.0, 8.0, 6.0]), "c2w": c2w},
-                   root / split / "metadata" / f"{i:06d}.pt")
+        torch.save(
+            {"W": 16, "H": 12, "intrinsics": torch.tensor([20.0, 20.0, 8.0, 6.0]), "c2w": c2w},
+            root / split / "metadata" / f"{i:06d}.pt",
+        )
         Image.new("RGB", (16, 12), (i * 40, 90, 120)).save(root / split / "rgbs" / f"{i:06d}.png")
     return root
 
@@ -169,9 +190,12 @@ def test_meganerf_good_fixture_loads(meganerf):
 
 def test_meganerf_parallel_cameras_without_geometry(meganerf):
     """Nadir cameras whose axes never cross, and no depth or points: the bounds cannot be found."""
-    for path in sorted((meganerf / "train" / "metadata").glob("*.pt")) + [meganerf / "val/metadata/000002.pt"]:
+    for path in sorted((meganerf / "train" / "metadata").glob("*.pt")) + [
+        meganerf / "val/metadata/000002.pt"
+    ]:
         meta = torch.load(path, weights_only=True)
-        meta["c2w"][:, :3] = torch.tensor([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])  # looking down
+        # looking down
+        meta["c2w"][:, :3] = torch.tensor([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
         torch.save(meta, path)
     expect(meganerf, "cannot find the foreground: the cameras' optical axes never cross", "mega")
 
@@ -218,7 +242,9 @@ def test_meganerf_empty_train_split(meganerf):
     expect(meganerf, "the train split is empty", "metadata")
 
 
-# --- LLFF ---------------------------------------------------------------------------------------------------
+# --- LLFF
+# -------------------------------------------------------------------------------------------------
+
 
 @pytest.fixture
 def llff(tmp_path, fern_dir):
@@ -232,7 +258,8 @@ def llff(tmp_path, fern_dir):
 
 def test_llff_good_fixture_loads(llff):
     scene = load_scene(llff)
-    assert scene.bounds.source == "llff_bounds"  # no sparse/ here: the per-image depth bounds are the evidence
+    # no sparse/ here: the per-image depth bounds are the evidence
+    assert scene.bounds.source == "llff_bounds"
     assert len(scene.train) == 7 and len(scene.splits["val"]) == 2
 
 
@@ -258,11 +285,15 @@ def test_llff_non_rigid_pose(llff):
 
 
 def test_llff_downscale_without_matching_folder(llff):
-    with pytest.raises(SceneError, match="downscale 4 is not a multiple of any image folder's factor"):
+    with pytest.raises(
+        SceneError, match="downscale 4 is not a multiple of any image folder's factor"
+    ):
         load_scene(llff, downscale=4)
 
 
-# --- detection ----------------------------------------------------------------------------------------------
+# --- detection
+# -------------------------------------------------------------------------------------------------
+
 
 def test_unknown_format_and_missing_path(tmp_path):
     (tmp_path / "photo.jpg").write_bytes(b"x")
@@ -274,20 +305,29 @@ def test_unknown_format_and_missing_path(tmp_path):
         load_scene(tmp_path, downscale=0)
 
 
-# --- Paths that lead out of the scene folder -----------------------------------------------------------------
+# --- Paths that lead out of the scene folder
+# -----------------------------------------------------------------
+
 
 def test_blender_file_path_outside_the_scene(blender, tmp_path):
     shutil.copy(blender / "train" / "r_0.png", tmp_path / "elsewhere.png")
     for target in ("../elsewhere", str(tmp_path / "elsewhere"), "../nothing-here"):
-        edit_json(blender / "transforms_train.json", lambda d, target=target: d["frames"][1].update(file_path=target))
+        edit_json(
+            blender / "transforms_train.json",
+            lambda d, target=target: d["frames"][1].update(file_path=target),
+        )
         error = expect(blender, "points outside the scene folder", "transforms_train.json")
         assert error.problem == f"file_path (frame 1) {target!r} points outside the scene folder"
 
 
 def test_symlinks_out_of_the_scene_are_refused_in_every_format(blender, meganerf, llff, tmp_path):
-    cases = [(blender, blender / "train" / "r_2.png"), (meganerf, meganerf / "train" / "rgbs" / "000001.png"),
-             (meganerf, meganerf / "coordinates.pt"), (llff, llff / "images_8" / "image003.png"),
-             (llff, llff / "poses_bounds.npy")]
+    cases = [
+        (blender, blender / "train" / "r_2.png"),
+        (meganerf, meganerf / "train" / "rgbs" / "000001.png"),
+        (meganerf, meganerf / "coordinates.pt"),
+        (llff, llff / "images_8" / "image003.png"),
+        (llff, llff / "poses_bounds.npy"),
+    ]
     for i, (root, path) in enumerate(cases):
         outside = tmp_path / f"outside-{i}{path.suffix}"
         shutil.move(path, outside)
@@ -299,12 +339,14 @@ def test_symlinks_out_of_the_scene_are_refused_in_every_format(blender, meganerf
 
 
 def test_a_jpeg_with_a_camera_trailer_is_read_and_a_cut_one_fails_when_decoded(tmp_path):
-    """Cameras append data after a JPEG's end-of-image marker: the header check must not refuse it. A JPEG cut
-    short passes the header check and is refused, naming the file, when its pixels are decoded."""
+    """Cameras append data after a JPEG's end-of-image marker: the header check must not refuse it.
+    A JPEG cut short passes the header check and is refused, naming the file, when its pixels are
+    decoded."""
     from model.scenes.images import ImageFile, probe_image
 
     noise = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)
-    Image.fromarray(noise).save(tmp_path / "a.jpg", quality=95)  # noise: the data, not the header, fills the file
+    # noise: the data, not the header, fills the file
+    Image.fromarray(noise).save(tmp_path / "a.jpg", quality=95)
     data = (tmp_path / "a.jpg").read_bytes()
     (tmp_path / "trailer.jpg").write_bytes(data + b"SEFH" + bytes(4096))
     assert probe_image(tmp_path / "trailer.jpg") == (64, 48)

@@ -1,5 +1,6 @@
-"""`leco bench`: the analysis (time to equal PSNR, speed-ups, targets), the exact occupancy reference, the
-activation-memory meter, and the whole command end to end on the tiny city and on a lego subset."""
+"""`leco bench`: the analysis (time to equal PSNR, speed-ups, targets), the exact occupancy
+reference, the activation-memory meter, and the whole command end to end on the tiny city and on a
+lego subset."""
 
 import json
 import shutil
@@ -24,20 +25,48 @@ def test_time_to_psnr_interpolates_between_evaluations():
 
 
 def fake_run(variant, seed, curve, **summary):
-    base = {"rays_per_s": 1000.0, "samples_per_ray": 100.0, "activation_memory_mb": 10.0, "peak_memory_mb": 500.0,
-            "val": {"psnr": 20.0}, "occupancy": None, "config": {"use_gpu": False}}
-    return {"variant": variant, "method": variant, "label": variant, "ablation": False, "seed": seed,
-            "summary": {**base, **summary},
-            "curve": [{"phase": "main", "wall_time_s": t, "val_psnr": v} for t, v in curve]}
+    base = {
+        "rays_per_s": 1000.0,
+        "samples_per_ray": 100.0,
+        "activation_memory_mb": 10.0,
+        "peak_memory_mb": 500.0,
+        "val": {"psnr": 20.0},
+        "occupancy": None,
+        "config": {"use_gpu": False},
+    }
+    return {
+        "variant": variant,
+        "method": variant,
+        "label": variant,
+        "ablation": False,
+        "seed": seed,
+        "summary": {**base, **summary},
+        "curve": [{"phase": "main", "wall_time_s": t, "val_psnr": v} for t, v in curve],
+    }
 
 
 def test_equal_psnr_speedups_and_targets_from_curves():
-    runs = [fake_run("leco", 0, [(60, 18.0), (120, 22.0)], rays_per_s=3000.0, samples_per_ray=20.0,
-                     activation_memory_mb=4.0, val={"psnr": 22.0},
-                     occupancy={"f1": 0.5, "params": 1000, "occupancy_ratio": 0.1}),
-            fake_run("switch", 0, [(60, 16.0), (240, 20.0)], val={"psnr": 20.0}),
-            fake_run("grid", 0, [(60, 19.0), (240, 21.0)], rays_per_s=2000.0, val={"psnr": 21.0},
-                     occupancy={"f1": 0.4, "params": 128**3, "occupancy_ratio": 0.3})]
+    runs = [
+        fake_run(
+            "leco",
+            0,
+            [(60, 18.0), (120, 22.0)],
+            rays_per_s=3000.0,
+            samples_per_ray=20.0,
+            activation_memory_mb=4.0,
+            val={"psnr": 22.0},
+            occupancy={"f1": 0.5, "params": 1000, "occupancy_ratio": 0.1},
+        ),
+        fake_run("switch", 0, [(60, 16.0), (240, 20.0)], val={"psnr": 20.0}),
+        fake_run(
+            "grid",
+            0,
+            [(60, 19.0), (240, 21.0)],
+            rays_per_s=2000.0,
+            val={"psnr": 21.0},
+            occupancy={"f1": 0.4, "params": 128**3, "occupancy_ratio": 0.3},
+        ),
+    ]
     equal = equal_psnr(runs)
     assert equal[0]["target_psnr"] == 20.0  # the best PSNR all three reached (the vanilla model's)
     assert equal[0]["time_s"] == pytest.approx({"leco": 90.0, "switch": 240.0, "grid": 150.0})
@@ -45,7 +74,8 @@ def test_equal_psnr_speedups_and_targets_from_curves():
     assert list(speed) == ["switch", "grid"]
     assert speed["switch"]["rays_per_s"] == pytest.approx(3.0)
     assert speed["switch"]["time_to_equal_psnr"] == pytest.approx(240 / 90)
-    # against each baseline's own best PSNR: vanilla's 20 dB (LeCO at 90 s), the grid's 21 dB (LeCO at 105 s)
+    # against each baseline's own best PSNR: vanilla's 20 dB (LeCO at 90 s), the grid's 21 dB (LeCO
+    # at 105 s)
     assert speed["switch"]["time_to_its_best_psnr_per_seed"] == pytest.approx([240 / 90])
     assert speed["grid"]["time_to_its_best_psnr"] == pytest.approx(240 / 105)
     assert speed["switch"]["samples_per_ray_fraction"] == pytest.approx(0.2)
@@ -53,12 +83,16 @@ def test_equal_psnr_speedups_and_targets_from_curves():
     met = {t["target"]: t["met"] for t in targets(runs, speed)}
     assert all(met.values()), met
     runs[0]["summary"]["occupancy"]["occupancy_ratio"] = 0.25
-    assert [t["target"] for t in targets(runs, speed) if t["met"] is False] == ["LeCO occupancy ratio <= 20%"]
+    assert [t["target"] for t in targets(runs, speed) if t["met"] is False] == [
+        "LeCO occupancy ratio <= 20%"
+    ]
     runs[1]["curve"][-1]["val_psnr"] = 23.0  # vanilla ends above anything LeCO reached
     speed = speedups(runs, equal_psnr(runs))
     assert speed["switch"]["time_to_its_best_psnr_per_seed"] == [None]
     assert speed["switch"]["time_to_its_best_psnr"] is None
-    half = [t for t in targets(runs, speed) if t["target"].startswith("reaches vanilla's best PSNR")]
+    half = [
+        t for t in targets(runs, speed) if t["target"].startswith("reaches vanilla's best PSNR")
+    ]
     assert half == [{"target": half[0]["target"], "measured": "never", "met": False}]
 
 
@@ -69,13 +103,23 @@ def test_ladder_climbs_from_the_papers_formulation_to_the_cpu_defaults():
 
     steps = rung_overrides()
     paper = TrainConfig(method="leco", profile="cpu", overrides=steps[0]).resolved_profile()
-    assert paper.occupancy.model_dump(exclude={"samples_per_ray", "steps", "lr", "w_g"}) == \
-        OccupancyPhaseConfig().model_dump(exclude={"samples_per_ray", "steps", "lr", "w_g"})
-    assert not (paper.guided.jitter or paper.guided.dilate or paper.guided.fallback or paper.guided.warm_start)
+    assert paper.occupancy.model_dump(
+        exclude={"samples_per_ray", "steps", "lr", "w_g"}
+    ) == OccupancyPhaseConfig().model_dump(exclude={"samples_per_ray", "steps", "lr", "w_g"})
+    assert not (
+        paper.guided.jitter
+        or paper.guided.dilate
+        or paper.guided.fallback
+        or paper.guided.warm_start
+    )
     assert paper.guided.split == 8  # the paper's split factor
     top = TrainConfig(method="leco", profile="cpu", overrides=steps[-1]).resolved_profile()
-    assert top == TrainConfig(method="leco", profile="cpu").resolved_profile() and RUNGS[-1][0] == "leco"
-    assert all(len(b) >= len(a) for a, b in zip(steps, steps[1:]))  # each rung adds to the one before
+    assert (
+        top == TrainConfig(method="leco", profile="cpu").resolved_profile()
+        and RUNGS[-1][0] == "leco"
+    )
+    # each rung adds to the one before
+    assert all(len(b) >= len(a) for a, b in zip(steps, steps[1:]))
 
 
 def test_exact_occupancy_reference_scores_the_truth_one_and_nothing_zero(tiny_scene):
@@ -84,11 +128,15 @@ def test_exact_occupancy_reference_scores_the_truth_one_and_nothing_zero(tiny_sc
     assert perfect["f1"] == perfect["whole_grid_f1"] == perfect["accuracy"] == 1.0
     empty = evaluate_occupancy_exact(lambda p: torch.zeros(len(p), dtype=torch.bool), truth, views)
     assert empty["recall"] == empty["f1"] == 0.0
-    # Observed cells are mostly air: predicting nothing is still "accurate", which is why F1 is the headline.
+    # Observed cells are mostly air: predicting nothing is still "accurate", which is why F1 is the
+    # headline.
     assert empty["accuracy"] == pytest.approx(1 - perfect["reference_occupied_fraction"], abs=1e-9)
-    everything = evaluate_occupancy_exact(lambda p: torch.ones(len(p), dtype=torch.bool), truth, views)
+    everything = evaluate_occupancy_exact(
+        lambda p: torch.ones(len(p), dtype=torch.bool), truth, views
+    )
     assert everything["recall"] == 1.0 and everything["precision"] == pytest.approx(
-        perfect["reference_occupied_fraction"])
+        perfect["reference_occupied_fraction"]
+    )
 
 
 def test_saved_tensor_bytes_counts_what_backward_keeps():
@@ -111,18 +159,33 @@ def test_bench_smoke_on_the_tiny_city(tiny_scene, tmp_path, capsys):
     assert bench("--scene", str(tiny_scene.root), "--out", str(out), "--ablation") == 0
     results = json.loads((out / "results.json").read_text())
     runs = {r["variant"]: r for r in results["runs"]}
-    assert set(runs) == {"leco", "switch", "grid", "prop", "leco-homogeneous", "leco-no-density-loss", "grid-256",
-                         "leco-empty-4-layer", "leco-empty-homogeneous"}
+    assert set(runs) == {
+        "leco",
+        "switch",
+        "grid",
+        "prop",
+        "leco-homogeneous",
+        "leco-no-density-loss",
+        "grid-256",
+        "leco-empty-4-layer",
+        "leco-empty-homogeneous",
+    }
     assert runs["grid-256"]["summary"]["occupancy"]["params"] == 256**3
     report = (out / "report.md").read_text()
     for title in ("Tables 4 and 5", "Table 7", "Table 9"):
         assert f"the paper's {title})" in report
-    assert "| Grid-256 |" in report and "| E_e: identity (LeCO) |" in report and "| E_e: 4-layer MLP |" in report
+    assert (
+        "| Grid-256 |" in report
+        and "| E_e: identity (LeCO) |" in report
+        and "| E_e: 4-layer MLP |" in report
+    )
     assert results["occupancy_reference"].startswith("exact ground truth")
     leco = runs["leco"]
     phases = [p["phase"] for p in leco["curve"] if "val_psnr" in p]
     assert "occupancy" in phases and phases[-1] == "main"  # validation at each phase's end at least
-    assert all("occupancy_f1" in p for p in leco["curve"] if p["phase"] == "occupancy" and "val_psnr" in p)
+    assert all(
+        "occupancy_f1" in p for p in leco["curve"] if p["phase"] == "occupancy" and "val_psnr" in p
+    )
     for name in ("leco", "grid", "prop"):
         occupancy = runs[name]["summary"]["occupancy"]
         assert 0.0 <= occupancy["f1"] <= 1.0 and occupancy["params"] > 0
@@ -130,16 +193,33 @@ def test_bench_smoke_on_the_tiny_city(tiny_scene, tmp_path, capsys):
     # the smoke profile's prop.main_samples on every ray that crosses the box (the others get none)
     assert runs["prop"]["summary"]["sampling"]["samples_per_hit_ray"] == 8
     assert runs["prop"]["summary"]["samples_per_ray"] < 8
-    assert leco["summary"]["samples_per_ray"] < runs["switch"]["summary"]["samples_per_ray"] == 8 + 8 + 16
-    assert leco["summary"]["activation_memory_mb"] < runs["switch"]["summary"]["activation_memory_mb"]
-    assert results["speedups"]["switch"]["rays_per_s"] > 0 and results["equal_psnr"][0]["target_psnr"] > 10
-    assert {t["target"] for t in results["targets"]} >= {"occupancy parameters <= 10% of S+Grid's",
-                                                         "occupancy F1 above S+Prop's"}
+    assert (
+        leco["summary"]["samples_per_ray"]
+        < runs["switch"]["summary"]["samples_per_ray"]
+        == 8 + 8 + 16
+    )
+    assert (
+        leco["summary"]["activation_memory_mb"] < runs["switch"]["summary"]["activation_memory_mb"]
+    )
+    assert (
+        results["speedups"]["switch"]["rays_per_s"] > 0
+        and results["equal_psnr"][0]["target_psnr"] > 10
+    )
+    assert {t["target"] for t in results["targets"]} >= {
+        "occupancy parameters <= 10% of S+Grid's",
+        "occupancy F1 above S+Prop's",
+    }
     for figure in results["figures"].values():
         with Image.open(out / figure) as image:
             assert image.format == "PNG" and image.width > 300
-    assert set(results["figures"]) == {"psnr_vs_time", "occupancy_phase", "samples_per_ray", "occupancy_clouds",
-                                       "renders", "recall_by_layer"}
+    assert set(results["figures"]) == {
+        "psnr_vs_time",
+        "occupancy_phase",
+        "samples_per_ray",
+        "occupancy_clouds",
+        "renders",
+        "recall_by_layer",
+    }
     report = (out / "report.md").read_text()
     for heading in ("Table 1", "Table 3", "Speed-up of LeCO", "Targets", "Tables 4 and 5"):
         assert heading in report
@@ -148,8 +228,20 @@ def test_bench_smoke_on_the_tiny_city(tiny_scene, tmp_path, capsys):
     assert "| S+Ours (LeCO) |" in report and "| Homo. MoE, no L_d |" in report
 
     capsys.readouterr()
-    assert bench("--scene", str(tiny_scene.root), "--out", str(out), "--methods", "leco,switch", "--ladder") == 0
-    assert capsys.readouterr().err.count("finished earlier, reusing") == 2  # leco and switch are not retrained
+    assert (
+        bench(
+            "--scene",
+            str(tiny_scene.root),
+            "--out",
+            str(out),
+            "--methods",
+            "leco,switch",
+            "--ladder",
+        )
+        == 0
+    )
+    # leco and switch are not retrained
+    assert capsys.readouterr().err.count("finished earlier, reusing") == 2
     results = json.loads((out / "results.json").read_text())
     rungs = [r["variant"] for r in results["runs"] if r.get("ladder")]
     assert rungs == [name for name, _, _ in RUNGS[:-1]] and rungs[0] == "leco-paper"
@@ -160,7 +252,8 @@ def test_bench_smoke_on_the_tiny_city(tiny_scene, tmp_path, capsys):
 
     capsys.readouterr()
     assert bench("--scene", str(tiny_scene.root), "--out", str(out), "--sweep") == 0
-    assert capsys.readouterr().err.count("finished earlier, reusing") == 4  # the defaults are the middle points
+    # the defaults are the middle points
+    assert capsys.readouterr().err.count("finished earlier, reusing") == 4
     results = json.loads((out / "results.json").read_text())
     swept = {r["variant"]: r["summary"] for r in results["runs"] if r.get("sweep")}
     # sweep points are not compared methods
@@ -187,9 +280,13 @@ def test_sweep_points_are_leaner_and_richer_than_the_profile():
     assert cpu["switch-sweep-lean"] == {"vanilla.coarse_samples": 16, "vanilla.fine_samples": 32}
     assert cpu["grid-sweep-rich"] == {"grid.march_steps": 512}
     cpu = {v.name: v.overrides for v in sweep(["prop"], get_profile("cpu"))}
-    assert cpu == {"prop-sweep-lean": {"prop.main_samples": 10}, "prop-sweep-rich": {"prop.main_samples": 42}}
+    assert cpu == {
+        "prop-sweep-lean": {"prop.main_samples": 10},
+        "prop-sweep-rich": {"prop.main_samples": 42},
+    }
     paper = {v.name: v.overrides for v in sweep(["leco"], get_profile("paper"))}
-    assert paper["leco-sweep-lean"] == {"guided.split": 4}  # no dilation to take away at the paper's sampler
+    # no dilation to take away at the paper's sampler
+    assert paper["leco-sweep-lean"] == {"guided.split": 4}
 
 
 @pytest.mark.slow
@@ -205,7 +302,9 @@ def test_bench_on_lego_scores_occupancy_against_the_vanilla_models_depth(tmp_pat
     out = tmp_path / "bench"
     assert bench("--scene", str(root), "--out", str(out)) == 0
     results = json.loads((out / "results.json").read_text())
-    assert results["occupancy_reference"].startswith("depth maps of the validation views rendered by the trained")
+    assert results["occupancy_reference"].startswith(
+        "depth maps of the validation views rendered by the trained"
+    )
     for run in results["runs"]:
         occupancy = run["summary"]["occupancy"]
         if run["variant"] == "switch":
@@ -217,34 +316,50 @@ def test_bench_on_lego_scores_occupancy_against_the_vanilla_models_depth(tmp_pat
 
 def test_bench_refuses_bad_arguments_before_training(tiny_scene, tmp_path):
     scene = str(tiny_scene.root)
-    with pytest.raises(SystemExit, match="unknown method.*nerfacto.*choose from leco, switch, grid"):
+    with pytest.raises(
+        SystemExit, match="unknown method.*nerfacto.*choose from leco, switch, grid"
+    ):
         bench("--scene", scene, "--out", str(tmp_path / "a"), "--methods", "leco,nerfacto")
     with pytest.raises(SystemExit, match="override 'network.depth': no such setting"):
         bench("--scene", scene, "--out", str(tmp_path / "b"), "--set", "network.depth=3")
     with pytest.raises(SystemExit, match="nothing to benchmark"):
         bench("--scene", scene, "--out", str(tmp_path / "c"), "--methods", "")
-    with pytest.raises(SystemExit, match="--seeds '0,a': expected comma-separated non-negative integers"):
+    with pytest.raises(
+        SystemExit, match="--seeds '0,a': expected comma-separated non-negative integers"
+    ):
         bench("--scene", scene, "--out", str(tmp_path / "d"), "--seeds", "0,a")
-    with pytest.raises(SystemExit, match="^leco bench: profile: unknown profile 'nope': choose one of"):
+    with pytest.raises(
+        SystemExit, match="^leco bench: profile: unknown profile 'nope': choose one of"
+    ):
         main(["bench", "--scene", scene, "--out", str(tmp_path / "e"), "--profile", "nope"])
     assert not any((tmp_path / d).exists() for d in "abcde")
 
 
-# On PostgreSQL only, to keep the suite within its 25 minutes: the harness is the same on both databases,
-# every other service test runs on SQLite too, and docs/LOAD.md measures both.
+# On PostgreSQL only, to keep the suite within its 25 minutes: the harness is the same on both
+# databases, every other service test runs on SQLite too, and docs/LOAD.md measures both.
 @pytest.mark.slow
 @pytest.mark.parametrize("database_url", ["postgresql"], indirect=True)
 def test_loadtest_polls_a_training_job_without_errors(database_url, tmp_path):
     from bench.load import run_loadtest
 
     url = None if database_url.startswith("sqlite") else database_url
-    result = run_loadtest(url, pollers=20, seconds=4, interval=0.5, profile="smoke",
-                          overrides={"main_steps": 100_000}, data_dir=tmp_path, baseline_s=2)
+    result = run_loadtest(
+        url,
+        pollers=20,
+        seconds=4,
+        interval=0.5,
+        profile="smoke",
+        overrides={"main_steps": 100_000},
+        data_dir=tmp_path,
+        baseline_s=2,
+    )
     assert result["errors"] == 0
     assert result["job"]["count"] >= 20 * 4 and result["metrics"]["count"] == result["job"]["count"]
     assert 0 < result["all"]["p50_ms"] <= result["all"]["p99_ms"] <= result["all"]["max_ms"]
     assert result["training_steps_during_test"] > 0  # the job kept training while it was polled
-    assert result["training_steps_per_s"]["alone"] > 0 and result["training_steps_per_s"]["polled"] > 0
+    assert (
+        result["training_steps_per_s"]["alone"] > 0 and result["training_steps_per_s"]["polled"] > 0
+    )
     # 20 pollers asking for one job: nearly every answer comes from the poll cache.
     assert result["poll_cache"]["hit"] > 5 * result["poll_cache"]["miss"] > 0
 
@@ -258,11 +373,17 @@ def test_loadtest_keeps_off_databases_in_use_and_drops_its_own(database_url):
 
     with pytest.raises(SystemExit, match="--pollers must be at least 1"):
         main(["loadtest", "--pollers", "0"])
-    with pytest.raises(SystemExit, match=r"--postgres .*:1/postgres: cannot create a throwaway database there: "
-                                         "connection failed"):
+    with pytest.raises(
+        SystemExit,
+        match=r"--postgres .*:1/postgres: cannot create a throwaway database there: "
+        "connection failed",
+    ):
         main(["loadtest", "--postgres", "postgresql://postgres@127.0.0.1:1/postgres"])
     upgrade(database_url)
-    with pytest.raises(SystemExit, match=r"is not empty \(tables: alembic_version, artifacts, .*--postgres ADMIN_URL"):
+    with pytest.raises(
+        SystemExit,
+        match=r"is not empty \(tables: alembic_version, artifacts, .*--postgres ADMIN_URL",
+    ):
         refuse_used_database(database_url)
     if database_url.startswith("sqlite"):
         return
@@ -275,6 +396,10 @@ def test_loadtest_keeps_off_databases_in_use_and_drops_its_own(database_url):
         refuse_used_database(url)  # new and empty: accepted
     engine = create_engine(admin)
     with engine.connect() as connection:
-        assert connection.execute(text("SELECT count(*) FROM pg_database WHERE datname = :n"),
-                                  {"n": name}).scalar() == 0
+        assert (
+            connection.execute(
+                text("SELECT count(*) FROM pg_database WHERE datname = :n"), {"n": name}
+            ).scalar()
+            == 0
+        )
     engine.dispose()

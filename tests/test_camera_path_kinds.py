@@ -1,6 +1,6 @@
-"""Camera-path kinds have one home (workers/camera_paths): a toy kind added here, one class and a registry
-line, is a render's `path` in the schema and the OpenAPI document, is listed by GET /v1/camera-paths, is a
-`leco render --path`, and builds its cameras on a real scene."""
+"""Camera-path kinds have one home (workers/camera_paths): a toy kind added here, one class and a
+registry line, is a render's `path` in the schema and the OpenAPI document, is listed by GET
+/v1/camera-paths, is a `leco render --path`, and builds its cameras on a real scene."""
 
 import argparse
 import ast
@@ -33,7 +33,10 @@ class DollyPath(PathKind):
     def build(self, scene, width, height, frames) -> CameraPath:
         centre, radius = box_centre_and_radius(scene.bounds.aabb.double())
         heights = torch.linspace(self.start, self.end, frames, dtype=torch.float64) * radius
-        poses = [look_at(centre + torch.tensor([0.0, 1e-3, 1.0], dtype=torch.float64) * h, centre) for h in heights]
+        poses = [
+            look_at(centre + torch.tensor([0.0, 1e-3, 1.0], dtype=torch.float64) * h, centre)
+            for h in heights
+        ]
         k = intrinsics_for_fov(50.0, width, height)
         return CameraPath(torch.stack(poses), k.expand(frames, 4).clone(), width, height)
 
@@ -45,7 +48,9 @@ def dolly():
     unregister_path("dolly")
 
 
-def test_a_registered_toy_path_kind_renders_from_the_schema_the_cli_and_the_api(dolly, tiny_scene, service_settings):
+def test_a_registered_toy_path_kind_renders_from_the_schema_the_cli_and_the_api(
+    dolly, tiny_scene, service_settings
+):
     cfg = RenderConfig(width=32, height=24, frames=5, path={"kind": "dolly", "end": 2.0})
     assert isinstance(cfg.path, DollyPath) and cfg.frame_count == 5
     path = build_path(cfg, tiny_scene)
@@ -76,8 +81,12 @@ def test_the_registry_lists_the_built_in_kinds_and_refuses_a_second_owner():
 
 
 ROOT = Path(__file__).resolve().parents[1]
-OUTSIDE = [p for layer in ("model", "workers", "service", "cli", "bench") for p in (ROOT / layer).rglob("*.py")
-           if "camera_paths" not in p.parts]
+OUTSIDE = [
+    p
+    for layer in ("model", "workers", "service", "cli", "bench")
+    for p in (ROOT / layer).rglob("*.py")
+    if "camera_paths" not in p.parts
+]
 
 
 def test_no_module_outside_the_kinds_compares_a_path_kind():
@@ -86,8 +95,13 @@ def test_no_module_outside_the_kinds_compares_a_path_kind():
         for node in ast.walk(ast.parse(path.read_text())):
             operands = [node.left, *node.comparators] if isinstance(node, ast.Compare) else []
             tags = [c for c in operands if isinstance(c, ast.Constant) and c.value in PATH_KINDS]
-            # A path's kind against a tag (`path.kind == "orbit"`); "cameras" is also an export and a JSON key.
-            if tags and any("kind" in ast.unparse(c) or "path" in ast.unparse(c) for c in operands if c not in tags):
+            # A path's kind against a tag (`path.kind == "orbit"`); "cameras" is also an export and
+            # a JSON key.
+            if tags and any(
+                "kind" in ast.unparse(c) or "path" in ast.unparse(c)
+                for c in operands
+                if c not in tags
+            ):
                 compared.append((str(path.relative_to(ROOT)), node.lineno))
     assert compared == []
     script = (ROOT / "service" / "dashboard" / "app.js").read_text()

@@ -1,7 +1,8 @@
-"""`leco serve`'s connection hygiene against a real uvicorn server: request headers that do not arrive in time
-close the connection (on a fresh connection and on a kept-alive one), a request whose headers did arrive is not
-cut by that deadline, at the cap a new connection evicts the oldest one still owing its head (or is closed when
-every connection is inside a request), and the open-file limit is raised to fit the cap."""
+"""`leco serve`'s connection hygiene against a real uvicorn server: request headers that do not
+arrive in time close the connection (on a fresh connection and on a kept-alive one), a request whose
+headers did arrive is not cut by that deadline, at the cap a new connection evicts the oldest one
+still owing its head (or is closed when every connection is inside a request), and the open-file
+limit is raised to fit the cap."""
 
 import resource
 import socket
@@ -24,7 +25,9 @@ async def app(scope, receive, send):
     more = True
     while more:
         more = (await receive()).get("more_body", False)
-    await send({"type": "http.response.start", "status": 200, "headers": [(b"content-length", b"2")]})
+    await send(
+        {"type": "http.response.start", "status": 200, "headers": [(b"content-length", b"2")]}
+    )
     await send({"type": "http.response.body", "body": b"ok"})
 
 
@@ -41,7 +44,8 @@ def closed_within(sock: socket.socket, seconds: float) -> float | None:
     sock.settimeout(seconds)
     try:
         while data := sock.recv(4096):
-            assert b"HTTP/1.1" in data or data  # an answer may come first on a kept-alive connection
+            # an answer may come first on a kept-alive connection
+            assert b"HTTP/1.1" in data or data
     except TimeoutError:
         return None
     except ConnectionResetError:
@@ -56,7 +60,8 @@ def get(sock: socket.socket) -> bytes:
 
 
 def wait_idle(protocol, port):
-    """Until the server holds no connection of the test before (each test starts from an empty server)."""
+    """Until the server holds no connection of the test before (each test starts from an empty
+    server)."""
     deadline = time.monotonic() + 5
     while time.monotonic() < deadline:
         with socket.create_connection(("127.0.0.1", port)) as probe:

@@ -1,6 +1,6 @@
-"""Geometry exports in the dataset's own frame and units: the cameras of real scenes come back as the
-dataset wrote them (lego's transforms, fern's poses_bounds), points land inside the source-frame foreground box,
-and the transform written beside maps them to the world the networks live in."""
+"""Geometry exports in the dataset's own frame and units: the cameras of real scenes come back as
+the dataset wrote them (lego's transforms, fern's poses_bounds), points land inside the source-frame
+foreground box, and the transform written beside maps them to the world the networks live in."""
 
 import json
 
@@ -17,7 +17,8 @@ from workers.trained import Trained
 
 
 def untrained(scene, method="switch") -> Trained:
-    """Networks as initialised: enough to check where exported points go (not what they look like)."""
+    """Networks as initialised: enough to check where exported points go (not what they look
+    like)."""
     cfg = TrainConfig(method=method, profile="smoke")
     m = cfg.method_for_run()
     models = build_models(m, scene.num_images, scene.bounds.aabb, 0)
@@ -29,7 +30,10 @@ def check_points_in_source_box(trained, tmp_path):
     points = read_ply_points(tmp_path / "pointcloud.ply")
     assert info["points"] == len(points) > 0
     t = json.loads((tmp_path / "transform.json").read_text())
-    world = points @ np.asarray(t["world_from_source"])[:3, :3].T + np.asarray(t["world_from_source"])[:3, 3]
+    world = (
+        points @ np.asarray(t["world_from_source"])[:3, :3].T
+        + np.asarray(t["world_from_source"])[:3, 3]
+    )
     box = np.asarray(t["foreground_box_world"])
     assert (world >= box[0] - 1e-4).all() and (world <= box[1] + 1e-4).all()
     return points
@@ -57,8 +61,11 @@ def test_fern_exports_its_cameras_and_points_in_its_own_frame(fern_dir, tmp_path
     for camera, pose in zip(cameras, poses):
         c2w = np.asarray(camera["c2w"])
         assert np.allclose(c2w[:, 3], pose[:, 3], atol=1e-4)  # LLFF's centre, as written
-        assert np.allclose(c2w[:, 2], pose[:, 2], atol=1e-5)  # its back axis; right and up are LLFF's [right, -down]
-        assert np.allclose(c2w[:, 0], pose[:, 1], atol=1e-5) and np.allclose(c2w[:, 1], -pose[:, 0], atol=1e-5)
+        # its back axis; right and up are LLFF's [right, -down]
+        assert np.allclose(c2w[:, 2], pose[:, 2], atol=1e-5)
+        assert np.allclose(c2w[:, 0], pose[:, 1], atol=1e-5) and np.allclose(
+            c2w[:, 1], -pose[:, 0], atol=1e-5
+        )
     check_points_in_source_box(untrained(scene), tmp_path)
 
 
@@ -69,10 +76,11 @@ def test_an_occupancy_export_needs_a_method_that_learns_one(tiny_scene, tmp_path
 
 @pytest.mark.slow
 def test_the_point_cloud_of_the_synthetic_city_lies_on_its_true_surfaces(tmp_path):
-    """LeCO trained on the synthetic city as `make run` trains it (cpu profile, 1,500 + 1,500 steps), exported in
-    the dataset's frame: the median point is within one cell of a 128-cell grid over the foreground box (the
-    Grid-128 baseline's and the occupancy export's cell) of a true surface, in metres. About 2 minutes (one local
-    process); measured 2.37 m against the 2.89 m cell. 400 + 600 steps gave 3.07 m."""
+    """LeCO trained on the synthetic city as `make run` trains it (cpu profile, 1,500 + 1,500
+    steps), exported in the dataset's frame: the median point is within one cell of a 128-cell grid
+    over the foreground box (the Grid-128 baseline's and the occupancy export's cell) of a true
+    surface, in metres. About 2 minutes (one local process); measured 2.37 m against the 2.89 m
+    cell. 400 + 600 steps gave 3.07 m."""
     from model.scenes.synthetic import generate
     from model.scenes.synthetic.surfaces import distance_to_surfaces, truth
     from workers.run import run_training
@@ -92,6 +100,8 @@ def test_the_point_cloud_of_the_synthetic_city_lies_on_its_true_surfaces(tmp_pat
     grid_cell = float((box[1] - box[0]).max()) / 128
     distance = distance_to_surfaces(points, boxes)
     median = float(np.median(distance))
-    print(f"median {median:.2f} m, 90th percentile {np.quantile(distance, 0.9):.2f} m, grid cell {grid_cell:.2f} m, "
-          f"ground-truth cell {truth_cell:.2f} m, {len(points)} points")
+    print(
+        f"median {median:.2f} m, 90th percentile {np.quantile(distance, 0.9):.2f} m, grid cell "
+        f"{grid_cell:.2f} m, ground-truth cell {truth_cell:.2f} m, {len(points)} points"
+    )
     assert median < grid_cell

@@ -1,7 +1,7 @@
-"""Faults in the service, each ending with a check that nothing was lost: the database going away mid-job
-(PostgreSQL refusing connections and dropping the open ones), the artifact root full (a real 256 KiB tmpfs)
-or unwritable, and a job whose losses go non-finite. The job runs on a local Ray (2 CPU workers) under a
-dispatcher thread, as `leco serve` runs it."""
+"""Faults in the service, each ending with a check that nothing was lost: the database going away
+mid-job (PostgreSQL refusing connections and dropping the open ones), the artifact root full (a real
+256 KiB tmpfs) or unwritable, and a job whose losses go non-finite. The job runs on a local Ray (2
+CPU workers) under a dispatcher thread, as `leco serve` runs it."""
 
 import subprocess
 import threading
@@ -37,7 +37,8 @@ def local_ray():
 
 
 def run_service(settings: Settings):
-    """The API (in-process) and a dispatcher thread on `settings`; returns (client, dispatcher, thread)."""
+    """The API (in-process) and a dispatcher thread on `settings`; returns (client, dispatcher,
+    thread)."""
     client = TestClient(create_app(settings))
     client.__enter__()
     dispatcher = Dispatcher(settings, poll_s=0.2)
@@ -47,13 +48,21 @@ def run_service(settings: Settings):
 
 
 def submit_switch(api, **config) -> int:
-    """A Switch-NeRF smoke job on two Ray workers on the tiny city, with `config` on top; returns its id."""
-    body = {"scene": ready_scene(api), "method": "switch", "profile": "smoke", "workers": 2, **config}
+    """A Switch-NeRF smoke job on two Ray workers on the tiny city, with `config` on top; returns
+    its id."""
+    body = {
+        "scene": ready_scene(api),
+        "method": "switch",
+        "profile": "smoke",
+        "workers": 2,
+        **config,
+    }
     return api.post("/v1/jobs", json=body).json()["id"]
 
 
 def assert_store_consistent(settings: Settings, job_id: int) -> list[dict]:
-    """Every artifact row has its bytes (sha256 checked), no blob is unreferenced, nothing is half-staged."""
+    """Every artifact row has its bytes (sha256 checked), no blob is unreferenced, nothing is
+    half-staged."""
     store = ArtifactStore(settings.db_url, settings.artifacts)
     with reading(settings.db_url) as session:
         rows = session.scalars(select(Artifact).where(Artifact.job_id == job_id)).all()
@@ -66,14 +75,18 @@ def assert_store_consistent(settings: Settings, job_id: int) -> list[dict]:
     return metas
 
 
-# ----- the database away for a while -------------------------------------------------------------------------
+# ----- the database away for a while
+# -------------------------------------------------------------------------
 def block_connections(url: str, blocked: bool) -> None:
-    """PostgreSQL stops accepting connections to this database and drops the open ones (or accepts again)."""
+    """PostgreSQL stops accepting connections to this database and drops the open ones (or accepts
+    again)."""
     name = url.rsplit("/", 1)[1]
     with psycopg.connect(PG_ADMIN, autocommit=True) as conn:
         conn.execute(f"ALTER DATABASE {name} ALLOW_CONNECTIONS {'false' if blocked else 'true'}")
         if blocked:
-            conn.execute("SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = %s", (name,))
+            conn.execute(
+                "SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = %s", (name,)
+            )
 
 
 def test_a_database_outage_pauses_the_job_and_loses_nothing(tmp_path):
@@ -82,21 +95,28 @@ def test_a_database_outage_pauses_the_job_and_loses_nothing(tmp_path):
     upgrade(url)
     api, dispatcher, thread = run_service(settings)
     try:
-        job_id = submit_switch(api, metrics_every=10, checkpoint_every=50, overrides={"main_steps": 200})
+        job_id = submit_switch(
+            api, metrics_every=10, checkpoint_every=50, overrides={"main_steps": 200}
+        )
         wait_for(api, job_id, lambda j: j["step"] >= 40)
         block_connections(url, True)
         try:
             time.sleep(1.0)
             during = api.get(f"/v1/jobs/{job_id}")
             assert during.status_code == 503 and during.headers["retry-after"] == "2"
-            assert "database is unavailable" in during.json()["detail"] and "Traceback" not in during.text
-            time.sleep(7.0)  # longer than the dispatcher's heartbeat period (lease / 4) and many metric steps
+            assert (
+                "database is unavailable" in during.json()["detail"]
+                and "Traceback" not in during.text
+            )
+            # longer than the dispatcher's heartbeat period (lease / 4) and many metric steps
+            time.sleep(7.0)
         finally:
             block_connections(url, False)
         job = wait_for(api, job_id, lambda j: j["state"] in ("succeeded", "failed"), timeout=300)
         assert job["state"] == "succeeded", job["error"]
         assert job["attempts"] == 1  # the writes waited for the database; the lease was never lost
-        assert steps_of(api, job_id, "main") == list(range(10, 201, 10))  # no metric dropped or duplicated
+        # no metric dropped or duplicated
+        assert steps_of(api, job_id, "main") == list(range(10, 201, 10))
         assert thread.is_alive()  # the dispatcher rode the outage out (no crash, no restart)
         names = {m["name"] for m in assert_store_consistent(settings, job_id)}
         assert {"summary.json", "final/models.pt", "metrics.jsonl"} <= names
@@ -106,24 +126,35 @@ def test_a_database_outage_pauses_the_job_and_loses_nothing(tmp_path):
         drop_postgres_database(url)
 
 
-# ----- the artifact root full or unwritable --------------------------------------------------------------------
+# ----- the artifact root full or unwritable
+# --------------------------------------------------------------------
 @pytest.fixture
 def tiny_disk(tmp_path):
     """A real 256 KiB filesystem (tmpfs): writes past it fail with ENOSPC."""
     mount = tmp_path / "small-disk"
     mount.mkdir()
-    made = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mount)], capture_output=True,
-                          text=True)
+    made = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mount)],
+        capture_output=True,
+        text=True,
+    )
     if made.returncode != 0:
-        pytest.skip(f"cannot mount a small tmpfs here (needs root or CAP_SYS_ADMIN): {made.stderr.strip()}")
+        pytest.skip(
+            f"cannot mount a small tmpfs here (needs root or CAP_SYS_ADMIN): {made.stderr.strip()}"
+        )
     yield mount
     subprocess.run(["umount", "-l", str(mount)], check=False)
 
 
 @pytest.mark.parametrize("fault", ["disk full", "unwritable"])
-def test_a_failing_artifact_root_fails_the_job_with_that_reason(fault, service_settings, tmp_path, request):
+def test_a_failing_artifact_root_fails_the_job_with_that_reason(
+    fault, service_settings, tmp_path, request
+):
     if fault == "disk full":
-        root, expected = request.getfixturevalue("tiny_disk") / "artifacts", "No space left on device"
+        root, expected = (
+            request.getfixturevalue("tiny_disk") / "artifacts",
+            "No space left on device",
+        )
     else:
         blocker = tmp_path / "a-file"
         blocker.write_text("a file where the artifact root's folder should be")
@@ -131,16 +162,20 @@ def test_a_failing_artifact_root_fails_the_job_with_that_reason(fault, service_s
     settings = Settings(**{**service_settings.model_dump(), "artifact_root": root})
     api, dispatcher, thread = run_service(settings)
     try:
-        job_id = submit_switch(api, metrics_every=5, checkpoint_every=10, overrides={"main_steps": 60})
+        job_id = submit_switch(
+            api, metrics_every=5, checkpoint_every=10, overrides={"main_steps": 60}
+        )
         job = wait_for(api, job_id, lambda j: j["state"] in ("succeeded", "failed"), timeout=300)
         assert job["state"] == "failed" and job["attempts"] == 1
         assert expected in job["error"] and "could not be written" in job["error"], job["error"]
         assert str(settings.artifacts) in job["error"]  # names where
         assert "Traceback" not in job["error"]
         steps = steps_of(api, job_id, "main")
-        assert steps == list(range(5, steps[-1] + 1, 5)) and 10 <= steps[-1] < 60  # it stopped at a step boundary
+        # it stopped at a step boundary
+        assert steps == list(range(5, steps[-1] + 1, 5)) and 10 <= steps[-1] < 60
         if fault == "disk full":
-            kept = assert_store_consistent(settings, job_id)  # what did fit is whole; no partial or orphan blob
+            # what did fit is whole; no partial or orphan blob
+            kept = assert_store_consistent(settings, job_id)
             assert any(m["name"].startswith("checkpoint-") for m in kept)
         else:
             assert api.get(f"/v1/jobs/{job_id}/artifacts").json() == []
@@ -150,16 +185,25 @@ def test_a_failing_artifact_root_fails_the_job_with_that_reason(fault, service_s
         api.__exit__(None, None, None)
 
 
-# ----- losses that go non-finite -------------------------------------------------------------------------------
-def test_repeated_non_finite_losses_fail_the_job_and_keep_its_last_good_checkpoint(service_settings):
+# ----- losses that go non-finite
+# -------------------------------------------------------------------------------
+def test_repeated_non_finite_losses_fail_the_job_and_keep_its_last_good_checkpoint(
+    service_settings,
+):
     api, dispatcher, thread = run_service(service_settings)
     try:
-        # A learning rate of 1e6 (the schema's largest) blows the weights up in a step or two: every later
-        # loss is non-finite.
-        job_id = submit_switch(api, metrics_every=1, checkpoint_every=1, max_nonfinite_steps=5,
-                               overrides={"main_steps": 200, "lr": 1e6, "lr_final": 1e6})
+        # A learning rate of 1e6 (the schema's largest) blows the weights up in a step or two: every
+        # later loss is non-finite.
+        job_id = submit_switch(
+            api,
+            metrics_every=1,
+            checkpoint_every=1,
+            max_nonfinite_steps=5,
+            overrides={"main_steps": 200, "lr": 1e6, "lr_final": 1e6},
+        )
         job = wait_for(api, job_id, lambda j: j["state"] in ("succeeded", "failed"), timeout=300)
-        assert job["state"] == "failed" and job["attempts"] == 1  # not retried: a retry would only repeat it
+        # not retried: a retry would only repeat it
+        assert job["state"] == "failed" and job["attempts"] == 1
         assert "5 consecutive steps had a non-finite loss or gradient" in job["error"]
         assert "Lower the learning rate" in job["error"]
         assert job["step"] < 20
@@ -169,7 +213,9 @@ def test_repeated_non_finite_losses_fail_the_job_and_keep_its_last_good_checkpoi
         path = Path(service_settings.data_dir) / "newest.pt"
         path.write_bytes(api.get(newest["url"]).content)
         state = torch.load(path, weights_only=False)
-        assert all(torch.isfinite(v).all() for v in state["models"].values() if v.is_floating_point())
+        assert all(
+            torch.isfinite(v).all() for v in state["models"].values() if v.is_floating_point()
+        )
         assert_store_consistent(service_settings, job_id)
     finally:
         dispatcher.stop(wait=True)

@@ -26,7 +26,8 @@ def test_encoding_dimensions_and_values():
     enc = xyz(x)
     assert enc.shape == (1, 75)
     assert torch.allclose(enc[0, :3], x[0])
-    assert torch.allclose(enc[0, 3 + 3 * 11 : 3 + 3 * 12], torch.sin(x[0] * 2.0**11))  # last sine band
+    # last sine band
+    assert torch.allclose(enc[0, 3 + 3 * 11 : 3 + 3 * 12], torch.sin(x[0] * 2.0**11))
 
 
 def test_occupancy_network_is_about_0_15m_parameters_at_paper_width():
@@ -40,10 +41,13 @@ def test_imbalanced_gate_loss_optimum_is_one_at_v_over_n_plus_v():
     index = torch.cat([torch.full((c,), e) for e, c in enumerate(counts)])
     assert imbalanced_gate_loss(one_hot_probs(index, n + 1), index, v).item() == pytest.approx(1.0)
     everything_to_one = torch.zeros(total, dtype=torch.long)
-    assert (imbalanced_gate_loss(one_hot_probs(everything_to_one, n + 1), everything_to_one, v).item()
-            == pytest.approx(n + v))
+    assert imbalanced_gate_loss(
+        one_hot_probs(everything_to_one, n + 1), everything_to_one, v
+    ).item() == pytest.approx(n + v)
     all_empty = torch.full((total,), n)
-    assert imbalanced_gate_loss(one_hot_probs(all_empty, n + 1), all_empty, v).item() == pytest.approx((n + v) / v)
+    assert imbalanced_gate_loss(
+        one_hot_probs(all_empty, n + 1), all_empty, v
+    ).item() == pytest.approx((n + v) / v)
 
 
 def test_balance_loss_is_one_when_uniform():
@@ -57,23 +61,30 @@ def test_density_loss_detaches_sigma_and_trains_the_gate():
     xyz, dirs, img = points()
     out = model(xyz, dirs, img)
     assert 0 < (out.expert == 4).sum() < len(xyz)  # both groups present
-    loss = density_loss(out.gate_probs, out.expert, out.sigma) + imbalanced_gate_loss(out.gate_probs, out.expert, v=80)
+    loss = density_loss(out.gate_probs, out.expert, out.sigma) + imbalanced_gate_loss(
+        out.gate_probs, out.expert, v=80
+    )
     loss.backward()
     assert model.gate.output.weight.grad.abs().sum() > 0  # reaches O
-    assert model.scene_head.sigma.weight.grad is None  # sigma is detached in L_d: no path to the heads
+    # sigma is detached in L_d: no path to the heads
+    assert model.scene_head.sigma.weight.grad is None
     ratio = density_loss(out.gate_probs, out.expert, out.sigma).item()
     stats = gate_statistics(out.gate_probs, out.expert, out.sigma)
-    assert ratio > 0 and stats["fraction_empty"] == pytest.approx(float((out.expert == 4).float().mean()))
+    assert ratio > 0 and stats["fraction_empty"] == pytest.approx(
+        float((out.expert == 4).float().mean())
+    )
 
 
 def test_density_loss_with_empty_groups_is_finite_zero():
     probs = torch.softmax(torch.randn(50, 5), -1).requires_grad_()
-    for index in (torch.full((50,), 4), torch.zeros(50, dtype=torch.long)):  # all to E_e / none to E_e
+    # all to E_e / none to E_e
+    for index in (torch.full((50,), 4), torch.zeros(50, dtype=torch.long)):
         loss = density_loss(probs, index, torch.rand(50))
         loss.backward()
         assert loss.item() == 0.0 and torch.isfinite(probs.grad).all()
     stats = gate_statistics(probs.detach(), torch.full((50,), 4), torch.rand(50))
-    assert stats["fraction_empty"] == 1.0 and stats["density_scene"] != stats["density_scene"]  # NaN, no crash
+    # NaN, no crash
+    assert stats["fraction_empty"] == 1.0 and stats["density_scene"] != stats["density_scene"]
 
 
 def test_switch_dispatch_equals_dense_evaluation():
@@ -119,7 +130,8 @@ def test_dispatch_matches_each_expert_on_its_own_points_in_value_and_gradient():
 def test_capacity_drops_least_confident_overflow():
     index = torch.tensor([0, 0, 0, 0, 1, 0])
     chosen = torch.tensor([0.9, 0.5, 0.8, 0.6, 0.7, 0.95])
-    keep = capacity_keep(index, chosen, num_experts=2, capacity_factor=1.0)  # capacity ceil(6/2) = 3
+    # capacity ceil(6/2) = 3
+    keep = capacity_keep(index, chosen, num_experts=2, capacity_factor=1.0)
     assert keep.tolist() == [True, False, True, False, True, True]
     assert capacity_keep(index, chosen, 2, None).all()
 
@@ -138,12 +150,19 @@ def test_hmoe_empty_points_use_the_empty_head_and_homogeneous_switch():
     empty = out.expert == 4
     h, _ = model.gate.features_and_logits(xyz[empty])
     _, sigma, rgb = model.empty_head(h * out.gate_probs[empty, 4:5])
-    assert torch.allclose(out.sigma[empty], sigma, atol=1e-6) and torch.allclose(out.rgb[empty], rgb, atol=1e-6)
+    assert torch.allclose(out.sigma[empty], sigma, atol=1e-6) and torch.allclose(
+        out.rgb[empty], rgb, atol=1e-6
+    )
     assert torch.equal(model.gate.occupied(xyz), ~empty)
     heavy = HMoE(num_images=10, width=32, num_scene_experts=4, expert_layers=2, homogeneous=True)
     extra = sum(p.numel() for p in heavy.empty_expert.parameters())
-    assert extra == 2 * (32 * 32 + 32) and sum(p.numel() for p in model.empty_expert.parameters()) == 0
-    four = HMoE(num_images=10, width=32, num_scene_experts=4, expert_layers=2, empty_expert_layers=4)  # Table 9
+    assert (
+        extra == 2 * (32 * 32 + 32) and sum(p.numel() for p in model.empty_expert.parameters()) == 0
+    )
+    # Table 9
+    four = HMoE(
+        num_images=10, width=32, num_scene_experts=4, expert_layers=2, empty_expert_layers=4
+    )
     assert sum(p.numel() for p in four.empty_expert.parameters()) == 4 * (32 * 32 + 32)
     assert four(xyz, dirs, img).sigma.shape == (300,)
 

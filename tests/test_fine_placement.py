@@ -1,5 +1,6 @@
-"""O's second placement pass (model/fine_placement.py): exactly n samples per ray, sorted, inside the kept bins,
-drawn where O's density at sub-bin resolution says the weight is; its interlevel loss trains O only."""
+"""O's second placement pass (model/fine_placement.py): exactly n samples per ray, sorted, inside
+the kept bins, drawn where O's density at sub-bin resolution says the weight is; its interlevel loss
+trains O only."""
 
 import pytest
 import torch
@@ -16,7 +17,10 @@ def rows(r=4, bins=8):
 
 def wall_at(depth: float, width: float = 0.05):
     def density(t):
-        return torch.where((t - depth).abs() < width, torch.full_like(t, 200.0), torch.zeros_like(t))
+        return torch.where(
+            (t - depth).abs() < width, torch.full_like(t, 200.0), torch.zeros_like(t)
+        )
+
     return density
 
 
@@ -34,8 +38,9 @@ def test_fine_samples_are_n_per_ray_sorted_inside_kept_bins_and_gather_at_o_s_su
     keep = torch.zeros(4, 8, dtype=torch.bool)
     keep[:, [2, 3, 6]] = True
     weights = torch.tensor([[0, 0, 0.1, 0.8, 0, 0, 0.1, 0.0]]).expand(4, 8)
-    samples, draw = fine_samples(torch.arange(4), edges, keep, weights + 0.01, 32, 21, wall_at(3.3), generator,
-                                 1.0, 0.01)
+    samples, draw = fine_samples(
+        torch.arange(4), edges, keep, weights + 0.01, 32, 21, wall_at(3.3), generator, 1.0, 0.01
+    )
     assert len(samples) == 4 * 21 and draw.main.shape == (4, 22) and draw.coarse.shape == (4, 33)
     mids = samples.mids.reshape(4, 21)
     assert (mids[:, 1:] >= mids[:, :-1]).all() and (samples.deltas >= 0).all()
@@ -49,7 +54,9 @@ def test_fine_samples_are_n_per_ray_sorted_inside_kept_bins_and_gather_at_o_s_su
 def test_the_fine_loss_is_the_interlevel_bound_and_trains_only_o():
     edges = rows(2)
     keep = torch.ones(2, 8, dtype=torch.bool)
-    _, draw = fine_samples(torch.arange(2), edges, keep, torch.ones(2, 8), 16, 8, wall_at(4.0), None, 1.0, 0.01)
+    _, draw = fine_samples(
+        torch.arange(2), edges, keep, torch.ones(2, 8), 16, 8, wall_at(4.0), None, 1.0, 0.01
+    )
     raw = torch.zeros(2, 16, requires_grad=True)  # O's densities at the intermediate mid-points
     main = torch.zeros(2, 8)
     main[:, 4] = 0.9  # the main network's weight sits where O says nothing: the bound is violated
@@ -59,5 +66,6 @@ def test_the_fine_loss_is_the_interlevel_bound_and_trains_only_o():
     assert raw.grad is not None and raw.grad.abs().sum() > 0
     lo, hi = draw.main[:, 4:5], draw.main[:, 5:6]
     overlaps = (draw.coarse[:, 1:] > lo) & (draw.coarse[:, :-1] < hi)
-    wall = torch.where(overlaps, torch.full((2, 16), 1e3), torch.zeros(2, 16))  # O's weight where the main's is
+    # O's weight where the main's is
+    wall = torch.where(overlaps, torch.full((2, 16), 1e3), torch.zeros(2, 16))
     assert float(fine_placement_loss(draw, wall, main)) == pytest.approx(0.0, abs=1e-9)

@@ -1,6 +1,6 @@
-"""The layers read at a glance: model <- workers <- service <- bench <- cli, no import cycle between modules
-(imports inside functions count: a cycle hidden there is still one), and the API process loads no training
-stack (PyTorch, Ray, PyAV), checked in a fresh interpreter."""
+"""The layers read at a glance: model <- workers <- service <- bench <- cli, no import cycle between
+modules (imports inside functions count: a cycle hidden there is still one), and the API process
+loads no training stack (PyTorch, Ray, PyAV), checked in a fresh interpreter."""
 
 import ast
 import json
@@ -21,8 +21,8 @@ MODULES = {module_name(p): p for layer in LAYERS for p in (ROOT / layer).rglob("
 
 
 def imports_of(name: str) -> set[str]:
-    """Our modules `name` imports anywhere in its file (a package's own __init__ counts when it is the target,
-    not as every submodule's parent), leaving out `if TYPE_CHECKING:` blocks."""
+    """Our modules `name` imports anywhere in its file (a package's own __init__ counts when it is
+    the target, not as every submodule's parent), leaving out `if TYPE_CHECKING:` blocks."""
     path, found = MODULES[name], set()
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
 
@@ -37,7 +37,7 @@ def imports_of(name: str) -> set[str]:
             base = node.module or ""
             if node.level:
                 parts = package.split(".")
-                base = ".".join(parts[:len(parts) - node.level + 1] + ([base] if base else []))
+                base = ".".join(parts[: len(parts) - node.level + 1] + ([base] if base else []))
             for alias in node.names:
                 found.add(f"{base}.{alias.name}" if f"{base}.{alias.name}" in MODULES else base)
         for child in ast.iter_child_nodes(node):
@@ -86,7 +86,8 @@ def cycles() -> list[list[str]]:
 def test_the_graph_sees_the_imports_it_must():
     assert "service.jobs.attempt" in GRAPH["service.dispatcher"]
     assert "workers.render_job" in GRAPH["service.jobs.render"]
-    assert "service.jobs.parent" in GRAPH["service.view_worker"]  # an import inside a function counts too
+    # an import inside a function counts too
+    assert "service.jobs.parent" in GRAPH["service.view_worker"]
     assert "bench.cli" in GRAPH["cli.main"]
 
 
@@ -95,8 +96,12 @@ def test_no_module_imports_itself_back():
 
 
 def test_each_layer_imports_only_the_layers_below_it():
-    upward = sorted((name, target) for name, targets in GRAPH.items() for target in targets
-                    if LAYERS.index(target.split(".")[0]) > LAYERS.index(name.split(".")[0]))
+    upward = sorted(
+        (name, target)
+        for name, targets in GRAPH.items()
+        for target in targets
+        if LAYERS.index(target.split(".")[0]) > LAYERS.index(name.split(".")[0])
+    )
     assert upward == []
 
 
@@ -116,7 +121,9 @@ heavy = sorted(m for m in ("torch", "ray", "av", "numpy", "PIL", "matplotlib") i
 print(json.dumps({{"heavy": heavy, "seconds": seconds,
                    "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}}))
 """
-    done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 0, done.stderr
     report = json.loads(done.stdout.strip().splitlines()[-1])
     assert report["heavy"] == [], report

@@ -10,8 +10,17 @@ import pytest
 from cli.main import main
 
 ROOT = Path(__file__).resolve().parents[1]
-FORBIDDEN_IN_MODEL = {"service", "workers", "ray", "fastapi", "sqlalchemy", "uvicorn", "httpx", "alembic",
-                      "pydantic_settings"}
+FORBIDDEN_IN_MODEL = {
+    "service",
+    "workers",
+    "ray",
+    "fastapi",
+    "sqlalchemy",
+    "uvicorn",
+    "httpx",
+    "alembic",
+    "pydantic_settings",
+}
 
 
 def imported_roots(path: Path) -> set[str]:

@@ -1,6 +1,6 @@
-"""Methods have one home: a method is a class behind model/methods/base.py plus one registry line (its spec).
-A toy method registered here trains through `leco train` and through the API without any other module
-knowing its name; the loop, evaluation, bench and API compare no method names."""
+"""Methods have one home: a method is a class behind model/methods/base.py plus one registry line
+(its spec). A toy method registered here trains through `leco train` and through the API without any
+other module knowing its name; the loop, evaluation, bench and API compare no method names."""
 
 import ast
 import json
@@ -28,8 +28,12 @@ class UniformSamples(Method):
     """The toy: the main network on 6 stratified samples per ray, nothing else."""
 
     def render_main(self, models, rays, generator, phase_step) -> MainRender:
-        behind = render_background(models.background, rays, self.profile.background.samples, generator).rgb
-        rendered, out = render_batched(models.field, rays, stratified_edges(rays.near, rays.far, 6, generator), behind)
+        behind = render_background(
+            models.background, rays, self.profile.background.samples, generator
+        ).rgb
+        rendered, out = render_batched(
+            models.field, rays, stratified_edges(rays.near, rays.far, 6, generator), behind
+        )
         return MainRender(rendered, out, 6.0, None)
 
 
@@ -53,21 +57,46 @@ def test_registry_lists_every_method_once_and_refuses_a_second_owner_of_a_name()
 
     with pytest.raises(ValueError, match="'grid' is already registered"):
         register(MethodSpec("grid", "Impostor", UniformSamples, uniform_memory))
-    with pytest.raises(ValueError, match="unknown method 'nope': choose one of leco, switch, grid, prop"):
+    with pytest.raises(
+        ValueError, match="unknown method 'nope': choose one of leco, switch, grid, prop"
+    ):
         TrainConfig(method="nope")
 
 
 def test_checkpoints_from_before_the_registry_keep_their_grid_state():
-    old = {"models": {}, "grid": {"values": torch.ones(8), "binary": torch.ones(8, dtype=torch.bool), "queries": 3}}
+    old = {
+        "models": {},
+        "grid": {"values": torch.ones(8), "binary": torch.ones(8, dtype=torch.bool), "queries": 3},
+    }
     assert method_state(old) is old["grid"]
-    assert method_state({"models": {}, "method": {"since_update": 2}, "grid": None}) == {"since_update": 2}
+    assert method_state({"models": {}, "method": {"since_update": 2}, "grid": None}) == {
+        "since_update": 2
+    }
 
 
 @pytest.mark.slow
 def test_a_registered_toy_method_trains_through_leco_train(toy, tiny_scene, tmp_path, capsys):
     out = tmp_path / "run"
-    assert main(["train", "--scene", str(tiny_scene.root), "--method", toy.name, "--profile", "smoke",
-                 "--out", str(out), "--backend", "local", "--set", "main_steps=8"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--scene",
+                str(tiny_scene.root),
+                "--method",
+                toy.name,
+                "--profile",
+                "smoke",
+                "--out",
+                str(out),
+                "--backend",
+                "local",
+                "--set",
+                "main_steps=8",
+            ]
+        )
+        == 0
+    )
     summary = json.loads((out / "summary.json").read_text())
     assert summary["method"] == toy.name and summary["steps"]["phases"] == {"main": 8}
     assert summary["samples_per_ray"] == 6.0 and summary["val"]["psnr"] > 5
@@ -85,20 +114,33 @@ def test_a_registered_toy_method_trains_through_the_api(toy, service_settings):
     settings = service_settings.model_copy(update={"backend": "local"})
     with TestClient(create_app(settings)) as api:
         listed = {m["name"]: m for m in api.get("/v1/methods").json()["items"]}
-        assert listed[toy.name] == {"name": toy.name, "label": toy.label, "role": "baseline", "phases": ["main"],
-                                    "has_occupancy": False}
+        assert listed[toy.name] == {
+            "name": toy.name,
+            "label": toy.label,
+            "role": "baseline",
+            "phases": ["main"],
+            "has_occupancy": False,
+        }
         scene = api.post("/v1/scenes/synthetic", json={"preset": "tiny", "seed": 0}).json()
         while scene["state"] == "generating":
             time.sleep(0.2)
             scene = api.get(f"/v1/scenes/{scene['id']}").json()
-        body = {"scene": scene["id"], "method": toy.name, "profile": "smoke", "overrides": {"main_steps": 6}}
+        body = {
+            "scene": scene["id"],
+            "method": toy.name,
+            "profile": "smoke",
+            "overrides": {"main_steps": 6},
+        }
         job = api.post("/v1/jobs", json=body)
         assert job.status_code == 201, job.text
         dispatcher = Dispatcher(settings, poll_s=0.2)
         threading.Thread(target=dispatcher.run_forever, daemon=True).start()
         try:
             deadline = time.monotonic() + 180
-            while (state := api.get(f"/v1/jobs/{job.json()['id']}").json())["state"] not in ("succeeded", "failed"):
+            while (state := api.get(f"/v1/jobs/{job.json()['id']}").json())["state"] not in (
+                "succeeded",
+                "failed",
+            ):
                 assert time.monotonic() < deadline, state
                 time.sleep(0.3)
         finally:
@@ -106,21 +148,41 @@ def test_a_registered_toy_method_trains_through_the_api(toy, service_settings):
         assert state["state"] == "succeeded", state["error"]
         assert api.get("/v1/jobs", params={"method": toy.name}).json()["total"] == 1
         refused = api.get("/v1/jobs", params={"method": "nope"})
-        assert refused.status_code == 422 and "choose one of" in refused.text and toy.name in refused.text
+        assert (
+            refused.status_code == 422
+            and "choose one of" in refused.text
+            and toy.name in refused.text
+        )
 
 
 # Modules that run, evaluate, serve and report every method: none may compare a method's name.
-GENERIC = ["workers/loop.py", "workers/run.py", "workers/evaluate.py", "workers/validation.py",
-           "workers/periodic_eval.py", "workers/appearance.py", "workers/models.py", "workers/config.py",
-           "service/execute.py", "service/dispatcher.py", *[str(p.relative_to(ROOT)) for p in
-                                                           (ROOT / "service" / "api").glob("*.py")],
-           "bench/analysis.py", "bench/report.py", "bench/runner.py", "bench/reference.py", "model/memory_estimate.py",
-           "model/model_info.py"]
+GENERIC = [
+    "workers/loop.py",
+    "workers/run.py",
+    "workers/evaluate.py",
+    "workers/validation.py",
+    "workers/periodic_eval.py",
+    "workers/appearance.py",
+    "workers/models.py",
+    "workers/config.py",
+    "service/execute.py",
+    "service/dispatcher.py",
+    *[str(p.relative_to(ROOT)) for p in (ROOT / "service" / "api").glob("*.py")],
+    "bench/analysis.py",
+    "bench/report.py",
+    "bench/runner.py",
+    "bench/reference.py",
+    "model/memory_estimate.py",
+    "model/model_info.py",
+]
 
 
 @pytest.mark.parametrize("path", GENERIC)
 def test_generic_modules_name_no_method(path):
     tree = ast.parse((ROOT / path).read_text())
-    named = [(node.lineno, node.value) for node in ast.walk(tree)
-             if isinstance(node, ast.Constant) and node.value in METHODS]
+    named = [
+        (node.lineno, node.value)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Constant) and node.value in METHODS
+    ]
     assert named == [], f"{path} names methods: {named}"

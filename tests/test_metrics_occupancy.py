@@ -30,9 +30,14 @@ def test_occupancy_metrics_counts():
     pred = torch.tensor([1, 0, 1, 0, 0, 0, 0, 0], dtype=torch.bool)
     m = occupancy_metrics(pred, ref)
     assert (m["accuracy"], m["precision"], m["recall"], m["f1"]) == (0.75, 0.5, 0.5, 0.5)
-    masked = occupancy_metrics(pred, ref, mask=torch.tensor([1, 1, 0, 1, 1, 1, 1, 1], dtype=torch.bool))
+    masked = occupancy_metrics(
+        pred, ref, mask=torch.tensor([1, 1, 0, 1, 1, 1, 1, 1], dtype=torch.bool)
+    )
     assert masked["precision"] == 1.0 and masked["recall"] == 0.5
-    assert occupancy_metrics(torch.zeros(4, dtype=torch.bool), torch.zeros(4, dtype=torch.bool))["f1"] == 0.0
+    assert (
+        occupancy_metrics(torch.zeros(4, dtype=torch.bool), torch.zeros(4, dtype=torch.bool))["f1"]
+        == 0.0
+    )
 
 
 def test_predictor_saved_without_experts_gives_the_same_answers(tmp_path):

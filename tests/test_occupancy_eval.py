@@ -1,14 +1,22 @@
-"""The paper's occupancy protocol: reference from depth maps, predictor sampled into the same grid."""
+"""The paper's occupancy protocol: reference from depth maps, predictor sampled into the same
+grid."""
 
 import pytest
 import torch
 
-from model.occupancy_eval import cell_index, evaluate_occupancy, predicted_grid, reference_from_depth
+from model.occupancy_eval import (
+    cell_index,
+    evaluate_occupancy,
+    predicted_grid,
+    reference_from_depth,
+)
 
 
 def test_cell_index_and_outside_points():
     aabb = torch.tensor([[0.0, 0.0, 0.0], [2.0, 2.0, 2.0]])
-    index, inside = cell_index(torch.tensor([[0.1, 0.1, 0.1], [1.9, 0.1, 1.1], [2.0, 0.5, 0.5]]), aabb, 2)
+    index, inside = cell_index(
+        torch.tensor([[0.1, 0.1, 0.1], [1.9, 0.1, 1.1], [2.0, 0.5, 0.5]]), aabb, 2
+    )
     assert index[:2].tolist() == [0, 4 + 1] and inside.tolist() == [True, True, False]
 
 
@@ -31,11 +39,15 @@ def test_reference_and_protocol_on_the_exact_city(tiny_scene):
     nothing = evaluate_occupancy(lambda p: torch.zeros(len(p), dtype=torch.bool), views, aabb, 64)
     everything = evaluate_occupancy(lambda p: torch.ones(len(p), dtype=torch.bool), views, aabb, 64)
     print(f"exact occupancy: {truth}\nall occupied: {everything}")
-    # The exact solid also fills cells behind the surface that a depth map marks free only at its edges.
+    # The exact solid also fills cells behind the surface that a depth map marks free only at its
+    # edges.
     assert truth["recall"] > 0.95 and truth["precision"] > 0.45 and truth["accuracy"] > 0.98
-    assert nothing["recall"] == 0.0 and nothing["accuracy"] == pytest.approx(1 - nothing["reference_occupied_fraction"])
+    assert nothing["recall"] == 0.0 and nothing["accuracy"] == pytest.approx(
+        1 - nothing["reference_occupied_fraction"]
+    )
     assert everything["recall"] == 1.0 and everything["precision"] == pytest.approx(
-        everything["reference_occupied_fraction"])
+        everything["reference_occupied_fraction"]
+    )
     assert truth["f1"] > everything["f1"] + 0.5
 
 

@@ -46,5 +46,8 @@ def test_sampling_keeps_only_occupied_cells_and_culling_drops_hidden_samples():
     assert set(samples.ray_index.tolist()) == {0}  # the second ray passes outside the ball
     x = origins[0, 0] + samples.mids
     assert (x.abs() < 0.5 + 2 * (2.0 / 32)).all() and len(samples) > 30
-    culled = cull_by_transmittance(samples, ball(torch.stack([x, torch.zeros_like(x), torch.zeros_like(x)], -1)), 2)
-    assert 0 < len(culled) < len(samples)  # everything behind the opaque front of the ball is dropped
+    culled = cull_by_transmittance(
+        samples, ball(torch.stack([x, torch.zeros_like(x), torch.zeros_like(x)], -1)), 2
+    )
+    # everything behind the opaque front of the ball is dropped
+    assert 0 < len(culled) < len(samples)

@@ -1,7 +1,7 @@
-"""A short CPU run of LeCO's occupancy phase on the tiny synthetic city shows the method, not just shapes:
-most points go to the empty expert, its points have far lower density, and the learned occupancy keeps the
-coarse bins that hold the true surfaces far more often than it keeps bins at all, and finds most occupied
-cells by the paper's protocol."""
+"""A short CPU run of LeCO's occupancy phase on the tiny synthetic city shows the method, not just
+shapes: most points go to the empty expert, its points have far lower density, and the learned
+occupancy keeps the coarse bins that hold the true surfaces far more often than it keeps bins at
+all, and finds most occupied cells by the paper's protocol."""
 
 import pytest
 import torch
@@ -21,8 +21,8 @@ STEPS = 1000
 
 
 def surface_bin_recall(predictor, scene, num_coarse=32):
-    """Share of observed surface points (train depth maps) whose coarse bin the predictor keeps, and the
-    share of all coarse bins it keeps (the occupancy ratio)."""
+    """Share of observed surface points (train depth maps) whose coarse bin the predictor keeps, and
+    the share of all coarse bins it keeps (the occupancy ratio)."""
     table = PixelTable(scene.train)
     depth = torch.cat([d.reshape(-1) for d in scene.train.depth])
     ids = torch.nonzero(torch.isfinite(depth)).squeeze(1)
@@ -45,7 +45,8 @@ def test_occupancy_phase_learns_sparse_occupancy(tmp_path):
     images = scene.num_images
     model = HMoE(images, width=64, num_scene_experts=8, expert_layers=4)
     background = BackgroundField(images, width=32, layers=2)
-    cfg = OccupancyPhaseConfig(samples_per_ray=32, steps=STEPS, lr=2e-3, w_g=5e-2)  # the cpu profile's w_g
+    # the cpu profile's w_g
+    cfg = OccupancyPhaseConfig(samples_per_ray=32, steps=STEPS, lr=2e-3, w_g=5e-2)
     optimizer = torch.optim.Adam([*model.parameters(), *background.parameters()], lr=cfg.lr)
     sampler = RaySampler(scene.train, scene.bounds.aabb, batch_size=256, seed=0)
     generator = torch.Generator().manual_seed(0)
@@ -57,14 +58,18 @@ def test_occupancy_phase_learns_sparse_occupancy(tmp_path):
     predictor = OccupancyPredictor.from_hmoe(model)
     recall, kept = surface_bin_recall(predictor, scene)
     grid = evaluate_occupancy(predictor.occupied, scene.splits["val"], scene.occupancy.aabb, 64)
-    print(f"after {STEPS} steps: to E_e {parts['fraction_empty']:.3f} (optimum {80 / 88:.3f}), density ratio "
-          f"{parts['density_ratio']:.3f}, surface-bin recall {recall:.3f}, kept bins {kept:.3f}; paper protocol "
-          f"(64^3): recall {grid['recall']:.3f} precision {grid['precision']:.3f} "
-          f"predicted occupied {grid['predicted_occupied_fraction']:.3f}")
+    print(
+        f"after {STEPS} steps: to E_e {parts['fraction_empty']:.3f} (optimum {80 / 88:.3f}), "
+        f"density ratio {parts['density_ratio']:.3f}, surface-bin recall {recall:.3f}, kept bins "
+        f"{kept:.3f}; paper protocol (64^3): recall {grid['recall']:.3f} precision "
+        f"{grid['precision']:.3f} predicted occupied {grid['predicted_occupied_fraction']:.3f}"
+    )
     assert parts["fraction_empty"] > 0.8
     assert parts["density_ratio"] < 0.2 and parts["alpha_ratio"] < 0.3
-    # The predictor keeps the bins holding true surfaces far more often than bins at large, and its grid
-    # recall beats a random grid with as many occupied cells (whose recall is that fraction). Recall is not
-    # yet the paper's 0.68-0.96: that comes after 40k steps at width 256; this is 1000 steps at width 64.
+    # The predictor keeps the bins holding true surfaces far more often than bins at large, and its
+    # grid recall beats a random grid with as many occupied cells (whose recall is that fraction).
+    # Recall is not yet the paper's 0.68-0.96: that comes after 40k steps at width 256; this is 1000
+    # steps at width 64.
     assert kept < 0.25 and recall > 2 * kept
-    assert grid["recall"] > 0.7 and grid["recall"] > 3 * grid["predicted_occupied_fraction"]  # measured 0.81, 0.17
+    # measured 0.81, 0.17
+    assert grid["recall"] > 0.7 and grid["recall"] > 3 * grid["predicted_occupied_fraction"]

@@ -1,5 +1,6 @@
 """O learning during the main phase (guided.online): which bins teach what, that the signal finds a
-surface O missed, and that a LeCO run with it trains, saves the O it ended with and reports O's loss."""
+surface O missed, and that a LeCO run with it trains, saves the O it ended with and reports O's
+loss."""
 
 import json
 
@@ -16,43 +17,64 @@ from workers.config import TrainConfig
 from workers.run import run_training
 from workers.sinks import read_metrics
 
-WALL = (4.2, 4.8)  # along x; coarse bins of [0, 8] are 1 wide, so the wall lies inside bin 4, around its mid-point
+# along x; coarse bins of [0, 8] are 1 wide, so the wall lies inside bin 4, around its mid-point
+WALL = (4.2, 4.8)
 
 
 def ray_batch(n: int) -> RayBatch:
     g = torch.Generator().manual_seed(0)
-    dirs = torch.nn.functional.normalize(torch.tensor([1.0, 0, 0]) + 0.05 * torch.randn(n, 3, generator=g), dim=-1)
-    dirs = dirs / dirs[:, :1]  # not unit: a step of 1 in t is 1 in x, so the bins are the same in x on every ray
+    dirs = torch.nn.functional.normalize(
+        torch.tensor([1.0, 0, 0]) + 0.05 * torch.randn(n, 3, generator=g), dim=-1
+    )
+    # not unit: a step of 1 in t is 1 in x, so the bins are the same in x on every ray
+    dirs = dirs / dirs[:, :1]
     zeros = torch.zeros(n)
-    return RayBatch(origins=torch.zeros(n, 3), directions=dirs, near=zeros, far=zeros + 8.0,
-                    rgb=torch.zeros(n, 3), image_index=torch.zeros(n, dtype=torch.long), pixel=torch.arange(n))
+    return RayBatch(
+        origins=torch.zeros(n, 3),
+        directions=dirs,
+        near=zeros,
+        far=zeros + 8.0,
+        rgb=torch.zeros(n, 3),
+        image_index=torch.zeros(n, dtype=torch.long),
+        pixel=torch.arange(n),
+    )
 
 
 def test_kept_bins_teach_surface_and_seen_through_space_and_nothing_else():
     rays = ray_batch(1)
-    # Samples in bins 0, 1 and 2 of 4 (bin 3 skipped); bin 1 holds the surface, bin 2 lies behind it.
-    samples = PackedSamples(torch.tensor([0.5, 2.5, 4.5]), torch.tensor([1.0, 3.0, 5.0]),
-                            torch.zeros(3, dtype=torch.long))
+    # Samples in bins 0, 1 and 2 of 4 (bin 3 skipped); bin 1 holds the surface, bin 2 lies behind
+    # it.
+    samples = PackedSamples(
+        torch.tensor([0.5, 2.5, 4.5]),
+        torch.tensor([1.0, 3.0, 5.0]),
+        torch.zeros(3, dtype=torch.long),
+    )
     weights = torch.tensor([0.004, 0.8, 0.003])
     online = OnlineOccupancy(OccupancyNetwork(2, 16, 4), empty_threshold=0.9)
     target, mask = online.bin_targets(samples, weights, rays, num_coarse=4)
     assert target.tolist() == [[0.0, 1.0, 0.0, 0.0]]
-    assert mask.tolist() == [[True, True, False, False]]  # bin 2 is hidden behind the surface, bin 3 unseen
+    # bin 2 is hidden behind the surface, bin 3 unseen
+    assert mask.tolist() == [[True, True, False, False]]
 
 
 def test_no_bin_is_free_on_a_ray_whose_foreground_is_semi_transparent():
-    # Ray 0's foreground is opaque (0.9 in bin 1): bin 0 in front of it is free. Ray 1's foreground holds 0.3 in
-    # all (the background paints the rest): with free_opacity 0.5 its empty-looking bin 0 teaches nothing.
+    # Ray 0's foreground is opaque (0.9 in bin 1): bin 0 in front of it is free. Ray 1's foreground
+    # holds 0.3 in all (the background paints the rest): with free_opacity 0.5 its empty-looking bin
+    # 0 teaches nothing.
     rays = ray_batch(2)
-    samples = PackedSamples(torch.tensor([0.5, 2.5, 0.5, 2.5]), torch.tensor([1.0, 3.0, 1.0, 3.0]),
-                            torch.tensor([0, 0, 1, 1]))
+    samples = PackedSamples(
+        torch.tensor([0.5, 2.5, 0.5, 2.5]),
+        torch.tensor([1.0, 3.0, 1.0, 3.0]),
+        torch.tensor([0, 0, 1, 1]),
+    )
     weights = torch.tensor([0.01, 0.89, 0.01, 0.29])
     loose = OnlineOccupancy(OccupancyNetwork(2, 16, 4), empty_threshold=0.9)
     strict = OnlineOccupancy(OccupancyNetwork(2, 16, 4), empty_threshold=0.9, free_opacity=0.5)
     target, mask = loose.bin_targets(samples, weights, rays, num_coarse=4)
     assert target.tolist() == [[0.0, 1.0, 0.0, 0.0]] * 2 and mask[:, 0].tolist() == [True, True]
     target, mask = strict.bin_targets(samples, weights, rays, num_coarse=4)
-    assert mask.tolist() == [[True, True, False, False], [False, True, False, False]]  # ray 1: its surface only
+    # ray 1: its surface only
+    assert mask.tolist() == [[True, True, False, False], [False, True, False, False]]
 
 
 def wall_density(points: torch.Tensor) -> torch.Tensor:
@@ -70,12 +92,28 @@ def test_o_that_keeps_nothing_learns_the_wall_the_main_network_sees():
     rays, generator = ray_batch(128), torch.Generator().manual_seed(1)
     free_x = torch.linspace(0.2, 3.8, 50)
     free = torch.stack([free_x, torch.zeros(50), torch.zeros(50)], -1)
-    wall = torch.stack([torch.linspace(WALL[0] + 0.02, WALL[1] - 0.02, 50), torch.zeros(50), torch.zeros(50)], -1)
+    wall = torch.stack(
+        [torch.linspace(WALL[0] + 0.02, WALL[1] - 0.02, 50), torch.zeros(50), torch.zeros(50)], -1
+    )
     assert not network.occupied(wall, 0.9).any()
     for _ in range(150):
-        samples, _ = guided_samples(rays.near, rays.far, rays.origins, rays.directions, online.occupied, 8, 4,
-                                    generator, jitter=True, dilate=1, fallback=True)
-        xyz = rays.origins[samples.ray_index] + rays.directions[samples.ray_index] * samples.mids[:, None]
+        samples, _ = guided_samples(
+            rays.near,
+            rays.far,
+            rays.origins,
+            rays.directions,
+            online.occupied,
+            8,
+            4,
+            generator,
+            jitter=True,
+            dilate=1,
+            fallback=True,
+        )
+        xyz = (
+            rays.origins[samples.ray_index]
+            + rays.directions[samples.ray_index] * samples.mids[:, None]
+        )
         weights, _ = packed_weights(wall_density(xyz), samples.deltas, samples.ray_index, len(rays))
         loss = online.loss(samples, weights, rays, num_coarse=8)
         optimizer.zero_grad()
@@ -90,33 +128,70 @@ def test_a_leco_run_with_online_o_trains_it_saves_it_and_reports_its_loss(tiny_s
     # O learns from the 5th main step (warm-up 4), then every step or every 3rd one
     expected = {(False, 1): [], (True, 1): list(range(5, 11)), (True, 3): [5, 8]}
     for (online, every), learns_at in expected.items():
-        cfg = TrainConfig(method="leco", profile="smoke", metrics_every=1, seed=0, overrides={
-            "occupancy.steps": 20, "main_steps": 10, "guided.online": online, "guided.online_warmup": 4,
-            "guided.online_every": every, "guided.fallback": True, "guided.empty_threshold": 0.9})
+        cfg = TrainConfig(
+            method="leco",
+            profile="smoke",
+            metrics_every=1,
+            seed=0,
+            overrides={
+                "occupancy.steps": 20,
+                "main_steps": 10,
+                "guided.online": online,
+                "guided.online_warmup": 4,
+                "guided.online_every": every,
+                "guided.fallback": True,
+                "guided.empty_threshold": 0.9,
+            },
+        )
         run = tmp_path / f"run-{online}-{every}"
         run_training(cfg, tiny_scene.root, run, backend="local")
         rows = [r for r in read_metrics(run / "metrics.jsonl") if r["phase"] == "main"]
         learned = [r["phase_step"] for r in rows if "occupancy_online_loss" in r]
         assert learned == learns_at
-        assert all(torch.isfinite(torch.tensor(r["occupancy_online_loss"])) for r in rows if r["phase_step"] in learned)
+        assert all(
+            torch.isfinite(torch.tensor(r["occupancy_online_loss"]))
+            for r in rows
+            if r["phase_step"] in learned
+        )
         saved = OccupancyPredictor.load(run / "final" / "occupancy.pt")
         models = torch.load(run / "final" / "models.pt", weights_only=False)["models"]
-        for key, value in saved.network.state_dict().items():  # the saved O is the HMoE's gate as it ended
+        # the saved O is the HMoE's gate as it ended
+        for key, value in saved.network.state_dict().items():
             assert torch.equal(value, models[f"hmoe.gate.{key}"])
         final_o[online, every] = saved.network.state_dict()
-    # Same seed, same phase 1: only the main phase's learning can have moved O, and fewer steps moved it less.
+    # Same seed, same phase 1: only the main phase's learning can have moved O, and fewer steps
+    # moved it less.
     frozen = final_o[False, 1]
-    moved = {key: sum(float((o[k] - frozen[k]).abs().sum()) for k in frozen) for key, o in final_o.items()}
+    moved = {
+        key: sum(float((o[k] - frozen[k]).abs().sum()) for k in frozen)
+        for key, o in final_o.items()
+    }
     assert moved[False, 1] == 0 and 0 < moved[True, 3] < moved[True, 1]
 
 
 @pytest.mark.parametrize("fine", [0, 12])  # one pass; two (model/fine_placement.py)
-def test_a_leco_run_where_o_places_the_samples_learns_the_placement_in_both_phases(tiny_scene, tmp_path, fine):
-    cfg = TrainConfig(method="leco", profile="smoke", metrics_every=1, seed=0, overrides={
-        "occupancy.steps": 12, "main_steps": 8, "guided.placement": True, "guided.main_samples": 6,
-        "guided.placement_fine": fine,
-        "guided.placement_in_phase1": True, "guided.fallback": True, "guided.fallback_topk": 2,
-        "guided.dilate": 1, "guided.warm_start": True, "guided.warm_start_background": False})
+def test_a_leco_run_where_o_places_the_samples_learns_the_placement_in_both_phases(
+    tiny_scene, tmp_path, fine
+):
+    cfg = TrainConfig(
+        method="leco",
+        profile="smoke",
+        metrics_every=1,
+        seed=0,
+        overrides={
+            "occupancy.steps": 12,
+            "main_steps": 8,
+            "guided.placement": True,
+            "guided.main_samples": 6,
+            "guided.placement_fine": fine,
+            "guided.placement_in_phase1": True,
+            "guided.fallback": True,
+            "guided.fallback_topk": 2,
+            "guided.dilate": 1,
+            "guided.warm_start": True,
+            "guided.warm_start_background": False,
+        },
+    )
     run = tmp_path / "run"
     run_training(cfg, tiny_scene.root, run, backend="local")
     rows = read_metrics(run / "metrics.jsonl")
@@ -128,15 +203,31 @@ def test_a_leco_run_where_o_places_the_samples_learns_the_placement_in_both_phas
     saved = OccupancyPredictor.load(run / "final" / "occupancy.pt")
     assert saved.network.placement is not None  # the standalone O carries its placement head
     summary = json.loads((run / "summary.json").read_text())
-    assert summary["sampling"]["samples_per_hit_ray"] == 6 and summary["rays"]["samples_per_hit_ray"] == 6
+    assert (
+        summary["sampling"]["samples_per_hit_ray"] == 6
+        and summary["rays"]["samples_per_hit_ray"] == 6
+    )
 
 
 @pytest.mark.parametrize("fine", [0, 12])
 def test_o_places_without_gradient_between_its_placement_updates(tiny_scene, tmp_path, fine):
-    cfg = TrainConfig(method="leco", profile="smoke", metrics_every=1, seed=0, overrides={
-        "occupancy.steps": 6, "main_steps": 8, "guided.placement": True, "guided.main_samples": 6,
-        "guided.placement_fine": fine, "guided.placement_every": 3, "guided.online": False, "guided.fallback": True,
-        "guided.warm_start": True})
+    cfg = TrainConfig(
+        method="leco",
+        profile="smoke",
+        metrics_every=1,
+        seed=0,
+        overrides={
+            "occupancy.steps": 6,
+            "main_steps": 8,
+            "guided.placement": True,
+            "guided.main_samples": 6,
+            "guided.placement_fine": fine,
+            "guided.placement_every": 3,
+            "guided.online": False,
+            "guided.fallback": True,
+            "guided.warm_start": True,
+        },
+    )
     run = tmp_path / "run"
     run_training(cfg, tiny_scene.root, run, backend="local")
     main = [r for r in read_metrics(run / "metrics.jsonl") if r["phase"] == "main"]

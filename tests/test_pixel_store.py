@@ -57,7 +57,9 @@ def test_an_interrupted_build_is_never_used_and_resumes_where_it_stopped(tmp_pat
     assert all(torch.equal(store.image(i), images[i]) for i in range(len(images)))
     # a partial build of another plan is discarded, not resumed
     (tmp_path / "t.partial").mkdir()
-    (tmp_path / "t.partial" / "progress.json").write_text('{"version": 1, "fingerprint": "old", "crc32": [1]}')
+    (tmp_path / "t.partial" / "progress.json").write_text(
+        '{"version": 1, "fingerprint": "old", "crc32": [1]}'
+    )
     calls.clear()
     build_store(tmp_path / "t", "fp", SIZES, lambda i: calls.append(i) or images[i])
     assert calls == [0, 1, 2, 3]
@@ -68,7 +70,9 @@ def test_a_corrupted_or_truncated_store_is_detected_and_rebuilt(tmp_path):
     scene.mkdir()
     (scene / "a.png").write_bytes(b"source")
     images, messages = images_for(SIZES), []
-    ensure = lambda: ensure_store(tmp_path / "cache", scene, "train", 1, SIZES, lambda i: images[i], messages.append)
+    ensure = lambda: ensure_store(
+        tmp_path / "cache", scene, "train", 1, SIZES, lambda i: images[i], messages.append
+    )
     store = ensure()
     path = store.folder / "pixels.u8"
     data = bytearray(path.read_bytes())
@@ -93,7 +97,10 @@ def test_changed_sources_or_another_scale_get_their_own_store(tmp_path):
     first, second = images_for(SIZES, 0), images_for(SIZES, 1)
     cache = tmp_path / "cache"
     a = ensure_store(cache, scene, "train", 1, SIZES, lambda i: first[i])
-    assert torch.equal(ensure_store(cache, scene, "train", 1, SIZES, lambda i: second[i]).image(0), first[0])  # reused
+    # reused
+    assert torch.equal(
+        ensure_store(cache, scene, "train", 1, SIZES, lambda i: second[i]).image(0), first[0]
+    )
     (scene / "a.png").write_bytes(b"edited")  # a source changed: the old pixels must not be served
     os.utime(scene / "a.png", ns=(1, 1))
     b = ensure_store(cache, scene, "train", 1, SIZES, lambda i: second[i])
@@ -113,8 +120,14 @@ def test_concurrent_ranks_wait_for_one_builder(tmp_path):
         builds.append(i)
         return images[i]
 
-    ranks = [threading.Thread(target=lambda: stores.append(
-        ensure_store(tmp_path / "cache", scene, "train", 1, SIZES, decode))) for _ in range(3)]
+    ranks = [
+        threading.Thread(
+            target=lambda: stores.append(
+                ensure_store(tmp_path / "cache", scene, "train", 1, SIZES, decode)
+            )
+        )
+        for _ in range(3)
+    ]
     for t in ranks:
         t.start()
     for t in ranks:
@@ -137,13 +150,17 @@ def test_pixel_table_reads_the_same_rays_from_a_store():
 
 def test_an_unwritable_cache_is_named_with_the_setting_to_change(tmp_path):
     (tmp_path / "a-file").write_text("not a folder")
-    with pytest.raises(StoreError, match=r"cache folder .*a-file cannot be written .*set LECO_PIXEL_CACHE"):
-        ensure_store(tmp_path / "a-file", tmp_path, "train", 1, SIZES, lambda i: images_for(SIZES)[i])
+    with pytest.raises(
+        StoreError, match=r"cache folder .*a-file cannot be written .*set LECO_PIXEL_CACHE"
+    ):
+        ensure_store(
+            tmp_path / "a-file", tmp_path, "train", 1, SIZES, lambda i: images_for(SIZES)[i]
+        )
 
 
 def test_an_image_corrupted_inside_is_found_when_the_store_decodes_it(tmp_path, monkeypatch):
-    """Loading reads headers and the file's end only; a damaged body shows when its pixels are decoded, and the
-    build stops naming the file, leaving no store to be used."""
+    """Loading reads headers and the file's end only; a damaged body shows when its pixels are
+    decoded, and the build stops naming the file, leaving no store to be used."""
     from model.scenes import load_scene
     from model.scenes.errors import SceneError
     from model.scenes.synthetic import generate
@@ -170,10 +187,12 @@ def resident_file_kb() -> int:
 
 
 def test_reading_a_store_leaves_its_pages_out_of_the_process_resident_memory(tmp_path):
-    """Random batches touch every page of a large store; a rank's RSS must stay its batch plus its model (the
-    pages stay in the page cache, shared by the ranks of a node)."""
+    """Random batches touch every page of a large store; a rank's RSS must stay its batch plus its
+    model (the pages stay in the page cache, shared by the ranks of a node)."""
     sizes = [(1024, 1024)] * 24  # 72 MiB
-    image = torch.randint(0, 256, (1024, 1024, 3), generator=torch.Generator().manual_seed(0), dtype=torch.uint8)
+    image = torch.randint(
+        0, 256, (1024, 1024, 3), generator=torch.Generator().manual_seed(0), dtype=torch.uint8
+    )
     store = build_store(tmp_path / "big", "fp", sizes, lambda i: image)
     before = resident_file_kb()
     g = torch.Generator().manual_seed(1)

@@ -1,5 +1,5 @@
-"""O places the main network's samples (model/placement.py) and what reaches the main network is counted alike
-for every method (model/sample_accounting.py)."""
+"""O places the main network's samples (model/placement.py) and what reaches the main network is
+counted alike for every method (model/sample_accounting.py)."""
 
 import pytest
 import torch
@@ -27,7 +27,9 @@ def test_placed_samples_are_exactly_n_per_ray_sorted_and_inside_the_kept_bins(ge
     keep[0, 7] = True  # one ray keeps its last bin only
     weights = torch.rand(5, 8, generator=torch.Generator().manual_seed(1)) + 0.01
     samples = placed_samples(edges, keep, weights, 21, generator)
-    assert len(samples) == 5 * 21 and samples.ray_index.tolist() == [r for r in range(5) for _ in range(21)]
+    assert len(samples) == 5 * 21 and samples.ray_index.tolist() == [
+        r for r in range(5) for _ in range(21)
+    ]
     mids = samples.mids.reshape(5, 21)
     assert (mids[:, 1:] > mids[:, :-1]).all(), "sorted along each ray"
     assert (mids >= near[:, None]).all() and (mids <= far[:, None]).all()
@@ -35,7 +37,8 @@ def test_placed_samples_are_exactly_n_per_ray_sorted_and_inside_the_kept_bins(ge
     width = (far - near) / 8
     bin_of = ((mids - near[:, None]) / width[:, None]).floor().long().clamp(0, 7)
     assert keep.gather(1, bin_of).all(), "every mid-point inside a kept bin"
-    # The deltas tile the kept length (the first and last intervals stop at the jittered CDF's ends).
+    # The deltas tile the kept length (the first and last intervals stop at the jittered CDF's
+    # ends).
     kept_length = keep.sum(1) * width
     assert (samples.deltas.reshape(5, 21).sum(1) <= kept_length + 1e-5).all()
     if generator is None:
@@ -52,19 +55,36 @@ def test_placed_samples_follow_the_weights():
 
 
 def test_bins_below_the_minimum_share_get_no_sample_and_every_ray_keeps_one():
-    keep = torch.tensor([[True, True, True, False], [True, True, False, False], [True, True, False, False]])
+    keep = torch.tensor(
+        [[True, True, True, False], [True, True, False, False], [True, True, False, False]]
+    )
     weights = torch.tensor([[0.01, 0.5, 0.49, 0.9], [0.001, 0.002, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
     kept = confident_bins(keep, weights, 0.03)
-    # Row 0: the bin with 1% of the kept mass goes (the unkept bin's weight does not count); row 1: shares are
-    # relative (33% and 67%), both stay; row 2: no weight to judge by, all stay.
-    assert kept.tolist() == [[False, True, True, False], [True, True, False, False], [True, True, False, False]]
-    assert confident_bins(keep, weights, 0.5).tolist() == [[False, True, False, False], [False, True, False, False],
-                                                           [True, True, False, False]]  # the heaviest survives
+    # Row 0: the bin with 1% of the kept mass goes (the unkept bin's weight does not count); row 1:
+    # shares are relative (33% and 67%), both stay; row 2: no weight to judge by, all stay.
+    assert kept.tolist() == [
+        [False, True, True, False],
+        [True, True, False, False],
+        [True, True, False, False],
+    ]
+    assert confident_bins(keep, weights, 0.5).tolist() == [
+        [False, True, False, False],
+        [False, True, False, False],
+        # the heaviest survives
+        [True, True, False, False],
+    ]
     assert torch.equal(confident_bins(keep, weights, 0.0), keep)
     near, far, edges = coarse(r=3, bins=4)
     samples = placed_samples(edges, kept, weights + 0.01, 9, torch.Generator().manual_seed(0))
-    bin_of = ((samples.mids - near[samples.ray_index]) / ((far - near) / 4)[samples.ray_index]).floor().long()
-    assert kept[samples.ray_index, bin_of.clamp(0, 3)].all() and not (bin_of[samples.ray_index == 0] == 0).any()
+    bin_of = (
+        ((samples.mids - near[samples.ray_index]) / ((far - near) / 4)[samples.ray_index])
+        .floor()
+        .long()
+    )
+    assert (
+        kept[samples.ray_index, bin_of.clamp(0, 3)].all()
+        and not (bin_of[samples.ray_index == 0] == 0).any()
+    )
 
 
 def test_exploration_gives_the_dropped_bins_their_share_of_the_samples():
@@ -74,37 +94,57 @@ def test_exploration_gives_the_dropped_bins_their_share_of_the_samples():
     keep[1] = True  # a ray that keeps every bin has nothing to explore
     mass = torch.rand(2, 8, generator=torch.Generator().manual_seed(2)) + 0.01
     unchanged = explored(keep, mass, edges, 0.0)
-    assert unchanged[0] is keep and unchanged[1] is mass  # share 0: the kept bins and the mass as they were
+    # share 0: the kept bins and the mass as they were
+    assert unchanged[0] is keep and unchanged[1] is mass
     everywhere, spread = explored(keep, mass, edges, 0.2)
-    assert everywhere.all() and torch.equal(spread[1], mass[1]) and torch.equal(spread[0, [2, 3]], mass[0, [2, 3]])
-    assert float(spread[0, ~keep[0]].sum() / spread[0].sum()) == pytest.approx(0.2)  # the dropped bins' share
+    assert (
+        everywhere.all()
+        and torch.equal(spread[1], mass[1])
+        and torch.equal(spread[0, [2, 3]], mass[0, [2, 3]])
+    )
+    # the dropped bins' share
+    assert float(spread[0, ~keep[0]].sum() / spread[0].sum()) == pytest.approx(0.2)
     assert torch.allclose(spread[0, ~keep[0]], spread[0, 0].expand(6))  # equal lengths, equal mass
     samples = placed_samples(edges, everywhere, spread, 200, None)
     mids = samples.mids.reshape(2, 200)
-    assert (mids[:, 1:] > mids[:, :-1]).all() and (mids >= near[:, None]).all() and (mids <= far[:, None]).all()
+    assert (
+        (mids[:, 1:] > mids[:, :-1]).all()
+        and (mids >= near[:, None]).all()
+        and (mids <= far[:, None]).all()
+    )
     bin_of = ((mids - near[:, None]) / ((far - near) / 8)[:, None]).floor().long().clamp(0, 7)
-    # 20% of the samples where O dropped the bins (give or take the interval that straddles a boundary)
+    # 20% of the samples where O dropped the bins (give or take the interval that straddles a
+    # boundary)
     assert abs(int((~keep[0][bin_of[0]]).sum()) - 40) <= 1
 
 
 def test_the_placement_loss_is_the_interlevel_bound_and_trains_only_the_proposal():
     near, far = torch.zeros(1), torch.full((1,), 4.0)
-    samples = PackedSamples(torch.tensor([0.5, 2.0, 2.5]), torch.tensor([1.0, 2.5, 3.0]),
-                            torch.zeros(3, dtype=torch.long))
+    samples = PackedSamples(
+        torch.tensor([0.5, 2.0, 2.5]),
+        torch.tensor([1.0, 2.5, 3.0]),
+        torch.zeros(3, dtype=torch.long),
+    )
     main = torch.tensor([0.1, 0.3, 0.4], requires_grad=True)
-    assert bin_mass(samples, main, near, far, 4).tolist() == [[pytest.approx(0.1), 0.0, pytest.approx(0.7), 0.0]]
+    assert bin_mass(samples, main, near, far, 4).tolist() == [
+        [pytest.approx(0.1), 0.0, pytest.approx(0.7), 0.0]
+    ]
     bound = torch.tensor([[0.2, 0.0, 0.7, 0.1]])
     assert float(placement_loss(bound, samples, main, near, far)) == pytest.approx(0.0, abs=1e-6)
     low = torch.tensor([[0.1, 0.0, 0.35, 0.0]], requires_grad=True)
     loss = placement_loss(low, samples, main, near, far)
-    assert float(loss.detach()) == pytest.approx(0.35**2 / 0.7 / 4, rel=1e-4)  # only bin 2 exceeds its bound
+    # only bin 2 exceeds its bound
+    assert float(loss.detach()) == pytest.approx(0.35**2 / 0.7 / 4, rel=1e-4)
     loss.backward()
-    assert main.grad is None and float(low.grad[0, 2]) < 0  # the proposal is pushed up where it is short
+    # the proposal is pushed up where it is short
+    assert main.grad is None and float(low.grad[0, 2]) < 0
 
 
 def test_o_s_placement_head_learns_where_a_wall_holds_the_weight():
     torch.manual_seed(0)
-    network = OccupancyNetwork(num_scene_experts=2, width=32, xyz_frequencies=4, placement_head=True)
+    network = OccupancyNetwork(
+        num_scene_experts=2, width=32, xyz_frequencies=4, placement_head=True
+    )
     optimizer = torch.optim.Adam(network.parameters(), lr=1e-2)
     near, far = torch.zeros(64), torch.full((64,), 8.0)
     dirs = torch.tensor([1.0, 0.0, 0.0]).expand(64, 3)
@@ -141,23 +181,31 @@ def test_accounting_counts_hit_rays_dilation_and_rays_with_nothing_kept():
     samples, kept = guided_samples(near, far, origins, dirs, occupied, 8, 2, None, dilate=1)
     figures = step_accounting(samples, near, far, 8)
     assert float(kept) == pytest.approx(1 / 16)  # O itself: one bin of the two hit rays' 16
-    assert figures["occupancy_ratio"] == pytest.approx(3 / 16)  # after dilation: three bins reach the main network
+    # after dilation: three bins reach the main network
+    assert figures["occupancy_ratio"] == pytest.approx(3 / 16)
     assert figures["samples_per_hit_ray"] == pytest.approx(6 / 2)
     assert figures["hit_ray_fraction"] == pytest.approx(2 / 3)
-    with_fallback, _ = guided_samples(near, far, origins, dirs, occupied, 8, 2, None, dilate=1, fallback=True)
+    with_fallback, _ = guided_samples(
+        near, far, origins, dirs, occupied, 8, 2, None, dilate=1, fallback=True
+    )
     assert step_accounting(with_fallback, near, far, 8)["occupancy_ratio"] == pytest.approx(11 / 16)
 
 
 def test_surface_accounting_finds_the_surface_bin_and_the_foreground_opacity():
     near, far = torch.zeros(3), torch.full((3,), 8.0)
-    samples = PackedSamples(torch.tensor([3.0, 3.5, 6.0]), torch.tensor([3.5, 4.0, 6.5]), torch.tensor([0, 0, 1]))
+    samples = PackedSamples(
+        torch.tensor([3.0, 3.5, 6.0]), torch.tensor([3.5, 4.0, 6.5]), torch.tensor([0, 0, 1])
+    )
     sigma = torch.tensor([2.0, 2.0, 0.5])
     weights, _ = packed_weights(sigma, samples.deltas, samples.ray_index, 3)
-    depth = torch.tensor([3.4, 2.0, torch.inf])  # ray 1's surface lies in bin 2, which it never sampled
+    # ray 1's surface lies in bin 2, which it never sampled
+    depth = torch.tensor([3.4, 2.0, torch.inf])
     out = surface_accounting(samples, weights, near, far, depth, 8)
     assert out["surface"].tolist() == [True, True, False]
     assert out["kept"].tolist() == [True, False, False]
-    assert float(out["opacity"][0]) == pytest.approx(1 - torch.exp(torch.tensor(-2.0)).item(), rel=1e-5)
+    assert float(out["opacity"][0]) == pytest.approx(
+        1 - torch.exp(torch.tensor(-2.0)).item(), rel=1e-5
+    )
 
 
 def test_a_guided_option_without_its_switch_is_refused_naming_both():
@@ -167,13 +215,22 @@ def test_a_guided_option_without_its_switch_is_refused_naming_both():
 
     with pytest.raises(ValidationError, match="guided.fallback_topk needs guided.fallback=true"):
         GuidedConfig(fallback_topk=2)
-    with pytest.raises(ValidationError, match="guided.placement_in_phase1 needs guided.placement=true"):
+    with pytest.raises(
+        ValidationError, match="guided.placement_in_phase1 needs guided.placement=true"
+    ):
         GuidedConfig(placement_in_phase1=True)
     with pytest.raises(ValidationError, match="guided.placement_every needs guided.placement=true"):
         GuidedConfig(placement_every=5)
-    with pytest.raises(ValidationError, match="guided.placement_explore needs guided.placement=true"):
+    with pytest.raises(
+        ValidationError, match="guided.placement_explore needs guided.placement=true"
+    ):
         GuidedConfig(placement_explore=0.05)
-    assert GuidedConfig(fallback=True, fallback_topk=2, placement=True, placement_in_phase1=True).fallback_topk == 2
+    assert (
+        GuidedConfig(
+            fallback=True, fallback_topk=2, placement=True, placement_in_phase1=True
+        ).fallback_topk
+        == 2
+    )
 
 
 def test_within_bin_shares_keep_each_bins_mass_and_take_the_shape_asked():
@@ -185,7 +242,9 @@ def test_within_bin_shares_keep_each_bins_mass_and_take_the_shape_asked():
     for kind in ("uniform", "linear", "volume"):
         shares = within_bin_shares(kind, mass, sigma, edges, k=4)
         assert shares.shape == (1, 4, 4) and torch.allclose(shares.sum(-1), torch.ones(1, 4))
-    assert torch.equal(within_bin_shares("uniform", mass, sigma, edges, k=4), torch.full((1, 4, 4), 0.25))
+    assert torch.equal(
+        within_bin_shares("uniform", mass, sigma, edges, k=4), torch.full((1, 4, 4), 0.25)
+    )
     linear = within_bin_shares("linear", mass, sigma, edges, k=4)[0]
     # bin 1 lies between a light bin and a heavy one: its density rises towards the heavy one
     assert (linear[1, 1:] > linear[1, :-1]).all()
@@ -194,7 +253,8 @@ def test_within_bin_shares_keep_each_bins_mass_and_take_the_shape_asked():
     volume = within_bin_shares("volume", mass, sigma, edges, k=4)[0]
     assert torch.allclose(volume[0], torch.full((4,), 0.25))  # no density: evenly
     assert torch.allclose(volume[1], torch.full((4,), 0.25), atol=2e-3)  # faint: nearly evenly
-    assert volume[2, 0] > 0.99  # opaque (tau 50): the weight is at the bin's front, as volume rendering puts it
+    # opaque (tau 50): the weight is at the bin's front, as volume rendering puts it
+    assert volume[2, 0] > 0.99
     with pytest.raises(ValueError, match="within-bin shape 'cubic'"):
         within_bin_shares("cubic", mass, sigma, edges)
 

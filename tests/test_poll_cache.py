@@ -1,6 +1,7 @@
-"""The poll cache (service/api/poll_cache.py): answers at most ttl old, one read shared by concurrent misses,
-metrics answers tied to the job view they were computed under, own writes dropping entries at once, errors
-never cached. A fake clock keeps every case deterministic; reads run in the real threadpool."""
+"""The poll cache (service/api/poll_cache.py): answers at most ttl old, one read shared by
+concurrent misses, metrics answers tied to the job view they were computed under, own writes
+dropping entries at once, errors never cached. A fake clock keeps every case deterministic; reads
+run in the real threadpool."""
 
 import asyncio
 import threading
@@ -78,13 +79,17 @@ def test_a_metrics_answer_is_dropped_when_the_job_view_changes():
     async def go():
         await cache.job_view(1, view)  # view read at t=100
         clock.now += 0.3
-        assert await cache.metrics(1, ("k",), view, series) == b"metrics to 10"  # metrics read at t=100.3
-        view.value, series.value = b"step 20", b"metrics to 20"  # training writes step 20 (one transaction)
+        # metrics read at t=100.3
+        assert await cache.metrics(1, ("k",), view, series) == b"metrics to 10"
+        # training writes step 20 (one transaction)
+        view.value, series.value = b"step 20", b"metrics to 20"
         clock.now += 0.25  # the view is 0.55 s old (expired), the metrics answer only 0.25 s
         assert await cache.job_view(1, view) == b"step 20"
-        # A poller that saw "step 20" must not get the answer computed under "step 10", fresh as it is.
+        # A poller that saw "step 20" must not get the answer computed under "step 10", fresh as it
+        # is.
         assert await cache.metrics(1, ("k",), view, series) == b"metrics to 20"
-        assert await cache.metrics(1, ("k",), view, series) == b"metrics to 20"  # now cached under "step 20"
+        # now cached under "step 20"
+        assert await cache.metrics(1, ("k",), view, series) == b"metrics to 20"
 
     run(go())
     assert series.reads == 2 and view.reads == 2
@@ -108,7 +113,8 @@ def test_forget_drops_entries_and_a_read_in_flight_is_not_stored():
         return await slow, fresh, await cache.job_view(3, Source(b"never read"))
 
     slow, fresh, later = run(go())
-    assert (slow, fresh, later) == (b"before cancel", b"after cancel", b"after cancel")  # the old read not kept
+    # the old read not kept
+    assert (slow, fresh, later) == (b"before cancel", b"after cancel", b"after cancel")
 
 
 def test_errors_reach_every_waiter_and_are_never_cached():
@@ -121,7 +127,9 @@ def test_errors_reach_every_waiter_and_are_never_cached():
         raise RuntimeError("database unavailable")
 
     async def go():
-        results = await asyncio.gather(*[cache.job_view(1, failing) for _ in range(5)], return_exceptions=True)
+        results = await asyncio.gather(
+            *[cache.job_view(1, failing) for _ in range(5)], return_exceptions=True
+        )
         assert all(isinstance(r, RuntimeError) for r in results)
         assert await cache.job_view(1, Source(b"back")) == b"back"
 
@@ -147,12 +155,16 @@ def test_ttl_zero_reads_every_time_and_the_size_is_bounded():
 
 @pytest.fixture
 def api(tmp_path):
-    settings = Settings(data_dir=tmp_path, poll_cache_s=30.0)  # long: only invalidation can refresh it
+    # long: only invalidation can refresh it
+    settings = Settings(data_dir=tmp_path, poll_cache_s=30.0)
     upgrade(settings.db_url)
-    with transaction(settings.db_url) as session:  # a registered scene; its files are never read here
+    # a registered scene; its files are never read here
+    with transaction(settings.db_url) as session:
         session.add(Scene(name="s", source="synthetic", state="ready", path=str(tmp_path)))
     with TestClient(create_app(settings)) as client:
-        job = client.post("/v1/jobs", json={"scene": "s", "method": "switch", "profile": "smoke"}).json()
+        job = client.post(
+            "/v1/jobs", json={"scene": "s", "method": "switch", "profile": "smoke"}
+        ).json()
         yield client, settings, job["id"]
 
 
@@ -161,11 +173,13 @@ def test_the_api_serves_a_cached_view_and_a_cancel_shows_at_once(api):
     first = client.get(f"/v1/jobs/{job_id}").json()
     with transaction(settings.db_url) as session:  # another process (training) writes progress
         session.get(Job, job_id).step = 5
-    assert client.get(f"/v1/jobs/{job_id}").json()["step"] == first["step"] == 0  # cached: the same bytes
+    # cached: the same bytes
+    assert client.get(f"/v1/jobs/{job_id}").json()["step"] == first["step"] == 0
     cancelled = client.post(f"/v1/jobs/{job_id}/cancel")
     assert cancelled.status_code == 200 and cancelled.json()["state"] == "cancelled"
     shown = client.get(f"/v1/jobs/{job_id}").json()
-    assert shown["state"] == "cancelled" and shown["step"] == 5  # this process's own write dropped the entry
+    # this process's own write dropped the entry
+    assert shown["state"] == "cancelled" and shown["step"] == 5
     assert client.get("/v1/jobs/999").status_code == 404
     prometheus = client.get("/metrics").text
     assert 'leco_poll_cache_total{result="hit"} 1' in prometheus
@@ -174,10 +188,14 @@ def test_the_api_serves_a_cached_view_and_a_cancel_shows_at_once(api):
 def test_the_api_metrics_answer_follows_the_job_view(api):
     client, settings, job_id = api
     assert client.get(f"/v1/jobs/{job_id}/metrics", params={"after_step": 0}).json()["series"] == []
-    with transaction(settings.db_url) as session:  # what DatabaseRunStore.write does in one transaction
-        session.add(Metric(job_id=job_id, phase="main", name="loss", step=10, value=0.5, wall_time_s=1.0))
+    # what DatabaseRunStore.write does in one transaction
+    with transaction(settings.db_url) as session:
+        session.add(
+            Metric(job_id=job_id, phase="main", name="loss", step=10, value=0.5, wall_time_s=1.0)
+        )
         session.get(Job, job_id).step = 10
-    del client.app.state.poll_cache.entries[("job", job_id)]  # the view expired; the metrics answer has not
+    # the view expired; the metrics answer has not
+    del client.app.state.poll_cache.entries[("job", job_id)]
     assert client.get(f"/v1/jobs/{job_id}").json()["step"] == 10
     series = client.get(f"/v1/jobs/{job_id}/metrics", params={"after_step": 0}).json()["series"]
     assert [(s["name"], [p["step"] for p in s["points"]]) for s in series] == [("loss", [10])]
@@ -186,15 +204,22 @@ def test_the_api_metrics_answer_follows_the_job_view(api):
 def test_job_lists_are_cached_and_every_change_through_this_process_shows_at_once(api):
     client, settings, job_id = api
     assert [j["id"] for j in client.get("/v1/jobs").json()["items"]] == [job_id]
-    second = client.post("/v1/jobs", json={"scene": "s", "method": "grid", "profile": "smoke"}).json()["id"]
-    assert [j["id"] for j in client.get("/v1/jobs").json()["items"]] == [second, job_id]  # submit dropped the list
+    second = client.post(
+        "/v1/jobs", json={"scene": "s", "method": "grid", "profile": "smoke"}
+    ).json()["id"]
+    # submit dropped the list
+    assert [j["id"] for j in client.get("/v1/jobs").json()["items"]] == [second, job_id]
     with transaction(settings.db_url) as session:  # another process moves a job on
         session.get(Job, job_id).step = 7
     assert client.get("/v1/jobs").json()["items"][1]["step"] == 0  # served from the cache meanwhile
-    assert client.get("/v1/jobs", params={"state": "queued"}).json()["total"] == 2  # another key: read
+    # another key: read
+    assert client.get("/v1/jobs", params={"state": "queued"}).json()["total"] == 2
     client.post(f"/v1/jobs/{second}/cancel")
     listed = client.get("/v1/jobs").json()["items"]
-    assert [(j["id"], j["state"], j["step"]) for j in listed] == [(second, "cancelled", 0), (job_id, "queued", 7)]
+    assert [(j["id"], j["state"], j["step"]) for j in listed] == [
+        (second, "cancelled", 0),
+        (job_id, "queued", 7),
+    ]
     assert client.get("/v1/jobs", params={"state": "queued"}).json()["total"] == 1
 
 
@@ -210,4 +235,5 @@ def test_memory_stays_bounded_however_many_jobs_are_polled_and_written():
     run(scenario())
     assert len(cache.entries) == 64 and not cache.in_flight
     sizes = {name: len(value) for name, value in vars(cache).items() if hasattr(value, "__len__")}
-    assert max(sizes.values()) <= 64, sizes  # no per-job record left behind (there was one epoch per job)
+    # no per-job record left behind (there was one epoch per job)
+    assert max(sizes.values()) <= 64, sizes

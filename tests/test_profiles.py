@@ -28,8 +28,8 @@ def test_cpu_profile_keeps_the_papers_sampling_ratios():
     vanilla = p.vanilla.coarse_samples + p.vanilla.fine_samples
     assert p.vanilla.fine_samples == 2 * p.vanilla.coarse_samples  # coarse:fine = 1:2
     assert vanilla == 6 * p.guided.coarse_samples  # 768 : 128 in the paper
-    # Under placement the main samples are a fixed budget per hit ray (S+Prop's 21); split no longer applies, and
-    # dilation keeps one bin either side of a kept one (docs/BENCHMARKS.md, measured).
+    # Under placement the main samples are a fixed budget per hit ray (S+Prop's 21); split no longer
+    # applies, and dilation keeps one bin either side of a kept one (docs/BENCHMARKS.md, measured).
     assert p.guided.placement and p.guided.main_samples == p.prop.main_samples == 21
     assert p.guided.dilate == 1 and p.guided.empty_threshold == 0.9
     assert p.grid.resolution == 128 and p.occupancy.v == 80.0 and p.occupancy.w_d == 0.1
@@ -55,5 +55,7 @@ def test_model_info_counts(capsys):
     assert leco["components"]["occupancy_network"] < 0.1 * grid["components"]["grid_cells"]
     assert main(["model", "info", "--method", "switch", "--profile", "smoke", "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
-    assert info["total"] == sum(info["components"].values()) and "grid_cells" not in info["components"]
+    assert (
+        info["total"] == sum(info["components"].values()) and "grid_cells" not in info["components"]
+    )
     assert main(["model", "info", "--method", "nope"]) == 2

@@ -1,5 +1,6 @@
-"""Property-based checks (hypothesis, derandomized so CI is deterministic) of rendering and the gate losses
-over densities from 0 to 1e6, deltas up to 1e10, ragged packed rays and arbitrary dispatch."""
+"""Property-based checks (hypothesis, derandomized so CI is deterministic) of rendering and the gate
+losses over densities from 0 to 1e6, deltas up to 1e10, ragged packed rays and arbitrary
+dispatch."""
 
 import torch
 from hypothesis import given, settings
@@ -10,15 +11,22 @@ from model.rendering import composite_batched, composite_packed
 
 SETTINGS = settings(max_examples=60, deadline=None, derandomize=True)
 sigmas = st.one_of(st.sampled_from([0.0, 1e-8, 1e6]), st.floats(0, 1e6, allow_nan=False, width=32))
-deltas = st.one_of(st.sampled_from([0.0, 1e-6, 1e10]), st.floats(0, 1e10, allow_nan=False, width=32))
+deltas = st.one_of(
+    st.sampled_from([0.0, 1e-6, 1e10]), st.floats(0, 1e10, allow_nan=False, width=32)
+)
 
 
 @st.composite
 def ragged_rays(draw):
-    counts = draw(st.lists(st.integers(0, 6), min_size=1, max_size=6))  # rays with 0, 1 or many samples
+    # rays with 0, 1 or many samples
+    counts = draw(st.lists(st.integers(0, 6), min_size=1, max_size=6))
     total = sum(counts)
-    sigma = torch.tensor(draw(st.lists(sigmas, min_size=total, max_size=total)), dtype=torch.float32)
-    delta = torch.tensor(draw(st.lists(deltas, min_size=total, max_size=total)), dtype=torch.float32)
+    sigma = torch.tensor(
+        draw(st.lists(sigmas, min_size=total, max_size=total)), dtype=torch.float32
+    )
+    delta = torch.tensor(
+        draw(st.lists(deltas, min_size=total, max_size=total)), dtype=torch.float32
+    )
     return counts, sigma, delta
 
 
@@ -41,18 +49,33 @@ def test_packed_rendering_is_bounded_finite_and_matches_batched(case):
     assert torch.isfinite(sigma.grad).all()
     # Pad every ray to the longest with zero-length samples: the batched form must agree.
     n = max(counts) if max(counts) else 1
-    s_b, d_b, c_b, t_b = torch.zeros(r, n), torch.zeros(r, n), torch.zeros(r, n, 3), torch.zeros(r, n)
+    s_b, d_b, c_b, t_b = (
+        torch.zeros(r, n),
+        torch.zeros(r, n),
+        torch.zeros(r, n, 3),
+        torch.zeros(r, n),
+    )
     start = 0
     for i, c in enumerate(counts):
-        s_b[i, :c], d_b[i, :c], c_b[i, :c], t_b[i, :c] = sigma.detach()[start:start + c], delta[start:start + c], \
-            rgb[start:start + c], t_mid[start:start + c]
+        s_b[i, :c], d_b[i, :c], c_b[i, :c], t_b[i, :c] = (
+            sigma.detach()[start : start + c],
+            delta[start : start + c],
+            rgb[start : start + c],
+            t_mid[start : start + c],
+        )
         start += c
     batched = composite_batched(s_b, c_b, t_b, d_b, bg)
     assert torch.allclose(batched.rgb, out.rgb.detach(), atol=1e-5)
 
 
 @SETTINGS
-@given(st.integers(1, 300), st.integers(1, 8), st.floats(-1e4, 1e4, width=32), st.floats(1, 200), st.integers(0, 2**31))
+@given(
+    st.integers(1, 300),
+    st.integers(1, 8),
+    st.floats(-1e4, 1e4, width=32),
+    st.floats(1, 200),
+    st.integers(0, 2**31),
+)
 def test_gate_losses_finite_for_any_dispatch(points, n, logit_scale, v, seed):
     g = torch.Generator().manual_seed(seed)
     logits = (torch.randn(points, n + 1, generator=g) * logit_scale).requires_grad_()
@@ -64,5 +87,6 @@ def test_gate_losses_finite_for_any_dispatch(points, n, logit_scale, v, seed):
     (l_g + l_d).backward()
     assert torch.isfinite(l_g) and torch.isfinite(l_d) and l_d >= 0
     assert torch.isfinite(logits.grad).all()
-    if (index == n).all() or (index != n).all():  # every point to E_e, or none: no ratio, no division by zero
+    # every point to E_e, or none: no ratio, no division by zero
+    if (index == n).all() or (index != n).all():
         assert l_d == 0

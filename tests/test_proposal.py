@@ -10,11 +10,19 @@ from model.methods import get_method
 from model.methods.costs import proposal_width
 from model.model_info import model_info
 from model.profiles import get_profile
-from model.proposal_sampling import UpdateSchedule, anneal_power, interlevel_loss, outer_weights, pdf_edges
+from model.proposal_sampling import (
+    UpdateSchedule,
+    anneal_power,
+    interlevel_loss,
+    outer_weights,
+    pdf_edges,
+)
 from model.scenes.rays import RayBatch
 
 
-@pytest.mark.parametrize("profile,expected,o", [("cpu", 13_888, 13_962), ("paper", 153_760, 153_865)])
+@pytest.mark.parametrize(
+    "profile,expected,o", [("cpu", 13_888, 13_962), ("paper", 153_760, 153_865)]
+)
 def test_proposals_total_the_parameters_of_lecos_occupancy_network(profile, expected, o):
     p = get_profile(profile)
     assert sizes.occupancy_network(p) == o
@@ -31,9 +39,11 @@ def test_pdf_edges_follow_the_histogram_and_stay_sorted_inside_it():
     out = pdf_edges(edges, weights, 64, torch.Generator().manual_seed(0), padding=0.0)
     assert out.shape == (3, 65) and (out[:, 1:] >= out[:, :-1]).all()
     assert ((out >= 1.0) & (out <= 2.0)).all()  # every new interval inside the only bin with weight
-    uniform = pdf_edges(edges, weights, 64, None, anneal=0.0, padding=0.0)  # weights^0: the anneal's start
+    # weights^0: the anneal's start
+    uniform = pdf_edges(edges, weights, 64, None, anneal=0.0, padding=0.0)
     assert torch.allclose(uniform[0], torch.linspace(0.0, 4.0, 65), atol=1e-5)
-    padded = pdf_edges(edges, weights, 64, None, padding=1.0)  # weights + 1 = (1, 2, 1, 1): a fifth in [0, 1)
+    # weights + 1 = (1, 2, 1, 1): a fifth in [0, 1)
+    padded = pdf_edges(edges, weights, 64, None, padding=1.0)
     assert int((padded[0] < 1.0).sum()) == 13  # the edge at 0 and 64 / 5 more
 
 
@@ -44,7 +54,8 @@ def test_pdf_edges_of_a_ray_with_no_weight_are_uniform_not_nan():
     out = pdf_edges(edges, weights, 8, None, padding=0.0)
     assert torch.isfinite(out).all()
     assert torch.allclose(out[0], torch.linspace(0.0, 4.0, 9), atol=1e-5)
-    assert out[1, 0] == pytest.approx(1.0) and out[1, -1] == pytest.approx(3.0)  # the CDF ends at exactly 1
+    # the CDF ends at exactly 1
+    assert out[1, 0] == pytest.approx(1.0) and out[1, -1] == pytest.approx(3.0)
     assert float(out[1, 6]) == pytest.approx(2.0, abs=1e-5)  # 3/4 of the mass lies in [1, 2)
 
 
@@ -61,7 +72,8 @@ def test_outer_weights_bound_the_histogram_and_the_loss_vanishes_when_it_does():
             overlap = (source[r, :-1] < target[r, j + 1]) & (source[r, 1:] > target[r, j])
             assert outer[r, j] == pytest.approx(float(source_w[r][overlap].sum()), abs=1e-5)
     main_w = torch.rand(4, 16, generator=g) * 0.1
-    assert float(interlevel_loss(target, main_w, [(target, main_w * 1.5)])) == 0.0  # already an upper bound
+    # already an upper bound
+    assert float(interlevel_loss(target, main_w, [(target, main_w * 1.5)])) == 0.0
     assert float(interlevel_loss(target, main_w, [(target, main_w * 0.5)])) > 0.0
 
 
@@ -95,16 +107,21 @@ def test_a_prop_step_samples_main_samples_per_ray_and_learns_only_when_due(tiny_
     g = torch.Generator().manual_seed(0)
     loss, parts = method.step(models, "main", rays, g, 0.0, 0, seed=0)
     loss.backward()
-    # Every ray that crosses the box gets exactly main_samples; the ones that miss it (7 of these 64) get none.
+    # Every ray that crosses the box gets exactly main_samples; the ones that miss it (7 of these
+    # 64) get none.
     hits = int((rays.far > rays.near).sum())
     assert 0 < hits < len(rays)
-    assert parts["samples_per_hit_ray"] == profile.prop.main_samples and parts["interlevel_loss"] >= 0
+    assert (
+        parts["samples_per_hit_ray"] == profile.prop.main_samples and parts["interlevel_loss"] >= 0
+    )
     assert parts["samples_per_ray"] == pytest.approx(profile.prop.main_samples * hits / len(rays))
     assert all(p.grad is not None for p in models.proposals.parameters())
     models.zero_grad(set_to_none=True)
     method.schedule.since_update = -10  # not due on the next step
     loss, parts = method.step(models, "main", rays, g, 0.0, 11, seed=0)
     loss.backward()
-    assert "interlevel_loss" not in parts and all(p.grad is None for p in models.proposals.parameters())
+    assert "interlevel_loss" not in parts and all(
+        p.grad is None for p in models.proposals.parameters()
+    )
     occupied = method.final_occupancy(models)(torch.rand(100, 3) * 2 - 1)
     assert occupied.dtype == torch.bool and occupied.shape == (100,)

@@ -1,5 +1,6 @@
-"""Training on a local Ray (2 CPU workers, gloo): data parallel equals one worker on the whole batch, and
-a killed worker is restarted from the last checkpoint by Ray Train with a clean metric series."""
+"""Training on a local Ray (2 CPU workers, gloo): data parallel equals one worker on the whole
+batch, and a killed worker is restarted from the last checkpoint by Ray Train with a clean metric
+series."""
 
 import os
 import signal
@@ -16,7 +17,12 @@ from workers.sinks import read_metrics
 
 pytestmark = pytest.mark.slow
 
-DETERMINISTIC = {"perturb": False, "network.density_noise": 0.0, "balance_weight": 0.0, "main_steps": 1}
+DETERMINISTIC = {
+    "perturb": False,
+    "network.density_noise": 0.0,
+    "balance_weight": 0.0,
+    "main_steps": 1,
+}
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -32,12 +38,22 @@ def final_parameters(run_dir):
     return torch.load(run_dir / "final" / "models.pt", weights_only=False)["models"]
 
 
-def test_two_workers_on_halves_equal_one_worker_on_the_whole_batch(tiny_scene, tmp_path, monkeypatch):
-    """Per-ray losses average exactly over equal shares. (Batch-statistic losses, the balance loss and
-    Eq. 1/2, are computed per rank on its share, as in Switch-NeRF's data parallel: off here.) The two-worker
-    run is given relative paths, as a user types them: Ray's workers run in folders of their own."""
-    one = TrainConfig(method="switch", profile="smoke", overrides={**DETERMINISTIC, "rays_per_device": 128})
-    two = TrainConfig(method="switch", profile="smoke", workers=2, overrides={**DETERMINISTIC, "rays_per_device": 64})
+def test_two_workers_on_halves_equal_one_worker_on_the_whole_batch(
+    tiny_scene, tmp_path, monkeypatch
+):
+    """Per-ray losses average exactly over equal shares. (Batch-statistic losses, the balance loss
+    and Eq. 1/2, are computed per rank on its share, as in Switch-NeRF's data parallel: off here.)
+    The two-worker run is given relative paths, as a user types them: Ray's workers run in folders
+    of their own."""
+    one = TrainConfig(
+        method="switch", profile="smoke", overrides={**DETERMINISTIC, "rays_per_device": 128}
+    )
+    two = TrainConfig(
+        method="switch",
+        profile="smoke",
+        workers=2,
+        overrides={**DETERMINISTIC, "rays_per_device": 64},
+    )
     assert one.global_batch == two.global_batch == 128
     run_training(one, tiny_scene.root, tmp_path / "one")
     monkeypatch.chdir(tmp_path)
@@ -45,7 +61,9 @@ def test_two_workers_on_halves_equal_one_worker_on_the_whole_batch(tiny_scene, t
     initial = TrainConfig(method="switch", profile="smoke", overrides={**DETERMINISTIC})
     from workers.models import build_models
 
-    start = build_models(initial.method_for_run(), tiny_scene.num_images, tiny_scene.bounds.aabb, 0).state_dict()
+    start = build_models(
+        initial.method_for_run(), tiny_scene.num_images, tiny_scene.bounds.aabb, 0
+    ).state_dict()
     a, b = final_parameters(tmp_path / "one"), final_parameters(tmp_path / "two")
     moved = 0
     for name in a:
@@ -55,8 +73,14 @@ def test_two_workers_on_halves_equal_one_worker_on_the_whole_batch(tiny_scene, t
 
 
 def test_killed_worker_restarts_from_the_last_checkpoint(tiny_scene, tmp_path):
-    cfg = TrainConfig(method="switch", profile="smoke", workers=2, checkpoint_every=50, metrics_every=10,
-                      overrides={"main_steps": 300})
+    cfg = TrainConfig(
+        method="switch",
+        profile="smoke",
+        workers=2,
+        checkpoint_every=50,
+        metrics_every=10,
+        overrides={"main_steps": 300},
+    )
     out = tmp_path / "run"
     killed = {}
 

@@ -15,9 +15,14 @@ def small_views(n=3, w=8, h=6, seed=0):
     images = [torch.randint(0, 256, (h, w, 3), generator=g, dtype=torch.uint8) for _ in range(n)]
     c2w = torch.zeros(n, 3, 4)
     c2w[:, :, :3] = torch.eye(3)
-    c2w[:, :, 3] = torch.tensor([[0.0, 0.0, 3.0 + i] for i in range(n)])  # narrow views down -z into the box
-    cams = make_cameras(torch.tensor([[4 * w, 4 * w, w / 2, h / 2]] * n, dtype=torch.float32), c2w,
-                        torch.full((n,), w), torch.full((n,), h))
+    # narrow views down -z into the box
+    c2w[:, :, 3] = torch.tensor([[0.0, 0.0, 3.0 + i] for i in range(n)])
+    cams = make_cameras(
+        torch.tensor([[4 * w, 4 * w, w / 2, h / 2]] * n, dtype=torch.float32),
+        c2w,
+        torch.full((n,), w),
+        torch.full((n,), h),
+    )
     return Views([f"{i}" for i in range(n)], images, cams, torch.arange(n) + 10)
 
 
@@ -95,6 +100,7 @@ def test_ray_aabb_cases():
     origins = torch.tensor([[0.0, 0.0, 5.0], [0.0, 0.0, 0.0], [3.0, 3.0, 5.0], [0.5, -5.0, 0.5]])
     dirs = torch.tensor([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
     near, far = ray_aabb(origins, dirs, AABB)
-    assert near.tolist() == [4.0, 0.0, 0.0, 4.0]  # outside, inside (starts at 0), miss, axis-parallel
+    # outside, inside (starts at 0), miss, axis-parallel
+    assert near.tolist() == [4.0, 0.0, 0.0, 4.0]
     assert far.tolist() == [6.0, 1.0, 0.0, 6.0]
     assert torch.isfinite(near).all() and torch.isfinite(far).all()

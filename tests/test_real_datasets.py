@@ -8,7 +8,8 @@ import torch
 from model.scenes import load_scene, pixel_rays
 from model.scenes.formats.points import read_colmap_points
 
-LEGO_FOCAL_200 = 0.5 * 200 / math.tan(0.5 * 0.6911112070083618)  # camera_angle_x of the lego release
+# camera_angle_x of the lego release
+LEGO_FOCAL_200 = 0.5 * 200 / math.tan(0.5 * 0.6911112070083618)
 FERN_FOCAL_8 = 3260.526333 / 8
 
 
@@ -39,7 +40,9 @@ def test_lego_downscale_scales_intrinsics(lego_dir):
     cams = small.train.cameras
     assert small.train.images[0].shape == (100, 100, 3)
     assert cams.width[0] == 100 and cams.height[0] == 100
-    assert cams.intrinsics[0].tolist() == pytest.approx([LEGO_FOCAL_200 / 2, LEGO_FOCAL_200 / 2, 50.0, 50.0], abs=1e-3)
+    assert cams.intrinsics[0].tolist() == pytest.approx(
+        [LEGO_FOCAL_200 / 2, LEGO_FOCAL_200 / 2, 50.0, 50.0], abs=1e-3
+    )
 
 
 def test_lego_cameras_look_at_the_origin(lego):
@@ -49,11 +52,14 @@ def test_lego_cameras_look_at_the_origin(lego):
         cams = views.cameras
         n = len(cams)
         # The pixel whose centre is the principal point.
-        o, d = pixel_rays(cams, torch.arange(n), cams.intrinsics[:, 2] - 0.5, cams.intrinsics[:, 3] - 0.5)
+        o, d = pixel_rays(
+            cams, torch.arange(n), cams.intrinsics[:, 2] - 0.5, cams.intrinsics[:, 3] - 0.5
+        )
         assert torch.allclose(d, cams.forward, atol=1e-6)
         to_target = target - o
         miss = torch.linalg.cross(to_target, d).norm(dim=-1) / to_target.norm(dim=-1)
-        assert miss.max() < 1e-3  # sine of the angle between the axis and the direction to the origin
+        # sine of the angle between the axis and the direction to the origin
+        assert miss.max() < 1e-3
 
 
 def test_lego_background_composited_white(lego, lego_dir):
@@ -65,12 +71,16 @@ def test_lego_background_composited_white(lego, lego_dir):
 def test_lego_bounds_hold_the_model(lego):
     """Camera-only bounds: the axes converge on the origin; the box must hold the lego model
     (roughly |x|,|y| <= 1.2, z in [-0.4, 1.1] in source units) and exclude the cameras."""
-    aabb_source = lego.bounds.aabb.double() * lego.normalization.scale + lego.normalization.origin.double()
+    aabb_source = (
+        lego.bounds.aabb.double() * lego.normalization.scale + lego.normalization.origin.double()
+    )
     assert lego.bounds.source == "camera_axes"
     assert (aabb_source[0] <= torch.tensor([-1.2, -1.2, -0.4], dtype=torch.float64)).all()
     assert (aabb_source[1] >= torch.tensor([1.2, 1.2, 1.1], dtype=torch.float64)).all()
-    inside = ((lego.train.cameras.centers >= lego.bounds.aabb[0])
-              & (lego.train.cameras.centers <= lego.bounds.aabb[1])).all(-1)
+    inside = (
+        (lego.train.cameras.centers >= lego.bounds.aabb[0])
+        & (lego.train.cameras.centers <= lego.bounds.aabb[1])
+    ).all(-1)
     assert not inside.any()
 
 
@@ -78,7 +88,8 @@ def test_fern_cameras_and_intrinsics(fern, fern_dir):
     assert fern.format == "llff" and fern.downscale == 8
     from model.scenes.info import describe
 
-    assert describe(fern)["image_folder_factors"] == [8]  # what the API checks a job's downscale against
+    # what the API checks a job's downscale against
+    assert describe(fern)["image_folder_factors"] == [8]
     assert {k: len(v) for k, v in fern.splits.items()} == {"train": 17, "val": 3}
     assert fern.splits["val"].names == ["image000", "image008", "image016"]
     cams = fern.train.cameras
@@ -92,7 +103,9 @@ def test_fern_cameras_and_intrinsics(fern, fern_dir):
 def test_fern_pose_convention_matches_sparse_points(fern, fern_dir):
     """COLMAP points lie in front of every camera, project inside its image, at LLFF's depth bounds:
     a wrong axis conversion puts them behind the camera or off the image."""
-    points = fern.normalization.to_world(read_colmap_points(fern_dir / "sparse/0/points3D.bin")).float()
+    points = fern.normalization.to_world(
+        read_colmap_points(fern_dir / "sparse/0/points3D.bin")
+    ).float()
     cams = fern.train.cameras
     for c in range(len(cams)):
         rel = points - cams.centers[c]
@@ -102,7 +115,9 @@ def test_fern_pose_convention_matches_sparse_points(fern, fern_dir):
         fx, fy, cx, cy = cams.intrinsics[c].tolist()
         u, v = fx * x / depth + cx, -fy * y / depth + cy
         visible = (depth > 0) & (u >= 0) & (u < 504) & (v >= 0) & (v < 378)
-        assert visible.float().mean() > 0.9, f"camera {c}: only {visible.float().mean():.2f} of points visible"
+        assert visible.float().mean() > 0.9, (
+            f"camera {c}: only {visible.float().mean():.2f} of points visible"
+        )
     # Up alignment: the mean camera up vector is +z.
     up = cams.c2w[:, :, 1].mean(0)
     assert up[2] / up.norm() > 0.999

@@ -4,7 +4,13 @@ import pytest
 import torch
 
 from model.rendering import composite_batched, composite_packed, packed_weights
-from model.samplers import guided_samples, inverse_cdf_edges, merge_edges, pack_edges, stratified_edges
+from model.samplers import (
+    guided_samples,
+    inverse_cdf_edges,
+    merge_edges,
+    pack_edges,
+    stratified_edges,
+)
 
 HARD_SIGMAS = [0.0, 1e-8, 1.0, 1e6]
 
@@ -26,23 +32,39 @@ def test_packed_equals_batched_and_is_bounded():
     r, n = sigma.shape
     bg = torch.tensor([0.2, 0.4, 0.6])
     batched = composite_batched(sigma, rgb, t_mid, deltas, bg)
-    packed = composite_packed(sigma.reshape(-1), rgb.reshape(-1, 3), t_mid.reshape(-1), deltas.reshape(-1),
-                              torch.arange(r).repeat_interleave(n), r, bg)
+    packed = composite_packed(
+        sigma.reshape(-1),
+        rgb.reshape(-1, 3),
+        t_mid.reshape(-1),
+        deltas.reshape(-1),
+        torch.arange(r).repeat_interleave(n),
+        r,
+        bg,
+    )
     assert torch.allclose(packed.rgb, batched.rgb, atol=1e-6)
     assert torch.allclose(packed.weights.reshape(r, n), batched.weights, atol=1e-7)
     for out in (packed, batched):
         assert torch.isfinite(out.rgb).all() and torch.isfinite(out.depth).all()
         assert (out.weights >= 0).all() and (out.weights <= 1).all()
         assert (out.opacity <= 1 + 1e-6).all()
-    assert batched.opacity[1] == 0 and torch.allclose(batched.rgb[1], bg)  # zero-length samples: background
+    # zero-length samples: background
+    assert batched.opacity[1] == 0 and torch.allclose(batched.rgb[1], bg)
 
 
 def test_ray_with_no_samples_renders_the_background():
     sigma = torch.tensor([5.0, 5.0])
-    out = composite_packed(sigma, torch.ones(2, 3), torch.tensor([1.0, 2.0]), torch.tensor([0.1, 0.1]),
-                           torch.tensor([0, 0]), 3, torch.tensor([[0.0, 0.0, 0.0], [0.3, 0.3, 0.3], [0.9, 0.1, 0.1]]))
-    assert (torch.allclose(out.rgb[1], torch.tensor([0.3, 0.3, 0.3]))
-            and torch.allclose(out.rgb[2], torch.tensor([0.9, 0.1, 0.1])))
+    out = composite_packed(
+        sigma,
+        torch.ones(2, 3),
+        torch.tensor([1.0, 2.0]),
+        torch.tensor([0.1, 0.1]),
+        torch.tensor([0, 0]),
+        3,
+        torch.tensor([[0.0, 0.0, 0.0], [0.3, 0.3, 0.3], [0.9, 0.1, 0.1]]),
+    )
+    assert torch.allclose(out.rgb[1], torch.tensor([0.3, 0.3, 0.3])) and torch.allclose(
+        out.rgb[2], torch.tensor([0.9, 0.1, 0.1])
+    )
     assert out.opacity[1:].tolist() == [0.0, 0.0] and out.transmittance[1:].tolist() == [1.0, 1.0]
 
 
@@ -56,14 +78,20 @@ def test_gradients_finite_on_hard_cases():
 
 
 def test_opaque_first_sample_takes_all_weight():
-    w, remaining = packed_weights(torch.tensor([1e6, 1.0, 1.0]), torch.tensor([1e10, 1.0, 1.0]),
-                                  torch.zeros(3, dtype=torch.long), 1)
+    w, remaining = packed_weights(
+        torch.tensor([1e6, 1.0, 1.0]),
+        torch.tensor([1e10, 1.0, 1.0]),
+        torch.zeros(3, dtype=torch.long),
+        1,
+    )
     assert w.tolist() == pytest.approx([1.0, 0.0, 0.0]) and remaining.item() == 0.0
 
 
 def test_bf16_inputs_render_finite():
     sigma, deltas, rgb, t_mid = random_rays(seed=4)
-    out = composite_batched(sigma.bfloat16(), rgb.bfloat16(), t_mid.bfloat16(), deltas.bfloat16(), torch.zeros(3))
+    out = composite_batched(
+        sigma.bfloat16(), rgb.bfloat16(), t_mid.bfloat16(), deltas.bfloat16(), torch.zeros(3)
+    )
     assert torch.isfinite(out.rgb.float()).all() and (out.weights.float().sum(-1) <= 1.01).all()
 
 
@@ -81,20 +109,37 @@ def test_stratified_and_inverse_cdf():
     merged = merge_edges(edges, fine)
     assert merged.shape == (2, 16 + 1 + 64) and (merged.diff(dim=-1) >= 0).all()
     packed = pack_edges(merged)
-    assert len(packed) == 2 * 80 and torch.equal(packed.ray_index[:80], torch.zeros(80, dtype=torch.long))
+    assert len(packed) == 2 * 80 and torch.equal(
+        packed.ray_index[:80], torch.zeros(80, dtype=torch.long)
+    )
 
 
 def test_guided_sampler_drops_empty_bins_and_splits_kept_ones():
     origins = torch.zeros(3, 3)
     dirs = torch.tensor([[1.0, 0.0, 0.0]] * 3)
-    near, far = torch.tensor([0.0, 0.0, 0.0]), torch.tensor([8.0, 8.0, 0.0])  # the third ray misses the box
+    # the third ray misses the box
+    near, far = torch.tensor([0.0, 0.0, 0.0]), torch.tensor([8.0, 8.0, 0.0])
     occupied = lambda p: (p[:, 0] > 2.0) & (p[:, 0] < 4.0)  # a slab occupying [2, 4]
-    samples, ratio = guided_samples(near, far, origins, dirs, occupied, num_coarse=8, split=4,
-                                    generator=torch.Generator().manual_seed(0))
-    # Coarse bins of width 1: midpoints 2.5 and 3.5 are occupied on rays 0 and 1 -> 2 bins x 4 sub-samples each.
+    samples, ratio = guided_samples(
+        near,
+        far,
+        origins,
+        dirs,
+        occupied,
+        num_coarse=8,
+        split=4,
+        generator=torch.Generator().manual_seed(0),
+    )
+    # Coarse bins of width 1: midpoints 2.5 and 3.5 are occupied on rays 0 and 1 -> 2 bins x 4
+    # sub-samples each.
     assert samples.ray_index.tolist() == [0] * 8 + [1] * 8
-    assert (samples.starts >= 2.0).all() and (samples.ends <= 4.0).all() and (samples.deltas >= 0).all()
-    assert ratio.item() == pytest.approx(4 / 16)  # over the two hit rays' bins: the third has none to keep
+    assert (
+        (samples.starts >= 2.0).all()
+        and (samples.ends <= 4.0).all()
+        and (samples.deltas >= 0).all()
+    )
+    # over the two hit rays' bins: the third has none to keep
+    assert ratio.item() == pytest.approx(4 / 16)
     assert torch.allclose(samples.deltas.reshape(2, 8).sum(-1), torch.tensor([2.0, 2.0]))
 
 
@@ -110,11 +155,21 @@ def test_background_samples_and_compositing():
     field = BackgroundField(num_images=2, width=16, layers=2)
     origins, dirs = torch.zeros(3, 3), torch.tensor([[0.0, 0.0, 1.0]] * 3)
     xyz = origins[:, None] + dirs[:, None] * t[..., None]
-    sigma, rgb = field(xyz.reshape(-1, 3), dirs.repeat_interleave(16, 0), torch.zeros(48, dtype=torch.long))
+    sigma, rgb = field(
+        xyz.reshape(-1, 3), dirs.repeat_interleave(16, 0), torch.zeros(48, dtype=torch.long)
+    )
     bg = composite_batched(sigma.reshape(3, 16), rgb.reshape(3, 16, 3), t, deltas, torch.zeros(3))
-    assert torch.allclose(bg.opacity, torch.ones(3), atol=1e-5)  # the opaque last sample covers the sky
+    # the opaque last sample covers the sky
+    assert torch.allclose(bg.opacity, torch.ones(3), atol=1e-5)
     # Foreground with no density shows the background exactly; an opaque one hides it.
-    clear = composite_batched(torch.zeros(3, 4), torch.ones(3, 4, 3), torch.ones(3, 4), torch.full((3, 4), 0.1), bg.rgb)
-    opaque = composite_batched(torch.full((3, 4), 1e6), torch.ones(3, 4, 3), torch.ones(3, 4), torch.full((3, 4), 0.1),
-                               bg.rgb)
+    clear = composite_batched(
+        torch.zeros(3, 4), torch.ones(3, 4, 3), torch.ones(3, 4), torch.full((3, 4), 0.1), bg.rgb
+    )
+    opaque = composite_batched(
+        torch.full((3, 4), 1e6),
+        torch.ones(3, 4, 3),
+        torch.ones(3, 4),
+        torch.full((3, 4), 0.1),
+        bg.rgb,
+    )
     assert torch.allclose(clear.rgb, bg.rgb) and torch.allclose(opaque.rgb, torch.ones(3, 3))

@@ -1,6 +1,7 @@
 """The scale scene built small: views are crops of shared renders, and a crop is an exact image of
-its camera (the principal point shifted by its offset), so crops of one render agree pixel for pixel. Loading
-it reads headers only; its pixels reach a run through the store, one image decoded at a time."""
+its camera (the principal point shifted by its offset), so crops of one render agree pixel for
+pixel. Loading it reads headers only; its pixels reach a run through the store, one image decoded at
+a time."""
 
 from dataclasses import replace
 
@@ -14,7 +15,9 @@ from model.scenes.rays import PixelTable
 from model.scenes.synthetic import PRESETS, generate
 from model.scenes.synthetic.writer import crop_offsets
 
-SMALL_XL = replace(PRESETS["xl"], blocks=2, views=24, width=48, height=36, crops_per_render=6, val_every=8)
+SMALL_XL = replace(
+    PRESETS["xl"], blocks=2, views=24, width=48, height=36, crops_per_render=6, val_every=8
+)
 
 
 @pytest.fixture(scope="module")
@@ -35,13 +38,16 @@ def test_crops_of_one_render_are_exact_views_of_their_cameras(small_xl):
     assert not (out / "gt" / "depth").exists()  # the preset writes no depth maps
     scene = load_scene(out)
     assert scene.bounds.source == "camera_axes" and isinstance(scene.train.images, LazyFrames)
-    views = {name: (split, i) for split in scene.splits.values() for i, name in enumerate(split.names)}
+    views = {
+        name: (split, i) for split in scene.splits.values() for i, name in enumerate(split.names)
+    }
     offsets = crop_offsets(SMALL_XL, 5, 4)
     assert len({tuple(o) for o in offsets.reshape(-1, 2).tolist()}) > 12  # the crops really differ
     for render in range(4):
         first, second = (views[f"{render * 6 + k:06d}"] for k in (0, 1))
         (dx0, dy0), (dx1, dy1) = offsets[render, 0], offsets[render, 1]
-        # Pixel (u, v) of crop 0 is pixel (u + dx0 - dx1, v + dy0 - dy1) of crop 1, where both hold it.
+        # Pixel (u, v) of crop 0 is pixel (u + dx0 - dx1, v + dy0 - dy1) of crop 1, where both hold
+        # it.
         a, b = first[0].image(first[1]), second[0].image(second[1])
         u0, v0 = max(0, dx1 - dx0), max(0, dy1 - dy0)
         u1, v1 = min(48, 48 + dx1 - dx0), min(36, 36 + dy1 - dy0)
@@ -52,17 +58,23 @@ def test_crops_of_one_render_are_exact_views_of_their_cameras(small_xl):
         # ... and the two cameras cast the same ray through those pixels.
         cams_a, cams_b = first[0].cameras, second[0].cameras
         assert torch.equal(cams_a.c2w[first[1]], cams_b.c2w[second[1]])
-        assert torch.allclose(cams_a.intrinsics[first[1], 2:] + torch.tensor([dx0, dy0], dtype=torch.float32),
-                              cams_b.intrinsics[second[1], 2:] + torch.tensor([dx1, dy1], dtype=torch.float32))
+        assert torch.allclose(
+            cams_a.intrinsics[first[1], 2:] + torch.tensor([dx0, dy0], dtype=torch.float32),
+            cams_b.intrinsics[second[1], 2:] + torch.tensor([dx1, dy1], dtype=torch.float32),
+        )
 
 
-def test_loading_decodes_nothing_and_the_store_decodes_each_image_once(small_xl, tmp_path, monkeypatch):
+def test_loading_decodes_nothing_and_the_store_decodes_each_image_once(
+    small_xl, tmp_path, monkeypatch
+):
     out, _ = small_xl
     decoded = []
     import model.scenes.images as images
 
     real = images.read_image
-    monkeypatch.setattr(images, "read_image", lambda path, **kw: decoded.append(path.name) or real(path, **kw))
+    monkeypatch.setattr(
+        images, "read_image", lambda path, **kw: decoded.append(path.name) or real(path, **kw)
+    )
     scene = load_scene(out)
     assert decoded == []  # headers only
     views = scene.train

@@ -1,7 +1,8 @@
-"""Property tests of the scene readers: mutated scene files of every metadata format (types swapped, fields
-removed, non-finite and extreme numbers, odd shapes, degenerate geometry) either load into a scene whose numbers
-are finite and whose box has volume, or are refused with a SceneError. Never another exception: in the service
-that would be a 500, or a worker failing after the upload was accepted."""
+"""Property tests of the scene readers: mutated scene files of every metadata format (types swapped,
+fields removed, non-finite and extreme numbers, odd shapes, degenerate geometry) either load into a
+scene whose numbers are finite and whose box has volume, or are refused with a SceneError. Never
+another exception: in the service that would be a 500, or a worker failing after the upload was
+accepted."""
 
 import json
 import math
@@ -16,8 +17,12 @@ from PIL import Image
 from model.scenes import SceneError, load_scene
 from tests.test_bad_input import look_at_drb
 
-SETTINGS = settings(max_examples=40, deadline=None, derandomize=True,
-                    suppress_health_check=[HealthCheck.function_scoped_fixture])
+SETTINGS = settings(
+    max_examples=40,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
 W, H, FOCAL = 16, 12, 20.0
 
 hostile_numbers = st.one_of(
@@ -26,8 +31,12 @@ hostile_numbers = st.one_of(
     st.integers(min_value=-(10**40), max_value=10**40),
 )
 hostile_json = st.one_of(
-    hostile_numbers, st.none(), st.booleans(), st.text(max_size=8),
-    st.lists(hostile_numbers, max_size=5), st.dictionaries(st.text(max_size=3), st.integers(), max_size=2),
+    hostile_numbers,
+    st.none(),
+    st.booleans(),
+    st.text(max_size=8),
+    st.lists(hostile_numbers, max_size=5),
+    st.dictionaries(st.text(max_size=3), st.integers(), max_size=2),
 )
 
 
@@ -42,7 +51,10 @@ def accepted_scene_is_sane(root) -> None:
     assert torch.isfinite(scene.bounds.aabb).all()
     assert bool(((scene.bounds.aabb[1] - scene.bounds.aabb[0]) > 0).all())
     for views in scene.splits.values():
-        assert torch.isfinite(views.cameras.c2w).all() and torch.isfinite(views.cameras.intrinsics).all()
+        assert (
+            torch.isfinite(views.cameras.c2w).all()
+            and torch.isfinite(views.cameras.intrinsics).all()
+        )
         assert torch.isfinite(views.cameras.distortion).all()
 
 
@@ -52,7 +64,9 @@ def tiny_images(folder, names):
         Image.new("RGB", (W, H), (30 * i, 90, 120)).save(folder / name)
 
 
-# --- nerfstudio ----------------------------------------------------------------------------------------------
+# --- nerfstudio
+# -------------------------------------------------------------------------------------------------
+
 
 def opengl_look_at(position):
     p = torch.tensor(position)
@@ -60,7 +74,9 @@ def opengl_look_at(position):
     right = torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0]), back)
     right = right / right.norm()
     up = torch.linalg.cross(back, right)
-    return torch.cat([torch.stack([right, up, back, p], dim=1), torch.tensor([[0.0, 0, 0, 1]])]).tolist()
+    return torch.cat(
+        [torch.stack([right, up, back, p], dim=1), torch.tensor([[0.0, 0, 0, 1]])]
+    ).tolist()
 
 
 @pytest.fixture
@@ -69,24 +85,66 @@ def nerfstudio_root(tmp_path):
     names = [f"f{i}.png" for i in range(5)]
     tiny_images(root / "images", names)
     positions = [[3 * math.cos(a), 3 * math.sin(a), 1.5] for a in np.linspace(0, 2, len(names))]
-    frames = [{"file_path": f"images/{n}", "transform_matrix": opengl_look_at(p)} for n, p in zip(names, positions)]
-    data = {"camera_model": "OPENCV", "fl_x": FOCAL, "fl_y": FOCAL, "cx": W / 2, "cy": H / 2, "w": W, "h": H,
-            "k1": 0.0, "frames": frames, "train_filenames": [f"images/{n}" for n in names[1:]],
-            "val_filenames": [f"images/{names[0]}"]}
+    frames = [
+        {"file_path": f"images/{n}", "transform_matrix": opengl_look_at(p)}
+        for n, p in zip(names, positions)
+    ]
+    data = {
+        "camera_model": "OPENCV",
+        "fl_x": FOCAL,
+        "fl_y": FOCAL,
+        "cx": W / 2,
+        "cy": H / 2,
+        "w": W,
+        "h": H,
+        "k1": 0.0,
+        "frames": frames,
+        "train_filenames": [f"images/{n}" for n in names[1:]],
+        "val_filenames": [f"images/{names[0]}"],
+    }
     (root / "transforms.json").write_text(json.dumps(data))
     return root, data
 
 
-NERFSTUDIO_FIELDS = ["fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "p1", "p2", "k3", "camera_model",
-                     "train_filenames", "val_filenames", "frames"]
+NERFSTUDIO_FIELDS = [
+    "fl_x",
+    "fl_y",
+    "cx",
+    "cy",
+    "w",
+    "h",
+    "k1",
+    "k2",
+    "p1",
+    "p2",
+    "k3",
+    "camera_model",
+    "train_filenames",
+    "val_filenames",
+    "frames",
+]
 
 
 @SETTINGS
-@given(mutations=st.lists(st.tuples(st.sampled_from(NERFSTUDIO_FIELDS + ["frame.fl_x", "frame.file_path",
-                                                                         "frame.transform_matrix", "matrix"]),
-                                    st.one_of(st.just("<deleted>"), hostile_json)), min_size=1, max_size=3),
-       frame=st.integers(0, 4), row=st.integers(0, 3), column=st.integers(0, 3))
-def test_mutated_nerfstudio_files_load_sanely_or_are_refused(nerfstudio_root, mutations, frame, row, column):
+@given(
+    mutations=st.lists(
+        st.tuples(
+            st.sampled_from(
+                NERFSTUDIO_FIELDS
+                + ["frame.fl_x", "frame.file_path", "frame.transform_matrix", "matrix"]
+            ),
+            st.one_of(st.just("<deleted>"), hostile_json),
+        ),
+        min_size=1,
+        max_size=3,
+    ),
+    frame=st.integers(0, 4),
+    row=st.integers(0, 3),
+    column=st.integers(0, 3),
+)
+def test_mutated_nerfstudio_files_load_sanely_or_are_refused(
+    nerfstudio_root, mutations, frame, row, column
+):
     root, good = nerfstudio_root
     data = json.loads(json.dumps(good))
     for where, value in mutations:
@@ -103,40 +161,68 @@ def test_mutated_nerfstudio_files_load_sanely_or_are_refused(nerfstudio_root, mu
     accepted_scene_is_sane(root)
 
 
-# --- Mega-NeRF -----------------------------------------------------------------------------------------------
+# --- Mega-NeRF
+# -------------------------------------------------------------------------------------------------
+
 
 @pytest.fixture
 def meganerf_root(tmp_path):
     root = tmp_path / "mega"
     root.mkdir()
-    torch.save({"origin_drb": torch.zeros(3, dtype=torch.float64), "pose_scale_factor": 10.0}, root / "coordinates.pt")
+    torch.save(
+        {"origin_drb": torch.zeros(3, dtype=torch.float64), "pose_scale_factor": 10.0},
+        root / "coordinates.pt",
+    )
     positions = ([-1.0, 0.5, 0.0], [-1.0, -0.5, 0.0], [-1.0, 0.0, 0.5])
     for i, split in enumerate(("train", "train", "val")):
         (root / split / "metadata").mkdir(parents=True, exist_ok=True)
         tiny_images(root / split / "rgbs", [f"{i:06d}.png"])
-        torch.save({"W": W, "H": H, "intrinsics": torch.tensor([FOCAL, FOCAL, W / 2, H / 2]),
-                    "c2w": look_at_drb(positions[i])}, root / split / "metadata" / f"{i:06d}.pt")
+        torch.save(
+            {
+                "W": W,
+                "H": H,
+                "intrinsics": torch.tensor([FOCAL, FOCAL, W / 2, H / 2]),
+                "c2w": look_at_drb(positions[i]),
+            },
+            root / split / "metadata" / f"{i:06d}.pt",
+        )
     return root
 
 
 hostile_tensors = st.one_of(
-    st.builds(lambda n, v: torch.full((n,), v), st.integers(0, 17), hostile_numbers.filter(
-        lambda v: isinstance(v, float) or abs(v) < 2**62)),
+    st.builds(
+        lambda n, v: torch.full((n,), v),
+        st.integers(0, 17),
+        hostile_numbers.filter(lambda v: isinstance(v, float) or abs(v) < 2**62),
+    ),
     st.builds(lambda a, b: torch.zeros(1).expand(a, b), st.integers(1, 5000), st.integers(1, 5000)),
-    st.sampled_from([torch.ones(4, dtype=torch.complex64), torch.ones(3, 4, dtype=torch.bool),
-                     torch.eye(4), torch.eye(4)[:3] * float("nan"), torch.ones(2, 2)]),
+    st.sampled_from(
+        [
+            torch.ones(4, dtype=torch.complex64),
+            torch.ones(3, 4, dtype=torch.bool),
+            torch.eye(4),
+            torch.eye(4)[:3] * float("nan"),
+            torch.ones(2, 2),
+        ]
+    ),
 )
 META_FIELDS = ["W", "H", "intrinsics", "c2w", "distortion"]
 
 
 @SETTINGS
-@given(field=st.sampled_from(META_FIELDS + ["origin_drb", "pose_scale_factor"]),
-       value=st.one_of(st.just("<deleted>"), hostile_json, hostile_tensors), view=st.integers(0, 2))
+@given(
+    field=st.sampled_from(META_FIELDS + ["origin_drb", "pose_scale_factor"]),
+    value=st.one_of(st.just("<deleted>"), hostile_json, hostile_tensors),
+    view=st.integers(0, 2),
+)
 def test_mutated_meganerf_files_load_sanely_or_are_refused(meganerf_root, field, value, view):
     root = meganerf_root
     split = "val" if view == 2 else "train"
-    path = root / "coordinates.pt" if field in ("origin_drb", "pose_scale_factor") else \
-        root / split / "metadata" / f"{view:06d}.pt"
+    path = (
+        root / "coordinates.pt"
+        if field in ("origin_drb", "pose_scale_factor")
+        else root / split / "metadata" / f"{view:06d}.pt"
+    )
     original = path.read_bytes()
     data = torch.load(path, weights_only=True)
     if value == "<deleted>":
@@ -150,7 +236,9 @@ def test_mutated_meganerf_files_load_sanely_or_are_refused(meganerf_root, field,
         path.write_bytes(original)
 
 
-# --- LLFF -----------------------------------------------------------------------------------------------------
+# --- LLFF
+# -------------------------------------------------------------------------------------------------
+
 
 @pytest.fixture
 def llff_root(tmp_path):
@@ -160,15 +248,20 @@ def llff_root(tmp_path):
     rows = []
     for x in np.linspace(-0.3, 0.3, len(names)):
         # LLFF's [down, right, back | t | h, w, f], looking along -back at the origin from z = 4
-        pose = np.array([[0, 1, 0, x, H], [-1, 0, 0, 0, W], [0, 0, 1, 4.0, FOCAL]], dtype=np.float64)
+        pose = np.array(
+            [[0, 1, 0, x, H], [-1, 0, 0, 0, W], [0, 0, 1, 4.0, FOCAL]], dtype=np.float64
+        )
         rows.append(np.concatenate([pose.reshape(-1), [2.0, 6.0]]))
     np.save(root / "poses_bounds.npy", np.stack(rows))
     return root
 
 
 @SETTINGS
-@given(row=st.integers(0, 3), column=st.integers(0, 16), value=hostile_numbers.filter(
-    lambda v: isinstance(v, float) or abs(v) < 1e300))
+@given(
+    row=st.integers(0, 3),
+    column=st.integers(0, 16),
+    value=hostile_numbers.filter(lambda v: isinstance(v, float) or abs(v) < 1e300),
+)
 def test_mutated_llff_poses_load_sanely_or_are_refused(llff_root, row, column, value):
     path = llff_root / "poses_bounds.npy"
     original = np.load(path)

@@ -1,5 +1,5 @@
-"""A dataset's small files cannot make a reader allocate what their headers claim, and a
-scene's images decode within a pixel budget. Each refusal is a SceneError naming the file and the limit,
+"""A dataset's small files cannot make a reader allocate what their headers claim, and a scene's
+images decode within a pixel budget. Each refusal is a SceneError naming the file and the limit,
 raised before the allocation."""
 
 import io
@@ -25,7 +25,9 @@ def npy_bytes(header: str) -> bytes:
 
 def test_an_array_header_claiming_gigabytes_is_refused_before_anything_is_read(tmp_path):
     path = tmp_path / "depth.npy"
-    path.write_bytes(npy_bytes("{'descr': '<f8', 'fortran_order': False, 'shape': (100000, 100000), }"))
+    path.write_bytes(
+        npy_bytes("{'descr': '<f8', 'fortran_order': False, 'shape': (100000, 100000), }")
+    )
     with pytest.raises(SceneError, match=r"would take 80,000,000,000 bytes; at most"):
         read_npy(path)
     with pytest.raises(SceneError, match=r"is \(100000, 100000\) but \(4, 5\) was expected"):
@@ -51,7 +53,9 @@ def test_well_formed_arrays_read_back_exactly_in_either_memory_order(tmp_path):
     for i, a in enumerate((array, np.asfortranarray(array))):
         np.save(tmp_path / f"{i}.npy", a)
         assert np.array_equal(read_npy(tmp_path / f"{i}.npy", shape=(2, 3, 4)), array)
-    np.savez_compressed(tmp_path / "grid.npz", occupied=np.ones((8, 8, 8), bool), world_from_grid=np.eye(4))
+    np.savez_compressed(
+        tmp_path / "grid.npz", occupied=np.ones((8, 8, 8), bool), world_from_grid=np.eye(4)
+    )
     arrays = read_npz(tmp_path / "grid.npz")
     assert arrays["occupied"].all() and np.array_equal(arrays["world_from_grid"], np.eye(4))
 
@@ -75,14 +79,23 @@ def test_an_npz_member_bomb_is_refused_by_its_declared_size(tmp_path):
 def test_a_colmap_point_file_cannot_claim_more_points_than_it_holds(tmp_path):
     path = tmp_path / "points3D.bin"
     path.write_bytes(struct.pack("<Q", 2**60) + b"\0" * 100)
-    with pytest.raises(SceneError, match="claims 1,152,921,504,606,846,976 points but holds 108 bytes"):
+    with pytest.raises(
+        SceneError, match="claims 1,152,921,504,606,846,976 points but holds 108 bytes"
+    ):
         read_colmap_points(path)
 
 
 def test_a_scene_decodes_within_its_pixel_budget(tiny_scene):
-    total = sum(image.shape[0] * image.shape[1] for views in tiny_scene.splits.values() for image in views.images)
+    total = sum(
+        image.shape[0] * image.shape[1]
+        for views in tiny_scene.splits.values()
+        for image in views.images
+    )
     with pixel_budget(total):
         load_scene(tiny_scene.root)  # exactly the budget: loads
-    with pixel_budget(total - 1), pytest.raises(SceneError, match=rf"budget of {total - 1:,} decoded pixels"):
+    with (
+        pixel_budget(total - 1),
+        pytest.raises(SceneError, match=rf"budget of {total - 1:,} decoded pixels"),
+    ):
         load_scene(tiny_scene.root)
     load_scene(tiny_scene.root)  # no budget outside the block

@@ -1,5 +1,5 @@
-"""The database layer on SQLite and PostgreSQL: migrations, schema check, the queue's transitions, and
-claims that never hand one job to two dispatchers."""
+"""The database layer on SQLite and PostgreSQL: migrations, schema check, the queue's transitions,
+and claims that never hand one job to two dispatchers."""
 
 import threading
 from datetime import timedelta
@@ -36,12 +36,15 @@ def add_scene(url, name="s", state="ready") -> int:
 
 def add_jobs(url, scene_id, n, method="leco") -> list[int]:
     with transaction(url) as session:
-        return [submit(session, TRAIN, scene_id, TrainConfig(method=method, profile="smoke")).id for _ in range(n)]
+        return [
+            submit(session, TRAIN, scene_id, TrainConfig(method=method, profile="smoke")).id
+            for _ in range(n)
+        ]
 
 
 def add_job_before_0005(url, scene_id) -> int:
-    """A training job written as a database before migration 0005 holds it (no kind, no parent): the models
-    describe the newest schema, so the row goes in through the reflected tables."""
+    """A training job written as a database before migration 0005 holds it (no kind, no parent): the
+    models describe the newest schema, so the row goes in through the reflected tables."""
     from sqlalchemy import MetaData, insert
 
     cfg = TrainConfig(method="leco", profile="smoke")
@@ -49,13 +52,33 @@ def add_job_before_0005(url, scene_id) -> int:
     with engine_for(url).begin() as connection:
         tables.reflect(connection, only=["jobs", "job_phases"])
         jobs, phases = tables.tables["jobs"], tables.tables["job_phases"]
-        job = connection.execute(insert(jobs).values(
-            scene_id=scene_id, state="queued", method="leco", profile="smoke", config=cfg.model_dump(mode="json"),
-            step=0, total_steps=40, attempts=0, cancel_requested=False,
-            submitted_at=utcnow().replace(tzinfo=None)).returning(jobs.c.id)).scalar_one()
+        job = connection.execute(
+            insert(jobs)
+            .values(
+                scene_id=scene_id,
+                state="queued",
+                method="leco",
+                profile="smoke",
+                config=cfg.model_dump(mode="json"),
+                step=0,
+                total_steps=40,
+                attempts=0,
+                cancel_requested=False,
+                submitted_at=utcnow().replace(tzinfo=None),
+            )
+            .returning(jobs.c.id)
+        ).scalar_one()
         for position, phase in enumerate(cfg.phases):
-            connection.execute(insert(phases).values(job_id=job, name=phase, position=position, state="queued",
-                                                     steps_total=cfg.phase_steps(phase), step=0))
+            connection.execute(
+                insert(phases).values(
+                    job_id=job,
+                    name=phase,
+                    position=position,
+                    state="queued",
+                    steps_total=cfg.phase_steps(phase),
+                    step=0,
+                )
+            )
     return job
 
 
@@ -65,26 +88,46 @@ def test_migrations_upgrade_an_empty_database_to_the_models(database_url):
     assert upgrade(database_url) == (None, head_revision())
     check_schema(database_url)
     with engine_for(database_url).connect() as connection:
-        assert compare_metadata(MigrationContext.configure(connection, opts={"compare_type": True}),
-                                Base.metadata) == []
+        assert (
+            compare_metadata(
+                MigrationContext.configure(connection, opts={"compare_type": True}), Base.metadata
+            )
+            == []
+        )
         tables = set(inspect(connection).get_table_names())
-    assert {"scenes", "jobs", "job_phases", "metrics", "artifacts", "idempotency_keys", "alembic_version"} <= tables
-    assert upgrade(database_url) == (head_revision(), head_revision())  # a second upgrade changes nothing
+    assert {
+        "scenes",
+        "jobs",
+        "job_phases",
+        "metrics",
+        "artifacts",
+        "idempotency_keys",
+        "alembic_version",
+    } <= tables
+    # a second upgrade changes nothing
+    assert upgrade(database_url) == (head_revision(), head_revision())
 
 
 def add_artifact(url, job_id, name="summary.json") -> int:
     with transaction(url) as session:
-        row = Artifact(job_id=job_id, kind="report", name=name, size=2, sha256="0" * 64,
-                       content_type="application/json")
+        row = Artifact(
+            job_id=job_id,
+            kind="report",
+            name=name,
+            size=2,
+            sha256="0" * 64,
+            content_type="application/json",
+        )
         session.add(row)
         session.flush()
         return row.id
 
 
 def test_ids_of_deleted_scenes_jobs_and_artifacts_are_never_given_out_again(database_url):
-    # Found by the stateful API fuzz: SQLite gave a new row the largest id + 1, so the job submitted after the
-    # newest one was deleted took its id, and a client or an idempotent replay holding that id was shown another
-    # job. Rows written before migration 0004 (which rebuilds SQLite's tables) keep their ids.
+    # Found by the stateful API fuzz: SQLite gave a new row the largest id + 1, so the job submitted
+    # after the newest one was deleted took its id, and a client or an idempotent replay holding
+    # that id was shown another job. Rows written before migration 0004 (which rebuilds SQLite's
+    # tables) keep their ids.
     from alembic import command
 
     command.upgrade(alembic_config(database_url), "0003")
@@ -93,8 +136,11 @@ def test_ids_of_deleted_scenes_jobs_and_artifacts_are_never_given_out_again(data
     artifact = add_artifact(database_url, job)
     upgrade(database_url)
     with transaction(database_url) as session:
-        assert session.get(Scene, scene).name == "before" and session.get(Job, job).scene_id == scene
-        assert session.get(Job, job).kind == "train" and session.get(Job, job).parent_id is None  # 0005's default
+        assert (
+            session.get(Scene, scene).name == "before" and session.get(Job, job).scene_id == scene
+        )
+        # 0005's default
+        assert session.get(Job, job).kind == "train" and session.get(Job, job).parent_id is None
         assert session.get(Artifact, artifact).job_id == job
         assert len(session.scalars(select(JobPhase).where(JobPhase.job_id == job)).all()) == 2
         session.delete(session.get(Job, job))  # the newest of each, phases and artifact with it
@@ -113,7 +159,8 @@ def test_server_refuses_an_out_of_date_schema(database_url, tmp_path):
     with pytest.raises(SchemaError, match="run `leco db upgrade`"):
         create_app(Settings(data_dir=tmp_path, database_url=database_url))
     upgrade(database_url)
-    with engine_for(database_url).begin() as connection:  # pretend the code moved on to a newer revision
+    # pretend the code moved on to a newer revision
+    with engine_for(database_url).begin() as connection:
         connection.exec_driver_sql("UPDATE alembic_version SET version_num = 'older'")
     assert current_revision(database_url) == "older"
     with pytest.raises(SchemaError, match="revision older, this code needs revision"):
@@ -149,7 +196,10 @@ def test_concurrent_claims_never_share_a_job(service_settings):
     with transaction(url) as session:
         rows = session.execute(select(Job.id, Job.state, Job.attempts, Job.lease_owner)).all()
     owners = {job: owner for owner, got in claimed.items() for job, _ in got}
-    assert all(state == "running" and attempts == 1 and owner == owners[i] for i, state, attempts, owner in rows)
+    assert all(
+        state == "running" and attempts == 1 and owner == owners[i]
+        for i, state, attempts, owner in rows
+    )
 
 
 def test_claim_waits_for_a_ready_scene_and_takes_the_oldest(service_settings):
@@ -203,13 +253,21 @@ def test_release_hands_a_running_job_back_only_for_the_attempt_holding_it(servic
     with transaction(url) as session:
         row = session.get(Job, job)
         phases = session.scalars(select(JobPhase.state).where(JobPhase.job_id == job)).all()
-    assert (row.state, row.attempts, row.lease_owner, row.error) == ("queued", 1, None, "dispatcher d1 stopped")
+    assert (row.state, row.attempts, row.lease_owner, row.error) == (
+        "queued",
+        1,
+        None,
+        "dispatcher d1 stopped",
+    )
     assert set(phases) == {"queued"}
-    assert not queue.heartbeat(url, job, 1, "d1", 60) and not queue.finish(url, job, 1, "failed", "late error")
+    assert not queue.heartbeat(url, job, 1, "d1", 60) and not queue.finish(
+        url, job, 1, "failed", "late error"
+    )
     assert queue.claim(url, "d2", 60) == (job, 2)  # the next claim resumes it
     assert queue.claim(url, "d2", 60) == (cancelled, 1)
     queue.cancel(url, cancelled)
-    assert not queue.release(url, cancelled, 1, "stopping")  # a cancel asked for is not undone by a restart
+    # a cancel asked for is not undone by a restart
+    assert not queue.release(url, cancelled, 1, "stopping")
 
 
 def test_cancel_queued_at_once_running_by_request_and_not_after_the_end(service_settings):
@@ -226,12 +284,18 @@ def test_cancel_queued_at_once_running_by_request_and_not_after_the_end(service_
     with transaction(url) as session:
         assert session.get(Job, running).cancel_requested
         assert session.get(Job, queued).finished_at is not None
-        assert set(session.scalars(select(JobPhase.state).where(JobPhase.job_id == queued))) == {"cancelled"}
-        assert set(session.scalars(select(JobPhase.state).where(JobPhase.job_id == done))) == {"succeeded"}
+        assert set(session.scalars(select(JobPhase.state).where(JobPhase.job_id == queued))) == {
+            "cancelled"
+        }
+        assert set(session.scalars(select(JobPhase.state).where(JobPhase.job_id == done))) == {
+            "succeeded"
+        }
     assert queue.claim(url, "d", 60) is None  # the cancelled job is never claimed
 
 
-def test_leco_serve_refuses_an_unmigrated_database_and_says_what_to_run(database_url, tmp_path, monkeypatch, capsys):
+def test_leco_serve_refuses_an_unmigrated_database_and_says_what_to_run(
+    database_url, tmp_path, monkeypatch, capsys
+):
     from cli.main import main
 
     monkeypatch.setenv("DATABASE_URL", database_url)
@@ -248,7 +312,9 @@ def test_scene_names_of_digits_alone_are_renamed_so_they_never_read_as_ids(datab
     from alembic import command
 
     command.upgrade(alembic_config(database_url), "0005")
-    plain, digits, clash, taken = (add_scene(database_url, n) for n in ("city", "46", "7", "scene-7"))
+    plain, digits, clash, taken = (
+        add_scene(database_url, n) for n in ("city", "46", "7", "scene-7")
+    )
     upgrade(database_url)
     with transaction(database_url) as session:
         names = {i: session.get(Scene, i).name for i in (plain, digits, clash, taken)}

@@ -1,6 +1,6 @@
-"""The whole job lifecycle on a local Ray (2 CPU workers), on SQLite and on PostgreSQL: a smoke job from
-submission to downloaded artifacts, a cancel while running, and a dispatcher killed mid-job whose lease
-expires and whose job resumes from its checkpoint and finishes once."""
+"""The whole job lifecycle on a local Ray (2 CPU workers), on SQLite and on PostgreSQL: a smoke job
+from submission to downloaded artifacts, a cancel while running, and a dispatcher killed mid-job
+whose lease expires and whose job resumes from its checkpoint and finishes once."""
 
 import hashlib
 import json
@@ -67,32 +67,54 @@ def wait_for(api, job_id, done, timeout=240):
 
 
 def steps_of(api, job_id, phase, name="loss"):
-    series = api.get(f"/v1/jobs/{job_id}/metrics", params={"phase": phase, "name": name}).json()["series"]
+    series = api.get(f"/v1/jobs/{job_id}/metrics", params={"phase": phase, "name": name}).json()[
+        "series"
+    ]
     return [p["step"] for p in series[0]["points"]] if series else []
 
 
 def test_a_smoke_job_runs_from_submission_to_artifacts(api, dispatcher):
     scene = ready_scene(api)
-    body = {"scene": scene, "method": "leco", "profile": "smoke", "workers": 2, "metrics_every": 5,
-            "checkpoint_every": 20, "val_every": 20}
+    body = {
+        "scene": scene,
+        "method": "leco",
+        "profile": "smoke",
+        "workers": 2,
+        "metrics_every": 5,
+        "checkpoint_every": 20,
+        "val_every": 20,
+    }
     job = api.post("/v1/jobs", json=body, headers={"Idempotency-Key": "life"}).json()
     dispatcher[1].start()
     job = wait_for(api, job["id"], lambda j: j["state"] in ("succeeded", "failed", "cancelled"))
     assert job["state"] == "succeeded", job["error"]
     assert job["attempts"] == 1 and job["step"] == 40 and job["percent"] == 100.0
-    assert [(p["name"], p["state"]) for p in job["phases"]] == [("occupancy", "succeeded"), ("main", "succeeded")]
+    assert [(p["name"], p["state"]) for p in job["phases"]] == [
+        ("occupancy", "succeeded"),
+        ("main", "succeeded"),
+    ]
     assert steps_of(api, job["id"], "occupancy") == [5, 10, 15, 20]
     assert steps_of(api, job["id"], "main") == [25, 30, 35, 40]
     assert 0 <= job["latest_metrics"]["occupancy"]["fraction_empty"] <= 1
     artifacts = api.get(f"/v1/jobs/{job['id']}/artifacts").json()
     kinds = {a["kind"] for a in artifacts}
     assert kinds == {"checkpoint", "render", "occupancy_model", "pointcloud", "report"}
-    assert len([a for a in artifacts if a["name"].startswith("checkpoint-")]) <= 2  # older ones pruned
+    # older ones pruned
+    assert len([a for a in artifacts if a["name"].startswith("checkpoint-")]) <= 2
     for artifact in artifacts:
         content = api.get(artifact["url"]).content
-        assert hashlib.sha256(content).hexdigest() == artifact["sha256"] and len(content) == artifact["size"]
-    summary = json.loads(api.get(next(a["url"] for a in artifacts if a["name"] == "summary.json")).content)
-    assert summary["method"] == "leco" and summary["world_size"] == 2 and summary["steps"]["total"] == 40
+        assert (
+            hashlib.sha256(content).hexdigest() == artifact["sha256"]
+            and len(content) == artifact["size"]
+        )
+    summary = json.loads(
+        api.get(next(a["url"] for a in artifacts if a["name"] == "summary.json")).content
+    )
+    assert (
+        summary["method"] == "leco"
+        and summary["world_size"] == 2
+        and summary["steps"]["total"] == 40
+    )
     occupancy = next(a for a in artifacts if a["kind"] == "occupancy_model")
     assert occupancy["name"] == "final/occupancy.pt" and occupancy["size"] > 1000
     # the replayed submit returns the same job; nothing new was queued
@@ -102,8 +124,15 @@ def test_a_smoke_job_runs_from_submission_to_artifacts(api, dispatcher):
 
 def test_cancel_while_running_stops_at_a_step_boundary_and_keeps_what_it_stored(api, dispatcher):
     scene = ready_scene(api)
-    body = {"scene": scene, "method": "switch", "profile": "smoke", "workers": 2, "metrics_every": 5,
-            "checkpoint_every": 1000, "overrides": {"main_steps": 5000}}
+    body = {
+        "scene": scene,
+        "method": "switch",
+        "profile": "smoke",
+        "workers": 2,
+        "metrics_every": 5,
+        "checkpoint_every": 1000,
+        "overrides": {"main_steps": 5000},
+    }
     job = api.post("/v1/jobs", json=body).json()
     dispatcher[1].start()
     wait_for(api, job["id"], lambda j: j["step"] >= 30)
@@ -120,20 +149,39 @@ def test_cancel_while_running_stops_at_a_step_boundary_and_keeps_what_it_stored(
 
 def test_a_killed_dispatcher_loses_its_lease_and_the_job_resumes_once(api, service_settings):
     scene = ready_scene(api)
-    body = {"scene": scene, "method": "switch", "profile": "smoke", "workers": 2, "metrics_every": 10,
-            "checkpoint_every": 50, "overrides": {"main_steps": 300}}
+    body = {
+        "scene": scene,
+        "method": "switch",
+        "profile": "smoke",
+        "workers": 2,
+        "metrics_every": 10,
+        "checkpoint_every": 50,
+        "overrides": {"main_steps": 300},
+    }
     job_id = api.post("/v1/jobs", json=body).json()["id"]
-    env = {**os.environ, "DATABASE_URL": service_settings.db_url, "LECO_DATA_DIR": str(service_settings.data_dir),
-           "LECO_LEASE_S": "4", "LECO_LOCAL_CPUS": "2", "RAY_ADDRESS": ""}
-    first = subprocess.Popen([sys.executable, "-m", "cli", "dispatch"], cwd=ROOT, env=env,
-                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    env = {
+        **os.environ,
+        "DATABASE_URL": service_settings.db_url,
+        "LECO_DATA_DIR": str(service_settings.data_dir),
+        "LECO_LEASE_S": "4",
+        "LECO_LOCAL_CPUS": "2",
+        "RAY_ADDRESS": "",
+    }
+    first = subprocess.Popen(
+        [sys.executable, "-m", "cli", "dispatch"],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     try:
         killed_at = wait_for(api, job_id, lambda j: j["step"] >= 70)["step"]
         os.kill(first.pid, signal.SIGKILL)  # the dispatcher, with its local Ray, dies mid-job
         first.wait(10)
     finally:
         try:  # Ray's agents of the dead dispatcher outlive it in its process group:
-              # clear them, as a container stop would
+            # clear them, as a container stop would
             os.killpg(first.pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
@@ -149,5 +197,7 @@ def test_a_killed_dispatcher_loses_its_lease_and_the_job_resumes_once(api, servi
     assert job["attempts"] == 2  # the expired lease put it back in the queue once
     steps = steps_of(api, job_id, "main")
     assert steps == list(range(10, 301, 10))  # no gap, no duplicate across the two attempts
-    summary = next(a for a in api.get(f"/v1/jobs/{job_id}/artifacts").json() if a["name"] == "summary.json")
+    summary = next(
+        a for a in api.get(f"/v1/jobs/{job_id}/artifacts").json() if a["name"] == "summary.json"
+    )
     assert json.loads(api.get(summary["url"]).content)["steps"]["total"] == 300

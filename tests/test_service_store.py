@@ -1,5 +1,5 @@
-"""The artifact store on SQLite and PostgreSQL: content-addressed bytes, verified reads, no row without its
-bytes and no bytes without a row, replacement, pruning and deletion."""
+"""The artifact store on SQLite and PostgreSQL: content-addressed bytes, verified reads, no row
+without its bytes and no bytes without a row, replacement, pruning and deletion."""
 
 import hashlib
 import os
@@ -30,7 +30,11 @@ def test_put_verify_replace_and_delete(store_and_job, tmp_path):
     data = b"checkpoint bytes" * 1000
     meta = store.put(job, "checkpoint", "a.pt", data, phase="main", step=10)
     sha = hashlib.sha256(data).hexdigest()
-    assert meta["sha256"] == sha and meta["size"] == len(data) and meta["content_type"] == "application/octet-stream"
+    assert (
+        meta["sha256"] == sha
+        and meta["size"] == len(data)
+        and meta["content_type"] == "application/octet-stream"
+    )
     assert store.verified_path(meta).read_bytes() == data
     assert store.blob_path(sha).relative_to(store.root).parts[:2] == (sha[:2], sha[2:4])
     # the same bytes under a second name share one blob; replacing a name frees its old blob
@@ -39,7 +43,8 @@ def test_put_verify_replace_and_delete(store_and_job, tmp_path):
     store.put(job, "checkpoint", "a.pt", b"newer", phase="main", step=20)
     assert len(blobs(store.root)) == 2
     store.put(job, "report", "b.json", b"{}")
-    assert hashlib.sha256(data).hexdigest() not in blobs(store.root)  # no row references it any more
+    # no row references it any more
+    assert hashlib.sha256(data).hexdigest() not in blobs(store.root)
     assert store.delete_job(job) == 2 and blobs(store.root) == []
     assert not list((store.root / "tmp").iterdir())
 
@@ -94,7 +99,8 @@ def test_prune_keeps_the_newest_checkpoints(store_and_job):
 
 def test_what_a_crash_leaves_behind_is_collected_and_nothing_else(store_and_job):
     """A staged file or a placed blob whose row never committed (a crash between the steps) is
-    removed by `collect_orphans` (`leco db gc`, and at start-up); stored artifacts and fresh staging stay."""
+    removed by `collect_orphans` (`leco db gc`, and at start-up); stored artifacts and fresh staging
+    stay."""
     import os
     import time
 

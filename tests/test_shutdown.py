@@ -1,7 +1,7 @@
-"""Ctrl-C on `leco serve` (the embedded default) in the middle of a job: the terminal sends SIGINT to the whole
-process group, so the local Ray dies under the run at the same moment. The job must go back to the queue with
-the reason, not be failed by the error Ray's death causes, and the next `leco serve` must resume it from its
-last checkpoint and finish it with every metric step once."""
+"""Ctrl-C on `leco serve` (the embedded default) in the middle of a job: the terminal sends SIGINT
+to the whole process group, so the local Ray dies under the run at the same moment. The job must go
+back to the queue with the reason, not be failed by the error Ray's death causes, and the next `leco
+serve` must resume it from its last checkpoint and finish it with every metric step once."""
 
 import os
 import signal
@@ -37,18 +37,29 @@ def test_ctrl_c_on_leco_serve_returns_the_job_to_the_queue_and_a_restart_finishe
     finally:
         stop(first)
     with sqlite3.connect(data / "leco.db") as db:
-        state, attempts, error = db.execute("SELECT state, attempts, error FROM jobs WHERE id = ?",
-                                            (job_id,)).fetchone()
-    assert (state, attempts) == ("queued", 1) and "its dispatcher" in error, (state, attempts, error)
+        state, attempts, error = db.execute(
+            "SELECT state, attempts, error FROM jobs WHERE id = ?", (job_id,)
+        ).fetchone()
+    assert (state, attempts) == ("queued", 1) and "its dispatcher" in error, (
+        state,
+        attempts,
+        error,
+    )
     log = (data / "serve.log").read_text()
-    assert "returned to the queue" in log and "Traceback" not in log.split("returned to the queue")[-1]
+    assert (
+        "returned to the queue" in log and "Traceback" not in log.split("returned to the queue")[-1]
+    )
 
     second = Service(data, None).__enter__()  # same data folder and database: the next `leco serve`
     try:
         with second.client() as api:
-            job = wait_for(api, job_id, lambda j: j["state"] in ("succeeded", "failed", "cancelled"))
+            job = wait_for(
+                api, job_id, lambda j: j["state"] in ("succeeded", "failed", "cancelled")
+            )
             assert job["state"] == "succeeded" and job["attempts"] == 2, job
-            series = api.get(f"/v1/jobs/{job_id}/metrics", params={"phase": "main", "name": "loss"}).json()["series"]
+            series = api.get(
+                f"/v1/jobs/{job_id}/metrics", params={"phase": "main", "name": "loss"}
+            ).json()["series"]
             steps = [p["step"] for p in series[0]["points"]]
             assert steps == list(range(steps[0], 421, 5)) and steps[0] <= 25  # no gap, no duplicate
     finally:

@@ -1,5 +1,6 @@
-"""The torch-free parameter counts (model/sizes.py) that the API's memory check uses equal the networks' own,
-built on PyTorch's meta device, for every profile and every setting that changes a network's shape."""
+"""The torch-free parameter counts (model/sizes.py) that the API's memory check uses equal the
+networks' own, built on PyTorch's meta device, for every profile and every setting that changes a
+network's shape."""
 
 import pytest
 import torch
@@ -11,11 +12,22 @@ from model.methods.costs import proposal_width
 from model.methods.leco import hmoe
 from workers.config import TrainConfig
 
-SHAPES = [{}, {"guided.placement": False, "guided.placement_fine": 0, "guided.placement_in_phase1": False},
-          {"occupancy.gate_width": 24, "occupancy.homogeneous": True}, {"occupancy.empty_expert_layers": 3},
-          {"network.width": 40, "network.num_experts": 3, "network.expert_layers": 2, "network.appearance_dim": 5,
-           "network.xyz_frequencies": 4, "network.dir_frequencies": 2, "background.width": 18,
-           "background.layers": 2}]
+SHAPES = [
+    {},
+    {"guided.placement": False, "guided.placement_fine": 0, "guided.placement_in_phase1": False},
+    {"occupancy.gate_width": 24, "occupancy.homogeneous": True},
+    {"occupancy.empty_expert_layers": 3},
+    {
+        "network.width": 40,
+        "network.num_experts": 3,
+        "network.expert_layers": 2,
+        "network.appearance_dim": 5,
+        "network.xyz_frequencies": 4,
+        "network.dir_frequencies": 2,
+        "background.width": 18,
+        "background.layers": 2,
+    },
+]
 
 
 @pytest.mark.parametrize("profile", ["smoke", "cpu", "paper"])
@@ -24,9 +36,19 @@ def test_sizes_count_what_the_networks_hold(profile, overrides):
     p = TrainConfig(method="leco", profile=profile, overrides=overrides).resolved_profile()
     with torch.device("meta"):
         occupancy = hmoe(p, 7)
-        built = {"switch_nerf": count(switch_nerf(p, 7)), "background": count(background(p, 7)),
-                 "hmoe": count(occupancy), "occupancy_network": count(occupancy.gate),
-                 "proposal": count(ProposalDensity(proposal_width(p), p.prop.layers, p.network.xyz_frequencies))}
-    assert {"switch_nerf": sizes.switch_nerf(p, 7), "background": sizes.background(p, 7), "hmoe": sizes.hmoe(p, 7),
-            "occupancy_network": sizes.occupancy_network(p),
-            "proposal": sizes.proposal(proposal_width(p), p.prop.layers, p.network.xyz_frequencies)} == built
+        built = {
+            "switch_nerf": count(switch_nerf(p, 7)),
+            "background": count(background(p, 7)),
+            "hmoe": count(occupancy),
+            "occupancy_network": count(occupancy.gate),
+            "proposal": count(
+                ProposalDensity(proposal_width(p), p.prop.layers, p.network.xyz_frequencies)
+            ),
+        }
+    assert {
+        "switch_nerf": sizes.switch_nerf(p, 7),
+        "background": sizes.background(p, 7),
+        "hmoe": sizes.hmoe(p, 7),
+        "occupancy_network": sizes.occupancy_network(p),
+        "proposal": sizes.proposal(proposal_width(p), p.prop.layers, p.network.xyz_frequencies),
+    } == built

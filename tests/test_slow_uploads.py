@@ -1,6 +1,6 @@
-"""Slow upload bodies, against a real uvicorn server: they hold a receiving slot until their deadline, never a
-place in the scene pool, so other registrations go on; past the receiving slots one more is answered 429; a
-body that stalls is answered 408 and its slot comes back."""
+"""Slow upload bodies, against a real uvicorn server: they hold a receiving slot until their
+deadline, never a place in the scene pool, so other registrations go on; past the receiving slots
+one more is answered 429; a body that stalls is answered 408 and its slot comes back."""
 
 import socket
 import time
@@ -18,9 +18,17 @@ TOKEN = "slow-token"
 
 @pytest.fixture
 def server(service_settings):
-    settings = Settings(**{**service_settings.model_dump(), "api_tokens": (TOKEN,), "scene_workers": 1,
-                           "scene_queue": 0, "upload_receivers": 3, "upload_receivers_per_client": 3,
-                           "upload_idle_s": 1.5})
+    settings = Settings(
+        **{
+            **service_settings.model_dump(),
+            "api_tokens": (TOKEN,),
+            "scene_workers": 1,
+            "scene_queue": 0,
+            "upload_receivers": 3,
+            "upload_receivers_per_client": 3,
+            "upload_idle_s": 1.5,
+        }
+    )
     app = create_app(settings)
     with uvicorn_in_thread(app, log_level="warning") as port:
         yield port, app
@@ -29,8 +37,12 @@ def server(service_settings):
 def slow_upload(port: int, name: str) -> socket.socket:
     """Headers and the body's first bytes of a 1 MB upload; the rest never comes."""
     sock = socket.create_connection(("127.0.0.1", port))
-    sock.sendall(f"POST /v1/scenes/upload?name={name} HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {TOKEN}\r\n"
-                 f"Content-Type: application/octet-stream\r\nContent-Length: 1000000\r\n\r\n".encode() + b"x" * 100)
+    sock.sendall(
+        f"POST /v1/scenes/upload?name={name} HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer "
+        f"{TOKEN}\r\nContent-Type: application/octet-stream\r\n"
+        "Content-Length: 1000000\r\n\r\n".encode()
+        + b"x" * 100
+    )
     return sock
 
 
@@ -54,9 +66,14 @@ def test_slow_uploads_hold_no_pool_place_and_are_cut_off_at_their_deadline(serve
     try:
         time.sleep(0.3)
         assert app.state.upload_slots.taken == 3
-        with httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {TOKEN}"},
-                          timeout=10) as client:
-            fourth = client.post("/v1/scenes/upload", params={"name": "fourth"}, content=b"y" * 1000)
+        with httpx.Client(
+            base_url=f"http://127.0.0.1:{port}",
+            headers={"Authorization": f"Bearer {TOKEN}"},
+            timeout=10,
+        ) as client:
+            fourth = client.post(
+                "/v1/scenes/upload", params={"name": "fourth"}, content=b"y" * 1000
+            )
             assert fourth.status_code == 429 and "uploads are being received" in fourth.text
             # The pool's one place is free while three bodies trickle in: a registration takes it.
             started = time.monotonic()
@@ -72,8 +89,15 @@ def test_slow_uploads_hold_no_pool_place_and_are_cut_off_at_their_deadline(serve
 
 
 def test_one_client_may_hold_only_so_many_receiving_slots(service_settings):
-    settings = Settings(**{**service_settings.model_dump(), "api_tokens": (TOKEN,), "upload_receivers": 3,
-                           "upload_receivers_per_client": 2, "upload_idle_s": 1.5})
+    settings = Settings(
+        **{
+            **service_settings.model_dump(),
+            "api_tokens": (TOKEN,),
+            "upload_receivers": 3,
+            "upload_receivers_per_client": 2,
+            "upload_idle_s": 1.5,
+        }
+    )
     app = create_app(settings)
     with uvicorn_in_thread(app, log_level="warning") as port:
         slow = [slow_upload(port, f"slow-{i}") for i in range(2)]
@@ -82,7 +106,9 @@ def test_one_client_may_hold_only_so_many_receiving_slots(service_settings):
             third = slow_upload(port, "third")
             assert status_of(third, timeout=5) == 429
             third.close()
-            assert app.state.upload_slots.taken == 2 and app.state.upload_slots.by_client == {"127.0.0.1": 2}
+            assert app.state.upload_slots.taken == 2 and app.state.upload_slots.by_client == {
+                "127.0.0.1": 2
+            }
         finally:
             for sock in slow:
                 sock.close()
@@ -118,11 +144,14 @@ def receive(chunks, gap_s: float, **limits):
             yield chunk
 
     into = io.BytesIO()
-    return asyncio.run(receive_body(body(), into, **{"max_bytes": 10_000, "idle_s": 0.3, "min_bytes_per_s": 0.0,
-                                                     **limits})), into.getvalue()
+    return asyncio.run(
+        receive_body(
+            body(), into, **{"max_bytes": 10_000, "idle_s": 0.3, "min_bytes_per_s": 0.0, **limits}
+        )
+    ), into.getvalue()
 
 
-def test_a_body_that_trickles_below_the_minimum_rate_is_refused_and_a_steady_one_is_received_whole():
+def test_a_trickling_body_is_refused_and_a_steady_one_is_received_whole():
     from fastapi import HTTPException
 
     assert receive([b"ab", b"cd", b"e"], gap_s=0.01) == (5, b"abcde")

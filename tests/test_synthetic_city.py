@@ -1,4 +1,5 @@
-"""The synthetic city generator: determinism, exact depth, occupancy, atomic writes, real-looking images."""
+"""The synthetic city generator: determinism, exact depth, occupancy, atomic writes, real-looking
+images."""
 
 import hashlib
 import json
@@ -20,8 +21,11 @@ SPLITS = ("train", "val")
 
 
 def digest(folder):
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
 
 
 @pytest.fixture(scope="module")
@@ -34,17 +38,25 @@ def tiny(tmp_path_factory):
 
 def views(out):
     """(split, name) of every view, in capture order."""
-    return sorted(((s, p.stem) for s in SPLITS for p in (out / s / "metadata").glob("*.pt")), key=lambda v: v[1])
+    return sorted(
+        ((s, p.stem) for s in SPLITS for p in (out / s / "metadata").glob("*.pt")),
+        key=lambda v: v[1],
+    )
 
 
 def pixel_rays(out, split, name):
-    """World (generator-frame, metres) rays of every pixel centre, rebuilt from the files only, as a loader
-    would: pixel -> camera direction -> c2w rotation (DRB) -> generator frame; position de-normalised."""
+    """World (generator-frame, metres) rays of every pixel centre, rebuilt from the files only, as a
+    loader would: pixel -> camera direction -> c2w rotation (DRB) -> generator frame; position
+    de-normalised."""
     coords = torch.load(out / "coordinates.pt", weights_only=True)
     meta = torch.load(out / split / "metadata" / f"{name}.pt", weights_only=True)
     fx, fy, cx, cy = meta["intrinsics"].double().tolist()
-    v, u = torch.meshgrid(torch.arange(meta["H"]).double(), torch.arange(meta["W"]).double(), indexing="ij")
-    d_cam = torch.stack([(u + 0.5 - cx) / fx, -(v + 0.5 - cy) / fy, -torch.ones_like(u)], -1).reshape(-1, 3)
+    v, u = torch.meshgrid(
+        torch.arange(meta["H"]).double(), torch.arange(meta["W"]).double(), indexing="ij"
+    )
+    d_cam = torch.stack(
+        [(u + 0.5 - cx) / fx, -(v + 0.5 - cy) / fy, -torch.ones_like(u)], -1
+    ).reshape(-1, 3)
     c2w = meta["c2w"].double()
     d_drb = d_cam @ c2w[:, :3].T
     d_drb = d_drb / d_drb.norm(dim=-1, keepdim=True)
@@ -64,7 +76,8 @@ def image_of(out, split, name):
 def test_same_seed_same_bytes_other_seed_other_city(tiny, tmp_path):
     out, _ = tiny
     again = generate("tiny", 0, tmp_path / "again")
-    assert digest(out) == digest(tmp_path / "again")  # PNGs, torch.save files, npy, npz and json alike
+    # PNGs, torch.save files, npy, npz and json alike
+    assert digest(out) == digest(tmp_path / "again")
     generate("tiny", 1, tmp_path / "other")
     a, b = digest(out), digest(tmp_path / "other")
     pngs = [k for k in a if k.endswith(".png")]
@@ -79,15 +92,20 @@ def test_files_in_meganerf_layout(tiny):
     assert coords["origin_drb"].dtype == torch.float64 and coords["origin_drb"].shape == (3,)
     assert isinstance(coords["pose_scale_factor"], float) and coords["pose_scale_factor"] > 0
     names = [name for _, name in views(out)]
-    assert names == [f"{i:06d}" for i in range(p.views)]  # global capture order, unique across splits
+    # global capture order, unique across splits
+    assert names == [f"{i:06d}" for i in range(p.views)]
     val = [int(name) for split, name in views(out) if split == "val"]
-    assert len(val) == 2 and min(np.diff(val)) > 1  # held out along the path, not a run of neighbours
+    # held out along the path, not a run of neighbours
+    assert len(val) == 2 and min(np.diff(val)) > 1
     positions = []
     for split, name in views(out):
         meta = torch.load(out / split / "metadata" / f"{name}.pt", weights_only=True)
         assert (meta["W"], meta["H"]) == (p.width, p.height) and type(meta["W"]) is int
         assert meta["intrinsics"].dtype == meta["c2w"].dtype == torch.float32
-        assert meta["c2w"].shape == (3, 4) and meta["intrinsics"][2:].tolist() == [p.width / 2, p.height / 2]
+        assert meta["c2w"].shape == (3, 4) and meta["intrinsics"][2:].tolist() == [
+            p.width / 2,
+            p.height / 2,
+        ]
         rotation = meta["c2w"][:, :3].double()
         assert torch.allclose(rotation @ rotation.T, torch.eye(3, dtype=torch.float64), atol=1e-6)
         assert torch.linalg.det(rotation) > 0.999
@@ -104,7 +122,8 @@ def test_files_in_meganerf_layout(tiny):
 
 
 def test_stored_depth_equals_ray_casting_the_geometry(tiny):
-    """Rebuild every pixel ray from the files with the documented conventions and cast it independently."""
+    """Rebuild every pixel ray from the files with the documented conventions and cast it
+    independently."""
     out, _ = tiny
     geometry = build_city(PRESETS["tiny"], 0)
     checked = 0
@@ -139,25 +158,38 @@ def brute_force_hit(boxes, o, d):
 def test_raycast_matches_a_scalar_reference():
     geometry = build_city(PRESETS["tiny"], 5)
     g = torch.Generator().manual_seed(0)
-    origins = torch.cat([torch.rand(600, 2, generator=g, dtype=torch.float64) * 70 - 35,
-                         torch.rand(600, 1, generator=g, dtype=torch.float64) * 20 + 1], dim=1)
+    origins = torch.cat(
+        [
+            torch.rand(600, 2, generator=g, dtype=torch.float64) * 70 - 35,
+            torch.rand(600, 1, generator=g, dtype=torch.float64) * 20 + 1,
+        ],
+        dim=1,
+    )
     dirs = torch.randn(600, 3, generator=g, dtype=torch.float64)
     dirs[:300, 2] = -dirs[:300, 2].abs()
     dirs[:5] = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)  # axis-parallel rays
     # Rays aimed just inside and just outside box corners: a float32 slab test gets these wrong.
-    corners = geometry.boxes[torch.arange(100) % len(geometry.boxes), 1]  # top corners (max x, y, z)
+    # top corners (max x, y, z)
+    corners = geometry.boxes[torch.arange(100) % len(geometry.boxes), 1]
     eye = torch.tensor([-30.0, -40.0, 60.0], dtype=torch.float64)
-    nudge = torch.where(torch.arange(100)[:, None] % 2 == 0, -1e-7, 1e-7) * torch.ones(3, dtype=torch.float64)
+    nudge = torch.where(torch.arange(100)[:, None] % 2 == 0, -1e-7, 1e-7) * torch.ones(
+        3, dtype=torch.float64
+    )
     origins[500:] = eye
     dirs[500:] = corners + nudge - eye
     dirs = dirs / dirs.norm(dim=-1, keepdim=True)
     t, hit, normal = raycast(geometry, origins, dirs)
-    ref = torch.tensor([brute_force_hit(geometry.boxes, o.tolist(), d.tolist()) for o, d in zip(origins, dirs)],
-                       dtype=torch.float64)
+    ref = torch.tensor(
+        [brute_force_hit(geometry.boxes, o.tolist(), d.tolist()) for o, d in zip(origins, dirs)],
+        dtype=torch.float64,
+    )
     assert torch.equal(torch.isinf(t), torch.isinf(ref)) and torch.equal(torch.isinf(t), hit == SKY)
     assert torch.allclose(t[torch.isfinite(t)], ref[torch.isfinite(ref)], rtol=1e-12, atol=1e-12)
-    assert (hit > 0).sum() > 30 and (hit == GROUND).sum() > 30  # both kinds of surface were exercised
-    assert torch.allclose(normal[hit >= 0].norm(dim=-1), torch.ones(int((hit >= 0).sum()), dtype=torch.float64))
+    # both kinds of surface were exercised
+    assert (hit > 0).sum() > 30 and (hit == GROUND).sum() > 30
+    assert torch.allclose(
+        normal[hit >= 0].norm(dim=-1), torch.ones(int((hit >= 0).sum()), dtype=torch.float64)
+    )
     # t_max: a hit beyond it is no hit.
     t_short, hit_short, _ = raycast(geometry, origins, dirs, t_max=10.0)
     assert torch.equal(torch.where(t <= 10.0, t, torch.inf), t_short)
@@ -166,7 +198,8 @@ def test_raycast_matches_a_scalar_reference():
 
 def test_city_has_varied_buildings_and_thin_structures():
     geometry = build_city(PRESETS["city"], 0)
-    assert torch.equal(geometry.boxes, build_city(PRESETS["city"], 0).boxes)  # seeded, no global RNG
+    # seeded, no global RNG
+    assert torch.equal(geometry.boxes, build_city(PRESETS["city"], 0).boxes)
     assert not torch.equal(geometry.boxes, build_city(PRESETS["city"], 1).boxes)
     size = geometry.boxes[:, 1] - geometry.boxes[:, 0]
     assert (size > 0).all() and (geometry.boxes[:, 0, 2] >= 0).all()
@@ -174,9 +207,11 @@ def test_city_has_varied_buildings_and_thin_structures():
     parts = torch.bincount(buildings)[1:]
     assert len(parts) >= 20 and parts.max() >= 2  # L-shapes and tiers
     heights = torch.zeros(len(parts), dtype=torch.float64).index_reduce_(
-        0, buildings - 1, geometry.boxes[geometry.building > 0, 1, 2], "amax")
+        0, buildings - 1, geometry.boxes[geometry.building > 0, 1, 2], "amax"
+    )
     assert heights.max() > 2.5 * heights.median()  # an irregular skyline with towers
-    assert (geometry.kind == POLE).sum() > 10 and size[:, :2].amin(-1).min() <= 0.5  # thin structures
+    # thin structures
+    assert (geometry.kind == POLE).sum() > 10 and size[:, :2].amin(-1).min() <= 0.5
 
 
 def cell_lookup(out):
@@ -188,7 +223,11 @@ def cell_lookup(out):
     cell = float(enu_from_grid[:, :3].abs().amax(0)[0])
 
     def lookup(points):
-        ijk = torch.linalg.solve(enu_from_grid[:, :3], (points - enu_from_grid[:, 3]).T).T.floor().long()
+        ijk = (
+            torch.linalg.solve(enu_from_grid[:, :3], (points - enu_from_grid[:, 3]).T)
+            .T.floor()
+            .long()
+        )
         inside = ((ijk >= 0) & (ijk < torch.tensor(occupied.shape))).all(-1)
         ijk = ijk[inside]
         return inside, occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]], ijk
@@ -197,7 +236,8 @@ def cell_lookup(out):
 
 
 def clearance(points, boxes):
-    """Euclidean distance from each point to the nearest solid (a box or the ground half-space z <= 0)."""
+    """Euclidean distance from each point to the nearest solid (a box or the ground half-space z <=
+    0)."""
     lo, hi = boxes[:, 0], boxes[:, 1]
     gap = torch.maximum(lo[None] - points[:, None], points[:, None] - hi[None]).clamp(min=0)
     return torch.minimum(gap.norm(dim=-1).amin(-1), points[:, 2].clamp(min=0))
@@ -205,7 +245,8 @@ def clearance(points, boxes):
 
 def test_occupancy_consistent_with_depth_maps(tiny):
     """Just behind every observed surface the grid is occupied; in front of it, the air is free.
-    Checked on the stored depth maps and, for the cells touched, against a brute-force overlap test."""
+    Checked on the stored depth maps and, for the cells touched, against a brute-force overlap
+    test."""
     out, _ = tiny
     geometry = build_city(PRESETS["tiny"], 0)
     occupied, lookup, cell, enu_from_grid = cell_lookup(out)
@@ -226,18 +267,30 @@ def test_occupancy_consistent_with_depth_maps(tiny):
     inside, occ, _ = lookup(surface)
     assert inside.sum() > 5000 and occ.all()
     inside, occ, ijk = lookup(air)
-    print(f"air samples in the grid: {int(inside.sum())}, free {occ.logical_not().float().mean():.4f}")
+    print(
+        f"air samples in the grid: {int(inside.sum())}, free {occ.logical_not().float().mean():.4f}"
+    )
     assert inside.sum() > 5000 and occ.logical_not().float().mean() > 0.97
-    # A cell can hold air and solid (a ray passing a wall at a shallow angle): free is guaranteed only
-    # with a clearance of a cell diagonal. Those must all be free, and they must be most of the samples.
+    # A cell can hold air and solid (a ray passing a wall at a shallow angle): free is guaranteed
+    # only with a clearance of a cell diagonal. Those must all be free, and they must be most of the
+    # samples.
     clear = clearance(air[inside], geometry.boxes) > diagonal
     assert clear.float().mean() > 0.8 and not occ[clear].any()
     # The exact rule, cell by cell, against every solid for a sample of the cells touched above.
     cells = torch.unique(torch.cat([ijk, lookup(surface)[2]]), dim=0)
     lo = (enu_from_grid[:, :3] @ cells.double().T).T + enu_from_grid[:, 3]
     hi = lo + cell
-    overlap = ((torch.minimum(hi[:, None], geometry.boxes[None, :, 1])
-                - torch.maximum(lo[:, None], geometry.boxes[None, :, 0])) > 1e-9).all(-1).any(-1)
+    overlap = (
+        (
+            (
+                torch.minimum(hi[:, None], geometry.boxes[None, :, 1])
+                - torch.maximum(lo[:, None], geometry.boxes[None, :, 0])
+            )
+            > 1e-9
+        )
+        .all(-1)
+        .any(-1)
+    )
     expected = overlap | (lo[:, 2] < -1e-9)  # the ground half-space
     assert torch.equal(occupied[cells[:, 0], cells[:, 1], cells[:, 2]], expected)
 
@@ -251,7 +304,8 @@ def test_occupancy_grid_covers_the_district(tiny):
     grid_hi = grid_lo + cell * torch.tensor(occupied.shape, dtype=torch.float64)
     assert (grid_lo[:2] < -geometry.extent / 2).all() and (grid_hi[:2] > geometry.extent / 2).all()
     assert grid_lo[2] == -cell and grid_hi[2] > geometry.top
-    assert occupied[:, :, 0].all() and not occupied[:, :, -1].any()  # ground layer; air above the top
+    # ground layer; air above the top
+    assert occupied[:, :, 0].all() and not occupied[:, :, -1].any()
     info = json.loads((out / "gt/scene.json").read_text())
     fraction = float(occupied.float().mean())
     assert info["occupied_fraction"] == summary["occupied_fraction"] == round(fraction, 6)
@@ -277,21 +331,26 @@ def test_images_have_texture_sky_and_shadows(tiny):
         t, hit, _ = raycast(geometry, origins, dirs)
         ground = hit == GROUND
         p = origins[ground] + dirs[ground] * t[ground, None]
-        blocked, _, _ = raycast(geometry, p + torch.tensor([0, 0, 1e-4], dtype=torch.float64),
-                                SUN.expand(len(p), 3))
-        light = (image[ground] ** 2.2 / ground_albedo(p, geometry).double()).mean(-1)  # sRGB -> linear
+        blocked, _, _ = raycast(
+            geometry, p + torch.tensor([0, 0, 1e-4], dtype=torch.float64), SUN.expand(len(p), 3)
+        )
+        # sRGB -> linear
+        light = (image[ground] ** 2.2 / ground_albedo(p, geometry).double()).mean(-1)
         shadowed.append(light[torch.isfinite(blocked)])
         lit.append(light[torch.isinf(blocked)])
     shadowed, lit = torch.cat(shadowed), torch.cat(lit)
-    print(f"sky in {sky_views} views; ground light: shadow {shadowed.median():.3f} ({len(shadowed)} px), "
-          f"sun {lit.median():.3f} ({len(lit)} px)")
+    print(
+        f"sky in {sky_views} views; ground light: shadow {shadowed.median():.3f} ({len(shadowed)} "
+        f"px), sun {lit.median():.3f} ({len(lit)} px)"
+    )
     assert sky_views >= 1, "the flatter cross pass should see the sky"
     assert len(shadowed) > 100 and len(lit) > 100
     assert shadowed.median() < 0.6 * lit.median()
 
 
 def test_shading_shadow_is_the_only_difference():
-    """Same ground point material, light blocked or not: shade() darkens exactly the blocked points."""
+    """Same ground point material, light blocked or not: shade() darkens exactly the blocked
+    points."""
     geometry = build_city(PRESETS["tiny"], 0)
     g = torch.Generator().manual_seed(1)
     xy = torch.rand(4000, 2, generator=g, dtype=torch.float64) * 60 - 30
@@ -300,14 +359,18 @@ def test_shading_shadow_is_the_only_difference():
     colour, t = shade(geometry, origins, down)
     _, hit, _ = raycast(geometry, origins, down)
     p = origins + down * t[:, None]
-    blocked, _, _ = raycast(geometry, p + torch.tensor([0, 0, 1e-4], dtype=torch.float64), SUN.expand(4000, 3))
+    blocked, _, _ = raycast(
+        geometry, p + torch.tensor([0, 0, 1e-4], dtype=torch.float64), SUN.expand(4000, 3)
+    )
     ground = hit == GROUND
     light = (colour[ground] / ground_albedo(p[ground], geometry)).double()
     in_shadow = torch.isfinite(blocked[ground])
     assert in_shadow.sum() > 50 and (~in_shadow).sum() > 50
     # Flat ground: one irradiance in the shade, another in the sun (up to the clamp at 1).
-    assert torch.allclose(light[in_shadow], light[in_shadow][:1].expand_as(light[in_shadow]), rtol=1e-4)
-    assert (light[in_shadow].mean(-1).max() < 0.6 * light[~in_shadow].mean(-1).min())
+    assert torch.allclose(
+        light[in_shadow], light[in_shadow][:1].expand_as(light[in_shadow]), rtol=1e-4
+    )
+    assert light[in_shadow].mean(-1).max() < 0.6 * light[~in_shadow].mean(-1).min()
 
 
 def test_refuses_non_empty_output_and_leaves_it_unchanged(tmp_path):
@@ -316,7 +379,9 @@ def test_refuses_non_empty_output_and_leaves_it_unchanged(tmp_path):
     (out / "keep.txt").write_text("mine")
     with pytest.raises(FileExistsError, match="exists and is not empty"):
         generate("tiny", 0, out)
-    assert [p.name for p in out.iterdir()] == ["keep.txt"] and (out / "keep.txt").read_text() == "mine"
+    assert [p.name for p in out.iterdir()] == ["keep.txt"] and (
+        out / "keep.txt"
+    ).read_text() == "mine"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["taken"]
     with pytest.raises(ValueError, match="choose one of tiny, city, large"):
         generate("huge", 0, tmp_path / "x")
@@ -346,10 +411,13 @@ def test_city_preset_size_and_sparsity(tmp_path):
     started = time.perf_counter()
     summary = generate("city", 0, tmp_path / "city")
     seconds = time.perf_counter() - started
-    print(f"city: {summary['views']} views {summary['image_size']}, grid {summary['grid_shape']}, "
-          f"occupied {summary['occupied_fraction']:.4f}, {seconds:.1f} s")
+    print(
+        f"city: {summary['views']} views {summary['image_size']}, grid {summary['grid_shape']}, "
+        f"occupied {summary['occupied_fraction']:.4f}, {seconds:.1f} s"
+    )
     views_total = sum(summary["views"].values())
     assert 50 <= views_total <= 100 and summary["image_size"] == "100x75"
     assert 0.05 <= summary["views"]["val"] / views_total <= 0.15
     assert math.prod(summary["grid_shape"]) <= 3_000_000
-    assert summary["occupied_fraction"] < 0.2  # the time is printed, not asserted: speed is a benchmark's job
+    # the time is printed, not asserted: speed is a benchmark's job
+    assert summary["occupied_fraction"] < 0.2

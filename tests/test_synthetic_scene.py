@@ -1,4 +1,5 @@
-"""The synthetic city read back through the Mega-NeRF reader: frames, ground truth and bounds agree."""
+"""The synthetic city read back through the Mega-NeRF reader: frames, ground truth and bounds
+agree."""
 
 import json
 
@@ -50,8 +51,8 @@ def test_reads_as_meganerf_with_ground_truth(tiny):
 
 
 def test_depth_and_occupancy_agree_in_the_world_frame(tiny):
-    """Surface points from the depth maps fall in occupied cells and the air in front of them in free
-    cells: this checks the DRB -> z-up conversion of poses, depths and the grid together."""
+    """Surface points from the depth maps fall in occupied cells and the air in front of them in
+    free cells: this checks the DRB -> z-up conversion of poses, depths and the grid together."""
     occ = tiny.occupancy
     o, d, t = surface_samples(tiny.train)
     cell = float(occ.cell_size.max())
@@ -83,7 +84,9 @@ def test_downscale_keeps_depth_aligned(tiny_dir, tiny):
     w, h = int(tiny.train.cameras.width[0]), int(tiny.train.cameras.height[0])
     assert half.train.images[0].shape == (h // 2, w // 2, 3)
     assert half.train.depth[0].shape == (h // 2, w // 2)
-    assert torch.allclose(half.train.cameras.intrinsics[0], tiny.train.cameras.intrinsics[0] / 2, rtol=1e-5)
+    assert torch.allclose(
+        half.train.cameras.intrinsics[0], tiny.train.cameras.intrinsics[0] / 2, rtol=1e-5
+    )
 
 
 def test_cli_synth_then_info(tmp_path, capsys):
@@ -99,8 +102,8 @@ def test_cli_synth_then_info(tmp_path, capsys):
 
 
 def test_city_scale_coordinates_keep_their_precision(tiny_dir, tiny, tmp_path):
-    """The same scene placed at UTM-like coordinates (millions of metres) normalises to the same world:
-    the origin is subtracted in float64 before anything becomes float32."""
+    """The same scene placed at UTM-like coordinates (millions of metres) normalises to the same
+    world: the origin is subtracted in float64 before anything becomes float32."""
     import shutil
 
     moved = tmp_path / "utm"
@@ -109,7 +112,8 @@ def test_city_scale_coordinates_keep_their_precision(tiny_dir, tiny, tmp_path):
     coords = torch.load(moved / "coordinates.pt", weights_only=True)
     coords["origin_drb"] = coords["origin_drb"] + shift
     torch.save(coords, moved / "coordinates.pt")
-    grid = dict(np.load(moved / "gt/occupancy.npz"))  # ground truth is in absolute metres: move it too
+    # ground truth is in absolute metres: move it too
+    grid = dict(np.load(moved / "gt/occupancy.npz"))
     grid["world_from_grid"][:3, 3] += shift.numpy()
     save_npz(moved / "gt/occupancy.npz", **grid)
     far_away = load_scene(moved)

@@ -8,7 +8,12 @@ import pytest
 import torch
 
 from model.scenes.rays import PixelTable
-from workers.appearance import phase_embeddings, prepare_validation_appearance, protocol, right_columns
+from workers.appearance import (
+    phase_embeddings,
+    prepare_validation_appearance,
+    protocol,
+    right_columns,
+)
 from workers.config import TrainConfig
 from workers.evaluate import evaluate_run
 from workers.models import build_models
@@ -27,32 +32,56 @@ def poison_validation_rows(run_method, models, phase, views):
             e.weight[views.appearance] = 1e3
 
 
-@pytest.mark.parametrize("method,phase", [("switch", "main"), ("leco", "occupancy"), ("grid", "main")])
+@pytest.mark.parametrize(
+    "method,phase", [("switch", "main"), ("leco", "occupancy"), ("grid", "main")]
+)
 def test_mean_policy_replaces_untrained_validation_embeddings(tiny_scene, method, phase):
     run_method, models = models_for(tiny_scene, method)
     val, train = tiny_scene.splits["val"], tiny_scene.train
     poison_validation_rows(run_method, models, phase, val)
     before = {id(e): e.weight.detach().clone() for e in phase_embeddings(run_method, models, phase)}
     assert len(before) == 2  # the field's and the background's
-    prepare_validation_appearance(run_method, models, phase, val, train, list(range(len(val))),
-                                  tiny_scene.bounds.aabb, torch.device("cpu"), steps=0)
+    prepare_validation_appearance(
+        run_method,
+        models,
+        phase,
+        val,
+        train,
+        list(range(len(val))),
+        tiny_scene.bounds.aabb,
+        torch.device("cpu"),
+        steps=0,
+    )
     for e in phase_embeddings(run_method, models, phase):
         w = e.weight.detach()
-        assert torch.allclose(w[val.appearance], before[id(e)][train.appearance].mean(0).expand(len(val), -1))
-        assert torch.equal(w[train.appearance], before[id(e)][train.appearance])  # training rows untouched
+        assert torch.allclose(
+            w[val.appearance], before[id(e)][train.appearance].mean(0).expand(len(val), -1)
+        )
+        # training rows untouched
+        assert torch.equal(w[train.appearance], before[id(e)][train.appearance])
 
 
 def test_fitting_on_left_halves_lowers_their_error_and_moves_only_validation_rows(tiny_scene):
     run_method, models = models_for(tiny_scene)
     val, train = tiny_scene.splits["val"], tiny_scene.train
     before = [e.weight.detach().clone() for e in phase_embeddings(run_method, models, "main")]
-    result = prepare_validation_appearance(run_method, models, "main", val, train, [0],
-                                           tiny_scene.bounds.aabb, torch.device("cpu"), steps=20)
+    result = prepare_validation_appearance(
+        run_method,
+        models,
+        "main",
+        val,
+        train,
+        [0],
+        tiny_scene.bounds.aabb,
+        torch.device("cpu"),
+        steps=20,
+    )
     assert result.loss_after < 0.95 * result.loss_before
     for old, e in zip(before, phase_embeddings(run_method, models, "main")):
         moved = (e.weight.detach() != old).any(dim=1)
         assert moved.nonzero().squeeze(1).tolist() == [int(val.appearance[0])]
-    assert all(p.requires_grad for p in models.parameters())  # the networks are trainable again afterwards
+    # the networks are trainable again afterwards
+    assert all(p.requires_grad for p in models.parameters())
 
 
 def test_scored_columns_are_the_right_half(tiny_scene):
@@ -66,7 +95,9 @@ def test_scored_columns_are_the_right_half(tiny_scene):
 
 
 def test_final_evaluation_ignores_whatever_the_validation_embeddings_held(tiny_scene, tmp_path):
-    cfg = TrainConfig(method="switch", profile="smoke", overrides={"main_steps": 10}, val_appearance_steps=4)
+    cfg = TrainConfig(
+        method="switch", profile="smoke", overrides={"main_steps": 10}, val_appearance_steps=4
+    )
     summary = run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")
     assert summary["val"]["protocol"] == protocol(4) and "left halves" in summary["val"]["protocol"]
     final = tmp_path / "run" / "final" / "models.pt"

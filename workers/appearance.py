@@ -1,9 +1,9 @@
 """The validation protocol (Mega-NeRF's): a validation view's appearance embedding is never trained
-by the run, so scoring it with that embedding colours the view with a random vector. Instead each validation
-view's right half is scored, and its embeddings (of every network the phase renders with) are first set to the
-mean of the training views' embeddings and then fitted on pixels of its left half, with the networks frozen.
-`val_appearance_steps = 0` keeps the mean alone (a fixed policy, for scenes without per-image appearance).
-"""
+by the run, so scoring it with that embedding colours the view with a random vector. Instead each
+validation view's right half is scored, and its embeddings (of every network the phase renders with)
+are first set to the mean of the training views' embeddings and then fitted on pixels of its left
+half, with the networks frozen. `val_appearance_steps = 0` keeps the mean alone (a fixed policy, for
+scenes without per-image appearance)."""
 
 from __future__ import annotations
 
@@ -19,14 +19,20 @@ from model.methods.base import Networks
 from model.scenes.rays import PixelTable, RayBatch
 from model.scenes.scene import Views
 
-FIT_RAYS_PER_VIEW = 256  # left-half pixels per view the embeddings are fitted on (one fixed, seeded set)
-FIT_LR = 0.05  # Adam on 48-d embeddings initialised N(0, 1): a few dozen steps move them where they belong
+# left-half pixels per view the embeddings are fitted on (one fixed, seeded set)
+FIT_RAYS_PER_VIEW = 256
+# Adam on 48-d embeddings initialised N(0, 1): a few dozen steps move them where they belong
+FIT_LR = 0.05
 
 
 def protocol(steps: int) -> str:
     """The sentence every report prints about how validation views were coloured and scored."""
-    fit = (f"fitted on their left halves ({steps} Adam steps from the mean of the training views' embeddings, "
-           "networks frozen)" if steps else "set to the mean of the training views' embeddings")
+    fit = (
+        f"fitted on their left halves ({steps} Adam steps from the mean of the training views' "
+        "embeddings, networks frozen)"
+        if steps
+        else "set to the mean of the training views' embeddings"
+    )
     return f"right halves of the validation views scored; their appearance embeddings {fit}"
 
 
@@ -46,8 +52,12 @@ def scored_truth(views: Views, image: int, columns: tuple[int, int] | None) -> t
 
 
 def phase_embeddings(method: Method, models: Networks, phase: str) -> list[nn.Embedding]:
-    return [m for module in method.trained_modules(models, phase) for m in module.modules()
-            if isinstance(m, nn.Embedding)]
+    return [
+        m
+        for module in method.trained_modules(models, phase)
+        for m in module.modules()
+        if isinstance(m, nn.Embedding)
+    ]
 
 
 @contextlib.contextmanager
@@ -83,10 +93,20 @@ def fit_rays(views: Views, images: list[int], aabb: torch.Tensor, seed: int = 0)
     return table.rays(torch.cat(ids), aabb)
 
 
-def prepare_validation_appearance(method: Method, run_models: Networks, phase: str, views: Views, train_views: Views,
-                                  images: list[int], aabb: torch.Tensor, device: torch.device, steps: int) -> FitResult:
-    """Give `images` of `views` the appearance embeddings the protocol prescribes, in place. Training never
-    reads these rows (validation indices come after the training ones), so setting them is harmless to it."""
+def prepare_validation_appearance(
+    method: Method,
+    run_models: Networks,
+    phase: str,
+    views: Views,
+    train_views: Views,
+    images: list[int],
+    aabb: torch.Tensor,
+    device: torch.device,
+    steps: int,
+) -> FitResult:
+    """Give `images` of `views` the appearance embeddings the protocol prescribes, in place.
+    Training never reads these rows (validation indices come after the training ones), so setting
+    them is harmless to it."""
     embeddings = phase_embeddings(method, run_models, phase)
     rows = views.appearance[images].to(device)
     train_rows = train_views.appearance.to(device)
@@ -111,7 +131,8 @@ def prepare_validation_appearance(method: Method, run_models: Networks, phase: s
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             for w in weights:
-                if w.grad is not None:  # only the validation rows move; Adam leaves zero-gradient rows put
+                # only the validation rows move; Adam leaves zero-gradient rows put
+                if w.grad is not None:
                     w.grad.mul_(mask)
             optimizer.step()
     return FitResult(losses[0], losses[-1])

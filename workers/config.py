@@ -1,8 +1,8 @@
 """The job config: one pydantic schema from the API request down to the training loop.
 
-A job names a method and a size profile (model/profiles.py) and may override any profile field with a
-dotted key (`occupancy.steps=200`, `network.width=128`); the resolved profile is what the loop trains.
-"""
+A job names a method and a size profile (model/profiles.py) and may override any profile field with
+a dotted key (`occupancy.steps=200`, `network.width=128`); the resolved profile is what the loop
+trains."""
 
 from __future__ import annotations
 
@@ -23,32 +23,41 @@ class TrainConfig(BaseModel):
     # Bounded on both sides and finite, like the profile it overrides.
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
-    # Validated against the registry (model/methods/registry.py) when the config is made, so a method
-    # registered later (a plug-in, a test's toy method) is accepted; the enum tells API clients the built-in ones.
+    # Validated against the registry (model/methods/registry.py) when the config is made, so a
+    # method registered later (a plug-in, a test's toy method) is accepted; the enum tells API
+    # clients the built-in ones.
     method: str = Field(json_schema_extra={"enum": list(METHODS)}, max_length=64)
-    # Validated below (with a message naming the profiles); the enum tells API clients and the fuzz the choices.
+    # Validated below (with a message naming the profiles); the enum tells API clients and the fuzz
+    # the choices.
     profile: str = Field("cpu", json_schema_extra={"enum": list(PROFILES)})
     overrides: dict[str, Any] = Field(default_factory=dict)
     workers: int = Field(1, ge=1, le=MAX_WORKERS)
     use_gpu: bool = False
-    budget_min: float | None = Field(None, gt=0, le=7 * 24 * 60)  # wall-clock budget for the whole run (both phases)
+    # wall-clock budget for the whole run (both phases)
+    budget_min: float | None = Field(None, gt=0, le=7 * 24 * 60)
     seed: int = Field(0, ge=0, le=2**31 - 1)
-    # Integer factor applied to images and intrinsics for training and evaluation alike (None: the scene's own
-    # scale; for LLFF its smallest images_N folder). The paper trains and scores Mega-NeRF scenes at 4.
+    # Integer factor applied to images and intrinsics for training and evaluation alike (None: the
+    # scene's own scale; for LLFF its smallest images_N folder). The paper trains and scores
+    # Mega-NeRF scenes at 4.
     downscale: int | None = Field(None, ge=1, le=64)
     checkpoint_every: int = Field(200, ge=1, le=MAX_STEPS)
     metrics_every: int = Field(10, ge=1, le=MAX_STEPS)
-    # Validation renders during training (None: only at the end); at least every 10 steps, or it only renders.
+    # Validation renders during training (None: only at the end); at least every 10 steps, or it
+    # only renders.
     val_every: int | None = Field(None, ge=10, le=MAX_STEPS)
-    # Validation PSNR/SSIM (and occupancy metrics while one is learned) every this many seconds of training
-    # time and at each phase's end; not counted as training time (workers/periodic_eval.py).
+    # Validation PSNR/SSIM (and occupancy metrics while one is learned) every this many seconds of
+    # training time and at each phase's end; not counted as training time
+    # (workers/periodic_eval.py).
     eval_every_s: float | None = Field(None, gt=0, le=86_400)
     eval_views: int = Field(4, ge=1, le=1000)
-    # Validation protocol (workers/appearance.py): right halves scored, appearance embeddings fitted on the left
-    # halves for this many steps with the networks frozen (0: the mean of the training embeddings).
+    # Validation protocol (workers/appearance.py): right halves scored, appearance embeddings fitted
+    # on the left halves for this many steps with the networks frozen (0: the mean of the training
+    # embeddings).
     val_appearance_steps: int = Field(32, ge=0, le=1000)
-    max_failures: int = Field(3, ge=0, le=100)  # worker-group restarts Ray Train may make from the last checkpoint
-    max_nonfinite_steps: int = Field(20, ge=1, le=10_000)  # consecutive skipped steps before the run fails
+    # worker-group restarts Ray Train may make from the last checkpoint
+    max_failures: int = Field(3, ge=0, le=100)
+    # consecutive skipped steps before the run fails
+    max_nonfinite_steps: int = Field(20, ge=1, le=10_000)
 
     @field_validator("method")
     @classmethod
@@ -82,7 +91,9 @@ class TrainConfig(BaseModel):
         try:
             return Profile.model_validate(data)
         except ValidationError as error:
-            problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in error.errors())
+            problems = "; ".join(
+                f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in error.errors()
+            )
             raise ValueError(f"overrides make an invalid profile: {problems}") from None
 
     @property

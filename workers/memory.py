@@ -1,9 +1,10 @@
-"""Training memory that depends on the method: the bytes autograd keeps for the backward pass of one step.
+"""Training memory that depends on the method: the bytes autograd keeps for the backward pass of one
+step.
 
-On a GPU `torch.cuda.max_memory_allocated` answers directly. On a CPU the process's peak RSS is dominated by
-the runtime, the scene and the weights, which every method shares; what the samplers change is how many
-per-sample activations a step keeps, and those are exactly the tensors autograd saves.
-"""
+On a GPU `torch.cuda.max_memory_allocated` answers directly. On a CPU the process's peak RSS is
+dominated by the runtime, the scene and the weights, which every method shares; what the samplers
+change is how many per-sample activations a step keeps, and those are exactly the tensors autograd
+saves."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
-"""A run's networks and its optimizer per phase, both as its method (model/methods) says. Every rank builds
-the networks from the same seed, so data-parallel replicas start identical."""
+"""A run's networks and its optimizer per phase, both as its method (model/methods) says. Every rank
+builds the networks from the same seed, so data-parallel replicas start identical."""
 
 from __future__ import annotations
 
@@ -28,11 +28,13 @@ class PhaseObjects(NamedTuple):
 
 
 def build_optimizer(method: Method, models: Networks, phase: str) -> PhaseObjects:
-    """Adam over what the phase trains, and its learning rate as a function of the phase's progress in [0, 1]
-    (log-linear from the method's start to its final lr, constant without one). Progress counts steps or,
-    under a wall-clock budget, training time (model/schedules.py), so a budgeted run ends at its final lr too."""
+    """Adam over what the phase trains, and its learning rate as a function of the phase's progress
+    in [0, 1] (log-linear from the method's start to its final lr, constant without one). Progress
+    counts steps or, under a wall-clock budget, training time (model/schedules.py), so a budgeted
+    run ends at its final lr too."""
     params = phase_parameters(method, models, phase)
     start, final = method.phase_lr(phase)
-    # Fused: one kernel over every tensor instead of a loop over ~90 (4.0 -> 0.8 ms a step on 2 CPU cores).
+    # Fused: one kernel over every tensor instead of a loop over ~90 (4.0 -> 0.8 ms a step on 2 CPU
+    # cores).
     optimizer = torch.optim.Adam(params, lr=start, fused=True)
     return PhaseObjects(params, optimizer, lambda progress: log_linear(start, final, progress))

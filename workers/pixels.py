@@ -1,6 +1,6 @@
 """Where a worker's scene pixels come from: each split's memory-mapped pixel store, built on first
-use in the cache folder and attached to the scene's views, so training, validation and renders all read the
-same file and no process decodes or holds a whole split."""
+use in the cache folder and attached to the scene's views, so training, validation and renders all
+read the same file and no process decodes or holds a whole split."""
 
 from __future__ import annotations
 
@@ -12,19 +12,21 @@ from model.scenes.scene import Scene
 
 
 def pixel_cache() -> Path:
-    """LECO_PIXEL_CACHE, default ~/.cache/leco/pixels; the service points it at <data dir>/pixel-cache, which a
-    deployment puts on the volume its nodes share."""
+    """LECO_PIXEL_CACHE, default ~/.cache/leco/pixels; the service points it at <data
+    dir>/pixel-cache, which a deployment puts on the volume its nodes share."""
     return Path(os.environ.get("LECO_PIXEL_CACHE") or Path.home() / ".cache" / "leco" / "pixels")
 
 
 def attach_pixel_stores(scene: Scene, splits: tuple[str, ...] | None = None) -> Scene:
-    """Open (or build, decoding one image at a time) the store of each split and attach it to its views."""
+    """Open (or build, decoding one image at a time) the store of each split and attach it to its
+    views."""
     log = lambda text: print(f"[leco] {text}", flush=True)
     for name in splits or tuple(scene.splits):
         views = scene.splits[name]
         if views.store is not None:
             continue
         sizes = [(int(h), int(w)) for h, w in zip(views.cameras.height, views.cameras.width)]
-        views.store = ensure_store(pixel_cache(), scene.root, name, scene.downscale, sizes,
-                                   views.images.__getitem__, log)
+        views.store = ensure_store(
+            pixel_cache(), scene.root, name, scene.downscale, sizes, views.images.__getitem__, log
+        )
     return scene

@@ -1,6 +1,7 @@
 """What a render, a view or an export of a finished run asks for: one pydantic schema each, from the
-API request down to the worker that renders (like workers/config.py for training). Bounded on both sides and
-finite; a field that is wrong is named by its path (`path.cameras.3.c2w`, `frames`, `width`)."""
+API request down to the worker that renders (like workers/config.py for training). Bounded on both
+sides and finite; a field that is wrong is named by its path (`path.cameras.3.c2w`, `frames`,
+`width`)."""
 
 from __future__ import annotations
 
@@ -16,29 +17,37 @@ RENDER_PHASE = "render"  # a render job's one phase: a step a frame
 EXPORT_PHASE = "export"  # an export job's: a step a view of a point cloud (one otherwise)
 MAX_SIDE = 1920
 MAX_FRAME_PIXELS = 1920 * 1080
-MAX_VIDEO_PIXELS = 60_000_000  # frames x pixels of one render job: 780 frames of 320x240, 195 of 640x480
+# frames x pixels of one render job: 780 frames of 320x240, 195 of 640x480
+MAX_VIDEO_PIXELS = 60_000_000
 MAX_VIEW_SIDE = 640  # a view is a preview (POST /v1/jobs/{id}/view)
 MAX_VIEW_PIXELS = 640 * 480
 
 
 def even_side(value: int) -> int:
     if value % 2:
-        raise ValueError(f"must be even (H.264 in yuv420p halves both sides for colour), got {value}")
+        raise ValueError(
+            f"must be even (H.264 in yuv420p halves both sides for colour), got {value}"
+        )
     return value
 
 
 class RenderConfig(BaseModel):
-    """A video of a finished run along a camera path. Fields are checked in order, so `frames` and `path`
-    are refused with the size they would render at."""
+    """A video of a finished run along a camera path. Fields are checked in order, so `frames` and
+    `path` are refused with the size they would render at."""
 
     model_config = STRICT
 
     width: int = Field(320, ge=16, le=MAX_SIDE)
     height: int = Field(240, ge=16, le=MAX_SIDE)
-    frames: int = Field(120, ge=2, le=MAX_FRAMES, description="of a generated path; a user path has one per camera")
+    frames: int = Field(
+        120, ge=2, le=MAX_FRAMES, description="of a generated path; a user path has one per camera"
+    )
     fps: float = Field(24.0, ge=1, le=60)
     appearance: Literal["mean"] | Annotated[int, Field(ge=0, le=2**31 - 1)] = Field(
-        "mean", description="'mean' of the training views' appearance embeddings, or a training image's index")
+        "mean",
+        description="'mean' of the training views' appearance embeddings, or a training image's "
+        "index",
+    )
     depth_video: bool = False
     path: path_type() = Field(default_factory=OrbitPath)  # type: ignore[valid-type]  # the registry's kinds
 
@@ -68,7 +77,8 @@ class RenderConfig(BaseModel):
 
 
 def follow_the_registry() -> None:
-    """A kind registered after this module was imported (a plug-in, a test's toy) is a `path` too."""
+    """A kind registered after this module was imported (a plug-in, a test's toy) is a `path`
+    too."""
     RenderConfig.model_fields["path"].annotation = path_type()
     RenderConfig.__annotations__["path"] = path_type()
     RenderConfig.model_rebuild(force=True)
@@ -82,10 +92,14 @@ def check_pixels(frames: int, data: dict) -> None:
     if width is None or height is None:
         return  # the size itself was refused: that error names it
     if width * height > MAX_FRAME_PIXELS:
-        raise ValueError(f"{width}x{height} is {width * height:,} pixels a frame, more than {MAX_FRAME_PIXELS:,}")
+        raise ValueError(
+            f"{width}x{height} is {width * height:,} pixels a frame, more than {MAX_FRAME_PIXELS:,}"
+        )
     if frames * width * height > MAX_VIDEO_PIXELS:
-        raise ValueError(f"{frames} frames of {width}x{height} are {frames * width * height:,} pixels, more than "
-                         f"{MAX_VIDEO_PIXELS:,} a render job renders")
+        raise ValueError(
+            f"{frames} frames of {width}x{height} are {frames * width * height:,} pixels, more "
+            f"than {MAX_VIDEO_PIXELS:,} a render job renders"
+        )
 
 
 class ViewRequest(BaseModel):
@@ -115,9 +129,15 @@ class ExportConfig(BaseModel):
     model_config = STRICT
 
     what: Literal["pointcloud", "cameras", "occupancy"]
-    # pointcloud: expected-depth points of training and validation pixels whose rays are nearly opaque
+    # pointcloud: expected-depth points of training and validation pixels whose rays are nearly
+    # opaque
     stride: int = Field(1, ge=1, le=64, description="every stride-th pixel along rows and columns")
-    min_opacity: float = Field(0.9, ge=0, le=1, description="a ray's foreground opacity a point needs")
-    max_points: int = Field(1_000_000, ge=1, le=20_000_000, description="seeded subsample beyond this")
-    # occupancy: the cells of a regular grid over the foreground box that the method's occupancy keeps
+    min_opacity: float = Field(
+        0.9, ge=0, le=1, description="a ray's foreground opacity a point needs"
+    )
+    max_points: int = Field(
+        1_000_000, ge=1, le=20_000_000, description="seeded subsample beyond this"
+    )
+    # occupancy: the cells of a regular grid over the foreground box that the method's occupancy
+    # keeps
     resolution: int = Field(128, ge=8, le=512)

@@ -1,7 +1,8 @@
-"""The one renderer: rays, or every pixel of a camera, in; colour, depth and opacity out. It renders in chunks
-of rays without gradient, by the method's own sampler (`Method.render`), with the phase's networks in eval mode.
-Validation images, video frames, the viewer's previews, exported point clouds and the benchmark's reference
-depth maps all go through it, and depth becomes a picture by one rule (`depth_range`, `depth_grey`)."""
+"""The one renderer: rays, or every pixel of a camera, in; colour, depth and opacity out. It renders
+in chunks of rays without gradient, by the method's own sampler (`Method.render`), with the phase's
+networks in eval mode. Validation images, video frames, the viewer's previews, exported point clouds
+and the benchmark's reference depth maps all go through it, and depth becomes a picture by one rule
+(`depth_range`, `depth_grey`)."""
 
 from __future__ import annotations
 
@@ -28,24 +29,36 @@ class Rendering:
     samples_per_ray: float  # main-network samples the method spent per ray
 
     def reshape(self, height: int, width: int) -> Rendering:
-        return Rendering(self.rgb.reshape(height, width, 3), self.depth.reshape(height, width),
-                         self.opacity.reshape(height, width), self.samples_per_ray)
+        return Rendering(
+            self.rgb.reshape(height, width, 3),
+            self.depth.reshape(height, width),
+            self.opacity.reshape(height, width),
+            self.samples_per_ray,
+        )
 
     def surface_distance(self, min_opacity: float = SURFACE_OPACITY) -> Tensor:
-        """The expected distance of the surface a ray hits (depth over opacity, in float64), inf on rays less
-        opaque than `min_opacity`."""
+        """The expected distance of the surface a ray hits (depth over opacity, in float64), inf on
+        rays less opaque than `min_opacity`."""
         distance = self.depth.double() / self.opacity.double().clamp(min=1e-6)
         return torch.where(self.opacity >= min_opacity, distance, torch.inf)
 
 
 def chunks(rays: RayBatch, size: int) -> Iterator[RayBatch]:
     for start in range(0, len(rays), size):
-        yield RayBatch(*(getattr(rays, f)[start : start + size] for f in RayBatch.__dataclass_fields__))
+        yield RayBatch(
+            *(getattr(rays, f)[start : start + size] for f in RayBatch.__dataclass_fields__)
+        )
 
 
 @torch.no_grad()
-def render_rays(method: Method, models: nn.Module, phase: str, rays: RayBatch, device: torch.device | str = "cpu",
-                chunk: int = CHUNK) -> Rendering:
+def render_rays(
+    method: Method,
+    models: nn.Module,
+    phase: str,
+    rays: RayBatch,
+    device: torch.device | str = "cpu",
+    chunk: int = CHUNK,
+) -> Rendering:
     """`rays` rendered with the networks of `phase`, on the CPU."""
     was = models.training
     models.eval()
@@ -73,12 +86,20 @@ def camera_rays(cameras: Cameras, index: int, aabb: Tensor, appearance: int) -> 
     origins, directions = origins.float(), directions.float()
     near, far = ray_aabb(origins, directions, aabb)
     n = width * height
-    return RayBatch(origins, directions, near, far, torch.full((n,), appearance, dtype=torch.long),
-                    torch.zeros(n, 3), torch.arange(n))
+    return RayBatch(
+        origins,
+        directions,
+        near,
+        far,
+        torch.full((n,), appearance, dtype=torch.long),
+        torch.zeros(n, 3),
+        torch.arange(n),
+    )
 
 
 def depth_range(rendering: Rendering) -> tuple[float, float]:
-    """The 1st and 99th percentiles of the surface distances a rendering sees; (0, 1) when it sees none."""
+    """The 1st and 99th percentiles of the surface distances a rendering sees; (0, 1) when it sees
+    none."""
     seen = rendering.surface_distance()
     seen = seen[torch.isfinite(seen)].float()
     if len(seen) == 0:
@@ -87,8 +108,9 @@ def depth_range(rendering: Rendering) -> tuple[float, float]:
 
 
 def depth_grey(rendering: Rendering, near: float, far: float) -> Tensor:
-    """Depth as grey (H, W, 3) uint8 on the range [near, far], near bright, faded to black as the foreground
-    turns transparent. A video passes one range for all its frames, so their brightness does not flicker."""
+    """Depth as grey (H, W, 3) uint8 on the range [near, far], near bright, faded to black as the
+    foreground turns transparent. A video passes one range for all its frames, so their brightness
+    does not flicker."""
     distance = (rendering.depth / rendering.opacity.clamp(min=1e-6)).float()
     scaled = 1.0 - ((distance - near) / max(far - near, 1e-8)).clamp(0, 1)
     grey = (scaled * rendering.opacity.clamp(0, 1) * 255).round().byte()

@@ -1,5 +1,5 @@
-"""Running a job: the run directory, Ray Train (V2) `TorchTrainer` over N workers (or one local process),
-a progress callback fed from the metrics file, final evaluation and RUN_DIR/summary.json.
+"""Running a job: the run directory, Ray Train (V2) `TorchTrainer` over N workers (or one local
+process), a progress callback fed from the metrics file, final evaluation and RUN_DIR/summary.json.
 
 With RAY_ADDRESS set the same code runs on that cluster (RUN_DIR must then be on storage every node
 mounts at the same path); otherwise a local Ray is started with as many CPUs as there are workers.
@@ -30,14 +30,16 @@ __all__ = ["SUMMARY", "RunError", "RunGaveUp", "RunInterrupted", "run_training"]
 
 
 def end_cleanly(run: RankRun, run_dir: Path) -> None:
-    """Runs the loop; failures that a retry would only repeat, and stop requests, end it with a record
-    (rank 0) instead of an exception Ray Train would answer with a restart."""
+    """Runs the loop; failures that a retry would only repeat, and stop requests, end it with a
+    record (rank 0) instead of an exception Ray Train would answer with a restart."""
     try:
         run.train()
     except (NonFiniteRun, StoreFailed) as error:
         if run.session.rank == 0:
-            write_json(run_dir / "failure.json",
-                       {"reason": str(error), "retryable": bool(getattr(error, "retryable", False))})
+            write_json(
+                run_dir / "failure.json",
+                {"reason": str(error), "retryable": bool(getattr(error, "retryable", False))},
+            )
     except RunStopped as error:
         if run.session.rank == 0:
             write_json(run_dir / "stopped.json", {"reason": str(error)})
@@ -57,11 +59,15 @@ def prepare_run_dir(cfg: TrainConfig, scene_dir: Path, run_dir: Path) -> bool:
     existing = run_dir / "run.json"
     if existing.exists():
         if (run_dir / SUMMARY).exists():
-            raise RunError(f"{run_dir} holds a finished run (summary.json exists): choose a new --out")
+            raise RunError(
+                f"{run_dir} holds a finished run (summary.json exists): choose a new --out"
+            )
         old = json.loads(existing.read_text())
         if old != record:
-            raise RunError(f"{run_dir} holds a different run (its run.json has another config or scene); "
-                           "resume it with the same arguments or choose a new --out")
+            raise RunError(
+                f"{run_dir} holds a different run (its run.json has another config or scene); "
+                "resume it with the same arguments or choose a new --out"
+            )
         return True
     write_json(existing, record)
     return False
@@ -82,7 +88,9 @@ def train_loop_per_worker(config: dict) -> None:
     run_dir = Path(config["run_dir"])
     write_pid(run_dir, session.rank)
     torch.set_num_threads(max(1, int(config.get("threads", 1))))
-    run = RankRun(cfg, Path(config["scene"]), run_dir, session, device_for(cfg.use_gpu), config.get("store"))
+    run = RankRun(
+        cfg, Path(config["scene"]), run_dir, session, device_for(cfg.use_gpu), config.get("store")
+    )
     end_cleanly(run, run_dir)
 
 
@@ -91,7 +99,8 @@ def ensure_ray(num_cpus: int) -> None:
 
     if ray.is_initialized():
         return
-    # A local Ray on this machine needs no token; a cluster brings its own setting (REFERENCE.md section 6).
+    # A local Ray on this machine needs no token; a cluster brings its own setting (REFERENCE.md
+    # section 6).
     if os.environ.get("RAY_ADDRESS"):
         ray.init(address=os.environ["RAY_ADDRESS"])
     else:
@@ -99,42 +108,84 @@ def ensure_ray(num_cpus: int) -> None:
         ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
 
 
-def fit_with_ray(cfg: TrainConfig, scene_dir: Path, run_dir: Path, store: RunStore | None,
-                 resume_from: Path | None) -> None:
+def fit_with_ray(
+    cfg: TrainConfig,
+    scene_dir: Path,
+    run_dir: Path,
+    store: RunStore | None,
+    resume_from: Path | None,
+) -> None:
     import ray.train
     from ray.train.torch import TorchTrainer
 
-    threads = max(1, (os.cpu_count() or 2) // cfg.workers) if not os.environ.get("RAY_ADDRESS") else 1
+    threads = (
+        max(1, (os.cpu_count() or 2) // cfg.workers) if not os.environ.get("RAY_ADDRESS") else 1
+    )
     trainer = TorchTrainer(
         train_loop_per_worker,
-        train_loop_config={"train": cfg.model_dump(mode="json"), "scene": str(scene_dir), "run_dir": str(run_dir),
-                           "threads": threads, "store": store,
-                           "resume_from": str(resume_from) if resume_from else None},
-        scaling_config=ray.train.ScalingConfig(num_workers=cfg.workers, use_gpu=cfg.use_gpu,
-                                               resources_per_worker=None if cfg.use_gpu else {"CPU": 1}),
-        # Same storage_path and name on a re-run: Ray Train hands the loop the last checkpoint (resume).
+        train_loop_config={
+            "train": cfg.model_dump(mode="json"),
+            "scene": str(scene_dir),
+            "run_dir": str(run_dir),
+            "threads": threads,
+            "store": store,
+            "resume_from": str(resume_from) if resume_from else None,
+        },
+        scaling_config=ray.train.ScalingConfig(
+            num_workers=cfg.workers,
+            use_gpu=cfg.use_gpu,
+            resources_per_worker=None if cfg.use_gpu else {"CPU": 1},
+        ),
+        # Same storage_path and name on a re-run: Ray Train hands the loop the last checkpoint
+        # (resume).
         run_config=ray.train.RunConfig(
-            name="train", storage_path=str((run_dir / "ray").resolve()),
+            name="train",
+            storage_path=str((run_dir / "ray").resolve()),
             failure_config=ray.train.FailureConfig(max_failures=cfg.max_failures),
-            checkpoint_config=ray.train.CheckpointConfig(num_to_keep=2)),
+            checkpoint_config=ray.train.CheckpointConfig(num_to_keep=2),
+        ),
     )
     trainer.fit()
 
 
-def fit_locally(cfg: TrainConfig, scene_dir: Path, run_dir: Path, store: RunStore | None,
-                resume_from: Path | None) -> None:
+def fit_locally(
+    cfg: TrainConfig,
+    scene_dir: Path,
+    run_dir: Path,
+    store: RunStore | None,
+    resume_from: Path | None,
+) -> None:
     if cfg.workers != 1:
-        raise RunError(f"the local backend runs one worker, not {cfg.workers}: use --backend ray for more")
+        raise RunError(
+            f"the local backend runs one worker, not {cfg.workers}: use --backend ray for more"
+        )
     if cfg.use_gpu and not torch.cuda.is_available():
         raise RunError("--gpu asked for, but this machine has no CUDA device")
     device = torch.device("cuda") if cfg.use_gpu else torch.device("cpu")
-    end_cleanly(RankRun(cfg, scene_dir, run_dir, LocalSession(run_dir / "checkpoints", resume_from), device,
-                         store), run_dir)
+    end_cleanly(
+        RankRun(
+            cfg,
+            scene_dir,
+            run_dir,
+            LocalSession(run_dir / "checkpoints", resume_from),
+            device,
+            store,
+        ),
+        run_dir,
+    )
 
 
-# Per-step figures of the main phase that the summary averages (the methods' own are in their `stats`).
-SAMPLING_KEYS = ("occupancy_ratio", "samples_per_hit_ray", "hit_ray_fraction", "samples_per_ray", "o_kept_ratio",
-                 "fallback_fraction", "proposal_samples_per_ray")
+# Per-step figures of the main phase that the summary averages (the methods' own are in their
+# `stats`).
+SAMPLING_KEYS = (
+    "occupancy_ratio",
+    "samples_per_hit_ray",
+    "hit_ray_fraction",
+    "samples_per_ray",
+    "o_kept_ratio",
+    "fallback_fraction",
+    "proposal_samples_per_ray",
+)
 
 
 def summarise(cfg: TrainConfig, run_dir: Path, evaluation: dict, attempt_s: float) -> dict:
@@ -143,53 +194,88 @@ def summarise(cfg: TrainConfig, run_dir: Path, evaluation: dict, attempt_s: floa
     elapsed = progress["elapsed"]
     main = [m for m in metrics if m.get("phase") == "main"]
     first_phase = [m for m in metrics if m.get("phase") not in (None, "main")]
-    mean = lambda rows, key: float(np.mean([r[key] for r in rows if r.get(key) is not None])) if rows else None
+    mean = lambda rows, key: (
+        float(np.mean([r[key] for r in rows if r.get(key) is not None])) if rows else None
+    )
     occupancy = dict(evaluation.get("occupancy") or {})
     occupancy.update(cfg.method_for_run().summary_occupancy(run_dir / "final", main, first_phase))
-    device = (torch.cuda.get_device_name(0) if cfg.use_gpu and torch.cuda.is_available()
-              else f"CPU ({platform.processor() or platform.machine()}, {os.cpu_count()} cores)")
+    device = (
+        torch.cuda.get_device_name(0)
+        if cfg.use_gpu and torch.cuda.is_available()
+        else f"CPU ({platform.processor() or platform.machine()}, {os.cpu_count()} cores)"
+    )
     return {
-        "method": cfg.method, "profile": cfg.profile, "config": cfg.model_dump(mode="json"),
+        "method": cfg.method,
+        "profile": cfg.profile,
+        "config": cfg.model_dump(mode="json"),
         "resolved_profile": cfg.resolved_profile().model_dump(mode="json"),
-        # phases/total: training compute (what the budget and rays/s count); this_attempt: the driver's clock
-        # for this invocation, with start-up, checkpoints and evaluation.
-        "wall_time_s": {"phases": elapsed, "total": sum(elapsed.values()), "this_attempt": attempt_s},
+        # phases/total: training compute (what the budget and rays/s count); this_attempt: the
+        # driver's clock for this invocation, with start-up, checkpoints and evaluation.
+        "wall_time_s": {
+            "phases": elapsed,
+            "total": sum(elapsed.values()),
+            "this_attempt": attempt_s,
+        },
         "steps": {"total": progress["step"], "phases": progress["steps"]},
-        "rays_per_s": mean(main, "rays_per_s"), "samples_per_ray": mean(main, "samples_per_ray"),
-        # What reached the main network while training, counted alike for every method (model/sample_accounting.py)
-        "sampling": {k: mean(main, k) for k in SAMPLING_KEYS if any(r.get(k) is not None for r in main)},
-        "occupancy": occupancy or None, "val": evaluation["val"], "rays": evaluation.get("rays"),
+        "rays_per_s": mean(main, "rays_per_s"),
+        "samples_per_ray": mean(main, "samples_per_ray"),
+        # What reached the main network while training, counted alike for every method
+        # (model/sample_accounting.py)
+        "sampling": {
+            k: mean(main, k) for k in SAMPLING_KEYS if any(r.get(k) is not None for r in main)
+        },
+        "occupancy": occupancy or None,
+        "val": evaluation["val"],
+        "rays": evaluation.get("rays"),
         "peak_memory_mb": max((m.get("peak_memory_mb") or 0.0 for m in metrics), default=None),
-        # What autograd keeps for one step of the main network (workers/memory.py): the memory the samplers set.
-        "activation_memory_mb": max((m.get("activation_memory_mb") or 0.0 for m in main), default=None),
-        "device": device, "world_size": cfg.workers, "point_cloud": evaluation["point_cloud"],
+        # What autograd keeps for one step of the main network (workers/memory.py): the memory the
+        # samplers set.
+        "activation_memory_mb": max(
+            (m.get("activation_memory_mb") or 0.0 for m in main), default=None
+        ),
+        "device": device,
+        "world_size": cfg.workers,
+        "point_cloud": evaluation["point_cloud"],
     }
 
 
-def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, backend: str = "ray",
-                 on_progress: Callable[[dict], None] | None = None, poll_s: float = 1.0,
-                 store: RunStore | None = None, resume_from: Path | None = None) -> dict:
-    """Train (or resume) a run to the end, evaluate it, write summary.json and return it. With a `store`,
-    rank 0 also reports metrics, checkpoints and renders to it and stops when it asks (RunInterrupted).
-    `resume_from`: a folder with a checkpoint's state.pt to start from while the run has none of its own."""
+def run_training(
+    cfg: TrainConfig,
+    scene_dir: str | Path,
+    run_dir: str | Path,
+    backend: str = "ray",
+    on_progress: Callable[[dict], None] | None = None,
+    poll_s: float = 1.0,
+    store: RunStore | None = None,
+    resume_from: Path | None = None,
+) -> dict:
+    """Train (or resume) a run to the end, evaluate it, write summary.json and return it. With a
+    `store`, rank 0 also reports metrics, checkpoints and renders to it and stops when it asks
+    (RunInterrupted). `resume_from`: a folder with a checkpoint's state.pt to start from while the
+    run has none of its own."""
     started = time.perf_counter()
-    scene_dir, run_dir = Path(scene_dir).resolve(), Path(run_dir).resolve()  # Ray's workers run elsewhere
+    # Ray's workers run elsewhere
+    scene_dir, run_dir = Path(scene_dir).resolve(), Path(run_dir).resolve()
     from model.scenes import load_scene
 
-    load_scene(scene_dir, downscale=cfg.downscale)  # a broken scene fails here, before any worker starts
+    # a broken scene fails here, before any worker starts
+    load_scene(scene_dir, downscale=cfg.downscale)
     prepare_run_dir(cfg, scene_dir, run_dir)
     (run_dir / "failure.json").unlink(missing_ok=True)
     (run_dir / "stopped.json").unlink(missing_ok=True)
     fit = fit_with_ray if backend == "ray" else fit_locally
     if backend == "ray":
         ensure_ray(max(2, cfg.workers))  # in the main thread: Ray installs signal handlers there
-    # Training runs in this thread; a side thread reports progress. PyTorch's CPU kernels run 1.4-1.7x slower in
-    # a second thread once this one has used its OpenMP pool (load_scene above does): measured on the `cpu`
-    # profile, a LeCO main step 28 -> 47 ms, a vanilla one 88 -> 126 ms (docs/BENCHMARKS.md).
+    # Training runs in this thread; a side thread reports progress. PyTorch's CPU kernels run
+    # 1.4-1.7x slower in a second thread once this one has used its OpenMP pool (load_scene above
+    # does): measured on the `cpu` profile, a LeCO main step 28 -> 47 ms, a vanilla one 88 -> 126 ms
+    # (docs/BENCHMARKS.md).
     done = threading.Event()
     watcher = None
     if on_progress is not None:
-        watcher = threading.Thread(target=_watch, args=(run_dir, on_progress, poll_s, done), daemon=True)
+        watcher = threading.Thread(
+            target=_watch, args=(run_dir, on_progress, poll_s, done), daemon=True
+        )
         watcher.start()
     try:
         fit(cfg, scene_dir, run_dir, store, resume_from)
@@ -206,15 +292,19 @@ def run_training(cfg: TrainConfig, scene_dir: str | Path, run_dir: str | Path, b
         raise (RunGaveUp if failure.get("retryable") else RunError)(failure["reason"])
     if (run_dir / "stopped.json").exists():
         raise RunInterrupted(json.loads((run_dir / "stopped.json").read_text())["reason"])
-    # On a GPU when this process has one (a Ray driver may not): a paper-size model's full-resolution views
-    # take minutes on a CPU.
-    evaluation = evaluate_run(run_dir, "cuda" if cfg.use_gpu and torch.cuda.is_available() else "cpu")
+    # On a GPU when this process has one (a Ray driver may not): a paper-size model's
+    # full-resolution views take minutes on a CPU.
+    evaluation = evaluate_run(
+        run_dir, "cuda" if cfg.use_gpu and torch.cuda.is_available() else "cpu"
+    )
     summary = summarise(cfg, run_dir, evaluation, time.perf_counter() - started)
     write_json(run_dir / SUMMARY, summary)
     return summary
 
 
-def _watch(run_dir: Path, on_progress: Callable[[dict], None], poll_s: float, done: threading.Event) -> None:
+def _watch(
+    run_dir: Path, on_progress: Callable[[dict], None], poll_s: float, done: threading.Event
+) -> None:
     while not done.wait(poll_s):
         _report_last(run_dir, on_progress)
 

@@ -1,6 +1,6 @@
-"""What the training loop needs from its runner: rank, world size, the checkpoint to resume from, and a
-way to register a checkpoint. `RaySession` is Ray Train (V2); `LocalSession` runs one process without Ray
-(quick checks and debugging) with the same checkpoint semantics."""
+"""What the training loop needs from its runner: rank, world size, the checkpoint to resume from,
+and a way to register a checkpoint. `RaySession` is Ray Train (V2); `LocalSession` runs one process
+without Ray (quick checks and debugging) with the same checkpoint semantics."""
 
 from __future__ import annotations
 
@@ -21,8 +21,8 @@ class Session(Protocol):
 
 
 class RaySession:
-    """`seed`: a checkpoint folder to start from when Ray Train has none of its own yet (a later service
-    attempt resuming in a fresh folder; Ray Train V2 has no resume_from_checkpoint)."""
+    """`seed`: a checkpoint folder to start from when Ray Train has none of its own yet (a later
+    service attempt resuming in a fresh folder; Ray Train V2 has no resume_from_checkpoint)."""
 
     def __init__(self, seed: Path | None = None):
         import ray.train
@@ -42,12 +42,15 @@ class RaySession:
             yield Path(path)
 
     def report(self, metrics: dict, checkpoint_dir: Path | None) -> None:
-        checkpoint = self._train.Checkpoint.from_directory(str(checkpoint_dir)) if checkpoint_dir else None
+        checkpoint = (
+            self._train.Checkpoint.from_directory(str(checkpoint_dir)) if checkpoint_dir else None
+        )
         self._train.report(metrics, checkpoint=checkpoint)
 
 
 class LocalSession:
-    """Keeps the latest checkpoint in `root/latest` (replaced atomically); `seed` as for RaySession."""
+    """Keeps the latest checkpoint in `root/latest` (replaced atomically); `seed` as for
+    RaySession."""
 
     rank, world_size = 0, 1
 

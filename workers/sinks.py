@@ -1,5 +1,5 @@
-"""Where per-step metrics go: a small sink interface. The CLI writes JSON lines; the service
-writes the database. Writes are idempotent per (run, metric, step): after a restart from a checkpoint the
+"""Where per-step metrics go: a small sink interface. The CLI writes JSON lines; the service writes
+the database. Writes are idempotent per (run, metric, step): after a restart from a checkpoint the
 replayed steps overwrite what the lost attempt wrote, never duplicate it."""
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
-"""A finished run's networks, ready to render: what evaluation, `leco render` / `leco export` and the service's
-render, export and view workers all load. A run folder written by `leco train` knows its scene
-(run.json); the service knows it from the database and hands over the stored `final/` files."""
+"""A finished run's networks, ready to render: what evaluation, `leco render` / `leco export` and
+the service's render, export and view workers all load. A run folder written by `leco train` knows
+its scene (run.json); the service knows it from the database and hands over the stored `final/`
+files."""
 
 from __future__ import annotations
 
@@ -25,14 +26,20 @@ class Trained:
     method: Method
     models: Networks
     device: torch.device
-    mean_row: int | None = None  # the appended mean appearance row, once a render asked for it (workers/frames.py)
+    # the appended mean appearance row, once a render asked for it (workers/frames.py)
+    mean_row: int | None = None
 
 
-def load_trained(final: Path, scene_path: str | Path, device: torch.device | str = "cpu") -> Trained:
-    """From a `final/` folder (models.pt and the method's own files) and the scene it was trained on."""
+def load_trained(
+    final: Path, scene_path: str | Path, device: torch.device | str = "cpu"
+) -> Trained:
+    """From a `final/` folder (models.pt and the method's own files) and the scene it was trained
+    on."""
     final, device = Path(final), torch.device(device)
     if not (final / "models.pt").is_file():
-        raise FileNotFoundError(f"{final.parent}: no finished run here (final/models.pt is missing)")
+        raise FileNotFoundError(
+            f"{final.parent}: no finished run here (final/models.pt is missing)"
+        )
     saved = torch.load(final / "models.pt", map_location=device, weights_only=False)
     cfg = TrainConfig.model_validate(saved["config"])
     scene = load_scene(scene_path, downscale=cfg.downscale)

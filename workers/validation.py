@@ -1,5 +1,5 @@
-"""Whole validation images rendered with a run's current networks (workers/renderer.py: no gradient, no
-jitter), and the PNGs a person looks at: prediction, ground truth and depth side by side."""
+"""Whole validation images rendered with a run's current networks (workers/renderer.py: no gradient,
+no jitter), and the PNGs a person looks at: prediction, ground truth and depth side by side."""
 
 from __future__ import annotations
 
@@ -19,8 +19,16 @@ if TYPE_CHECKING:
     from workers.loop import RankRun
 
 
-def render_image(method: Method, models: Networks, phase: str, table: PixelTable, image: int, aabb: torch.Tensor,
-                 device: torch.device, columns: tuple[int, int] | None = None) -> Rendering:
+def render_image(
+    method: Method,
+    models: Networks,
+    phase: str,
+    table: PixelTable,
+    image: int,
+    aabb: torch.Tensor,
+    device: torch.device,
+    columns: tuple[int, int] | None = None,
+) -> Rendering:
     """A whole validation image, or its columns u0 <= u < u1, shaped (H, W')."""
     rendered = render_rays(method, models, phase, table.image_rays(image, aabb, columns), device)
     h = int(table.views.cameras.height[image])
@@ -36,9 +44,12 @@ def save_triptych(path: Path, prediction: Rendering, truth: torch.Tensor) -> Non
 
 
 def write_validation_renders(run: RankRun, step: int) -> Path:
-    """During training: the first validation view (or training view when the scene has no val split)."""
+    """During training: the first validation view (or training view when the scene has no val
+    split)."""
     views = run.scene.splits.get("val", run.scene.train)
-    rendered = render_image(run.method, run.models, run.progress["phase"], PixelTable(views), 0, run.aabb, run.device)
+    rendered = render_image(
+        run.method, run.models, run.progress["phase"], PixelTable(views), 0, run.aabb, run.device
+    )
     path = run.run_dir / "renders" / f"step{step:07d}_{views.names[0]}.png"
     save_triptych(path, rendered, views.image(0))
     return path

@@ -1,10 +1,9 @@
 """NeRF++-style background for whatever lies beyond the foreground box, shared by every method.
 
 A background point x is described by its direction from the scene centre and its inverse distance,
-(x / |x|, 1 / |x|): the inverted sphere, so infinity is a finite input. Samples along a ray are uniform in
-inverse depth from the foreground exit to infinity; the last one is made opaque, so the background
-always covers whatever the foreground leaves (the sky included).
-"""
+(x / |x|, 1 / |x|): the inverted sphere, so infinity is a finite input. Samples along a ray are
+uniform in inverse depth from the foreground exit to infinity; the last one is made opaque, so the
+background always covers whatever the foreground leaves (the sky included)."""
 
 from __future__ import annotations
 
@@ -17,12 +16,22 @@ from model.fields.heads import density_activation
 MIN_START = 1e-2  # world units: rays that miss the box are background from (almost) the camera on
 
 
-def background_samples(far: Tensor, n: int, generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
-    """(t_mid, deltas) of n samples per ray from the foreground exit `far` to infinity, (R, n) each."""
+def background_samples(
+    far: Tensor, n: int, generator: torch.Generator | None
+) -> tuple[Tensor, Tensor]:
+    """(t_mid, deltas) of n samples per ray from the foreground exit `far` to infinity, (R, n)
+    each."""
     start = far.clamp(min=MIN_START)
     u = (torch.arange(n, device=far.device, dtype=far.dtype) + 0.5) / n
     if generator is not None:
-        u = u + (torch.rand(len(far), n, generator=generator, device=far.device, dtype=far.dtype) - 0.5) / n
+        u = (
+            u
+            + (
+                torch.rand(len(far), n, generator=generator, device=far.device, dtype=far.dtype)
+                - 0.5
+            )
+            / n
+        )
     inverse = (1.0 - u) / start[:, None]  # from 1 / start down towards 0
     t = 1.0 / inverse.clamp(min=1e-6)
     deltas = torch.cat([t[:, 1:] - t[:, :-1], torch.full_like(t[:, :1], 1e10)], dim=-1)
@@ -30,22 +39,37 @@ def background_samples(far: Tensor, n: int, generator: torch.Generator | None) -
 
 
 class BackgroundField(nn.Module):
-    def __init__(self, num_images: int, width: int = 128, layers: int = 4, frequencies: int = 10,
-                 dir_frequencies: int = 4, appearance_dim: int = 48, density_noise: float = 1.0):
+    def __init__(
+        self,
+        num_images: int,
+        width: int = 128,
+        layers: int = 4,
+        frequencies: int = 10,
+        dir_frequencies: int = 4,
+        appearance_dim: int = 48,
+        density_noise: float = 1.0,
+    ):
         super().__init__()
         self.point_encoding = FrequencyEncoding(frequencies, in_dim=4)
         self.dir_encoding = FrequencyEncoding(dir_frequencies)
         self.appearance = nn.Embedding(num_images, appearance_dim)
         dims = [self.point_encoding.out_dim] + [width] * layers
-        self.trunk = nn.Sequential(*[m for a, b in zip(dims[:-1], dims[1:]) for m in (nn.Linear(a, b), nn.ReLU())])
+        self.trunk = nn.Sequential(
+            *[m for a, b in zip(dims[:-1], dims[1:]) for m in (nn.Linear(a, b), nn.ReLU())]
+        )
         self.sigma = nn.Linear(width, 1)
-        self.colour = nn.Sequential(nn.Linear(width + self.dir_encoding.out_dim + appearance_dim, width // 2),
-                                    nn.ReLU(), nn.Linear(width // 2, 3))
+        self.colour = nn.Sequential(
+            nn.Linear(width + self.dir_encoding.out_dim + appearance_dim, width // 2),
+            nn.ReLU(),
+            nn.Linear(width // 2, 3),
+        )
         self.density_noise = density_noise
 
     def forward(self, xyz: Tensor, dirs: Tensor, image_index: Tensor) -> tuple[Tensor, Tensor]:
         r = xyz.norm(dim=-1, keepdim=True).clamp(min=1e-6)
         h = self.trunk(self.point_encoding(torch.cat([xyz / r, 1.0 / r], dim=-1)))
         sigma = density_activation(self.sigma(h).squeeze(-1), self.density_noise, self.training)
-        rgb = torch.sigmoid(self.colour(torch.cat([h, self.dir_encoding(dirs), self.appearance(image_index)], -1)))
+        rgb = torch.sigmoid(
+            self.colour(torch.cat([h, self.dir_encoding(dirs), self.appearance(image_index)], -1))
+        )
         return sigma, rgb

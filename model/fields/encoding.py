@@ -1,4 +1,5 @@
-"""Frequency (positional) encoding as in Switch-NeRF: the raw input plus sin/cos at 2^0 .. 2^(n-1), no pi."""
+"""Frequency (positional) encoding as in Switch-NeRF: the raw input plus sin/cos at 2^0 .. 2^(n-1),
+no pi."""
 
 from __future__ import annotations
 
@@ -12,7 +13,9 @@ class FrequencyEncoding(nn.Module):
     def __init__(self, num_frequencies: int, in_dim: int = 3):
         super().__init__()
         self.in_dim = in_dim
-        self.register_buffer("freqs", 2.0 ** torch.arange(num_frequencies, dtype=torch.float32), persistent=False)
+        self.register_buffer(
+            "freqs", 2.0 ** torch.arange(num_frequencies, dtype=torch.float32), persistent=False
+        )
 
     @property
     def out_dim(self) -> int:

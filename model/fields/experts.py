@@ -9,7 +9,8 @@ from torch import Tensor, nn
 
 
 class Expert(nn.Module):
-    """`layers` x Linear(W, W) + ReLU with the block input added back after layer `residual_at` (Switch-NeRF)."""
+    """`layers` x Linear(W, W) + ReLU with the block input added back after layer `residual_at`
+    (Switch-NeRF)."""
 
     def __init__(self, width: int, layers: int = 7, residual_at: int = 3):
         super().__init__()
@@ -26,14 +27,16 @@ class Expert(nn.Module):
 
 
 def top1(logits: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Softmax over experts in fp32, then top-1: (probabilities (N, E), index (N,), chosen probability (N,)).
-    Ties go to the lowest index (torch.max is deterministic about that)."""
+    """Softmax over experts in fp32, then top-1: (probabilities (N, E), index (N,), chosen
+    probability (N,)). Ties go to the lowest index (torch.max is deterministic about that)."""
     probs = torch.softmax(logits.float(), dim=-1)
     chosen, index = probs.max(dim=-1)
     return probs, index, chosen
 
 
-def capacity_keep(index: Tensor, chosen: Tensor, num_experts: int, capacity_factor: float | None) -> Tensor:
+def capacity_keep(
+    index: Tensor, chosen: Tensor, num_experts: int, capacity_factor: float | None
+) -> Tensor:
     """Which points an expert accepts. With a capacity factor, each expert takes at most
     ceil(factor * N / E) points and drops its least confident overflow (their output is zero)."""
     keep = torch.ones_like(index, dtype=torch.bool)
@@ -49,7 +52,8 @@ def capacity_keep(index: Tensor, chosen: Tensor, num_experts: int, capacity_fact
 
 
 def dispatch(experts: nn.ModuleList, h: Tensor, index: Tensor, keep: Tensor) -> Tensor:
-    """Run each expert on exactly its points (gather, compute, scatter); dropped points stay zero."""
+    """Run each expert on exactly its points (gather, compute, scatter); dropped points stay
+    zero."""
     out = h.new_zeros(h.shape[0], h.shape[1])
     for e, expert in enumerate(experts):
         members = torch.nonzero((index == e) & keep).squeeze(1)

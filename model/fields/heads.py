@@ -16,18 +16,23 @@ def density_activation(raw: Tensor, noise_std: float, training: bool) -> Tensor:
 
 
 class SceneHead(nn.Module):
-    """H_s: sigma = Linear(W, 1); colour = Linear(W, W) -> [dir, appearance] -> Linear -> ReLU -> Linear -> sigmoid."""
+    """H_s: sigma = Linear(W, 1); colour = Linear(W, W) -> [dir, appearance] -> Linear -> ReLU ->
+    Linear -> sigmoid."""
 
     def __init__(self, width: int, dir_dim: int, appearance_dim: int, noise_std: float = 1.0):
         super().__init__()
         self.sigma = nn.Linear(width, 1)
         self.feature = nn.Linear(width, width)
         self.colour = nn.Sequential(
-            nn.Linear(width + dir_dim + appearance_dim, width // 2), nn.ReLU(), nn.Linear(width // 2, 3)
+            nn.Linear(width + dir_dim + appearance_dim, width // 2),
+            nn.ReLU(),
+            nn.Linear(width // 2, 3),
         )
         self.noise_std = noise_std
 
-    def forward(self, h: Tensor, dir_enc: Tensor, appearance: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def forward(
+        self, h: Tensor, dir_enc: Tensor, appearance: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
         """(raw sigma, sigma, rgb)."""
         raw = self.sigma(h).squeeze(-1)
         sigma = density_activation(raw, self.noise_std, self.training)
@@ -36,7 +41,8 @@ class SceneHead(nn.Module):
 
 
 class EmptyHead(nn.Module):
-    """H_e: density and colour from the empty expert's output alone (no direction, no appearance)."""
+    """H_e: density and colour from the empty expert's output alone (no direction, no
+    appearance)."""
 
     def __init__(self, width: int, noise_std: float = 1.0):
         super().__init__()
@@ -46,4 +52,8 @@ class EmptyHead(nn.Module):
 
     def forward(self, h: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         raw = self.sigma(h).squeeze(-1)
-        return raw, density_activation(raw, self.noise_std, self.training), torch.sigmoid(self.colour(h))
+        return (
+            raw,
+            density_activation(raw, self.noise_std, self.training),
+            torch.sigmoid(self.colour(h)),
+        )

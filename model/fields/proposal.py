@@ -1,6 +1,6 @@
-"""A proposal network (mip-NeRF 360, nerfacto): a small density-only MLP whose histogram along a ray tells
-the next level where to put its samples. Positional encoding as in our fields, ReLU layers, and the same
-density activation as the main network's (softplus(x - 1))."""
+"""A proposal network (mip-NeRF 360, nerfacto): a small density-only MLP whose histogram along a ray
+tells the next level where to put its samples. Positional encoding as in our fields, ReLU layers,
+and the same density activation as the main network's (softplus(x - 1))."""
 
 from __future__ import annotations
 

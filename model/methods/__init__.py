@@ -1,13 +1,23 @@
-"""Methods: each in its own file behind one interface (base.py), listed in one registry (registry.py) of
-torch-free specs (spec.py). `Method`, `Networks` and `method_state` need PyTorch and load on first use."""
+"""Methods: each in its own file behind one interface (base.py), listed in one registry
+(registry.py) of torch-free specs (spec.py). `Method`, `Networks` and `method_state` need PyTorch
+and load on first use."""
 
 from typing import Any
 
 from model.methods.registry import METHODS, get_method, register, with_role
 from model.methods.spec import MethodSpec, PhaseMemory, SweepPoint
 
-__all__ = ["METHODS", "Method", "MethodSpec", "Networks", "PhaseMemory", "SweepPoint", "get_method", "register",
-           "with_role"]
+__all__ = [
+    "METHODS",
+    "Method",
+    "MethodSpec",
+    "Networks",
+    "PhaseMemory",
+    "SweepPoint",
+    "get_method",
+    "register",
+    "with_role",
+]
 
 
 def __getattr__(name: str) -> Any:

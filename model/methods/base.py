@@ -1,11 +1,11 @@
-"""What a method is: the one place that knows how a run of it builds its networks, what each phase trains and
-samples, and what it exports. The training loop, evaluation, benchmark, API and dashboard talk to this interface
-and never compare method names.
+"""What a method is: the one place that knows how a run of it builds its networks, what each phase
+trains and samples, and what it exports. The training loop, evaluation, benchmark, API and dashboard
+talk to this interface and never compare method names.
 
-A method object is made from the resolved profile (`method = get_method(name)(profile)`); that alone is cheap
-and answers the static questions (phases, parameter counts, memory needs, benchmark sweep). `build` makes the
-networks of one run; the object then also holds that run's non-network state (an occupancy grid, a frozen
-predictor), which it checkpoints through `state_dict` / `load_state_dict`.
+A method object is made from the resolved profile (`method = get_method(name)(profile)`); that alone
+is cheap and answers the static questions (phases, parameter counts, memory needs, benchmark sweep).
+`build` makes the networks of one run; the object then also holds that run's non-network state (an
+occupancy grid, a frozen predictor), which it checkpoints through `state_dict` / `load_state_dict`.
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ from model.profiles import Profile
 from model.rendering import Rendered
 from model.scenes.rays import RayBatch
 
-# The estimator interface: world points (N, 3) on any device -> bool (N,) on the estimator's own device.
+# The estimator interface: world points (N, 3) on any device -> bool (N,) on the estimator's own
+# device.
 Occupied = Callable[[Tensor], Tensor]
 
 
@@ -34,23 +35,38 @@ def count(*modules: nn.Module) -> int:
 
 def switch_nerf(profile: Profile, num_images: int) -> SwitchNeRF:
     n = profile.network
-    return SwitchNeRF(num_images, width=n.width, num_experts=n.num_experts, expert_layers=n.expert_layers,
-                      xyz_frequencies=n.xyz_frequencies, dir_frequencies=n.dir_frequencies,
-                      appearance_dim=n.appearance_dim, capacity_factor=n.capacity_factor,
-                      density_noise=n.density_noise)
+    return SwitchNeRF(
+        num_images,
+        width=n.width,
+        num_experts=n.num_experts,
+        expert_layers=n.expert_layers,
+        xyz_frequencies=n.xyz_frequencies,
+        dir_frequencies=n.dir_frequencies,
+        appearance_dim=n.appearance_dim,
+        capacity_factor=n.capacity_factor,
+        density_noise=n.density_noise,
+    )
 
 
 def background(profile: Profile, num_images: int) -> BackgroundField:
     b, n = profile.background, profile.network
-    return BackgroundField(num_images, width=b.width, layers=b.layers, dir_frequencies=n.dir_frequencies,
-                           appearance_dim=n.appearance_dim, density_noise=n.density_noise)
+    return BackgroundField(
+        num_images,
+        width=b.width,
+        layers=b.layers,
+        dir_frequencies=n.dir_frequencies,
+        appearance_dim=n.appearance_dim,
+        density_noise=n.density_noise,
+    )
 
 
 class Networks(nn.Module):
-    """A run's trainable networks, named by the method that built them (checkpoints keep these names)."""
+    """A run's trainable networks, named by the method that built them (checkpoints keep these
+    names)."""
 
     def __getattr__(self, name: str) -> Any:
-        # Submodules are the method's to name; typed as Any so each method reads its own without casts.
+        # Submodules are the method's to name; typed as Any so each method reads its own without
+        # casts.
         return super().__getattr__(name)
 
 
@@ -71,7 +87,8 @@ class Method:
     def phases(self) -> tuple[str, ...]:
         return self.spec.phases
 
-    # ----- what a run of it costs, before it runs ---------------------------------------------------------
+    # ----- what a run of it costs, before it runs
+    # ---------------------------------------------------------
     def build(self, num_images: int, aabb: Tensor) -> Networks:
         """The networks every method shares: the main Switch-NeRF (`field`) and the background."""
         models = Networks()
@@ -80,12 +97,21 @@ class Method:
         return models
 
     def components(self, num_images: int) -> dict[str, int]:
-        """Parameter count of every component a run trains (model_info); built on the meta device."""
+        """Parameter count of every component a run trains (model_info); built on the meta
+        device."""
         with torch.device("meta"):
-            main, behind = switch_nerf(self.profile, num_images), background(self.profile, num_images)
-        return {"main.input_layer": count(main.input_layer), "main.gate": count(main.gate),
-                "main.experts": count(main.experts), "main.heads": count(main.head),
-                "main.appearance": count(main.appearance), "background": count(behind)}
+            main, behind = (
+                switch_nerf(self.profile, num_images),
+                background(self.profile, num_images),
+            )
+        return {
+            "main.input_layer": count(main.input_layer),
+            "main.gate": count(main.gate),
+            "main.experts": count(main.experts),
+            "main.heads": count(main.head),
+            "main.appearance": count(main.appearance),
+            "background": count(behind),
+        }
 
     def memory(self, num_images: int) -> dict[str, PhaseMemory]:
         return self.spec.memory(self.profile, num_images)
@@ -94,7 +120,8 @@ class Method:
         """Sampling budgets around the profile's own for `leco bench --sweep` (none: not swept)."""
         return []
 
-    # ----- a run --------------------------------------------------------------------------------------
+    # ----- a run
+    # --------------------------------------------------------------------------------------
     def to(self, device: torch.device) -> "Method":
         """Moves non-network state (a grid, a predictor) to the run's device."""
         return self
@@ -103,47 +130,74 @@ class Method:
         return self.spec.steps(self.profile, phase)
 
     def budget_share(self, phase: str) -> float | None:
-        """The share of a wall-clock budget the phase stops at; None: whatever the phases before it left."""
+        """The share of a wall-clock budget the phase stops at; None: whatever the phases before it
+        left."""
         return self.spec.budget_share(self.profile, phase)
 
     def phase_lr(self, phase: str) -> tuple[float, float | None]:
-        """(start, final) learning rate of the phase; the schedule decays log-linearly between them."""
+        """(start, final) learning rate of the phase; the schedule decays log-linearly between
+        them."""
         return self.profile.lr, self.profile.lr_final
 
     def trained_modules(self, models: Networks, phase: str) -> list[nn.Module]:
-        """The networks the phase trains and renders with (their appearance embeddings are the ones the
-        validation protocol fits)."""
+        """The networks the phase trains and renders with (their appearance embeddings are the ones
+        the validation protocol fits)."""
         return [models.field, models.background]
 
     def extra_parameters(self, models: Networks, phase: str) -> list[nn.Parameter]:
         """Parameters the phase's optimizer also steps, outside `trained_modules`."""
         return []
 
-    def start_phase(self, models: Networks, phase: str, fresh: bool, device: torch.device,
-                    log: Callable[[str], None]) -> None:
-        """Sets up the phase (frozen parts, estimators); `fresh` when it begins now rather than on a resume."""
+    def start_phase(
+        self,
+        models: Networks,
+        phase: str,
+        fresh: bool,
+        device: torch.device,
+        log: Callable[[str], None],
+    ) -> None:
+        """Sets up the phase (frozen parts, estimators); `fresh` when it begins now rather than on a
+        resume."""
 
     def lr_ramp_steps(self, phase: str) -> int:
         return 0
 
-    def step(self, models: Networks, phase: str, rays: RayBatch, generator: torch.Generator | None,
-             progress: float, phase_step: int, seed: int) -> tuple[Tensor, dict]:
-        """One training step's loss and its parts (floats). `seed`: the run's, for any draw that must be the
-        same on every rank (a replicated estimator's update)."""
+    def step(
+        self,
+        models: Networks,
+        phase: str,
+        rays: RayBatch,
+        generator: torch.Generator | None,
+        progress: float,
+        phase_step: int,
+        seed: int,
+    ) -> tuple[Tensor, dict]:
+        """One training step's loss and its parts (floats). `seed`: the run's, for any draw that
+        must be the same on every rank (a replicated estimator's update)."""
         render = self.render_main(models, rays, generator, phase_step)
-        return main_loss(render, rays, self.profile.balance_weight, self.profile.guided.coarse_samples)
+        return main_loss(
+            render, rays, self.profile.balance_weight, self.profile.guided.coarse_samples
+        )
 
-    def render_main(self, models: Networks, rays: RayBatch, generator: torch.Generator | None,
-                    phase_step: int | None) -> MainRender:
-        """The main phase's render; `phase_step` is None outside training (validation, evaluation)."""
+    def render_main(
+        self,
+        models: Networks,
+        rays: RayBatch,
+        generator: torch.Generator | None,
+        phase_step: int | None,
+    ) -> MainRender:
+        """The main phase's render; `phase_step` is None outside training (validation,
+        evaluation)."""
         raise NotImplementedError
 
     def render(self, models: Networks, phase: str, rays: RayBatch) -> Rendered:
-        """A deterministic render of `phase`'s networks as they are (train or eval mode), keeping autograd."""
+        """A deterministic render of `phase`'s networks as they are (train or eval mode), keeping
+        autograd."""
         return self.render_main(models, rays, None, None).rendered
 
     def occupancy(self, models: Networks, phase: str) -> Occupied | None:
-        """The occupancy to score while training (periodic evaluation); None: nothing is being learned."""
+        """The occupancy to score while training (periodic evaluation); None: nothing is being
+        learned."""
         return None
 
     def final_occupancy(self, models: Networks) -> Occupied | None:
@@ -151,8 +205,8 @@ class Method:
         return None
 
     def decision_rules(self, models: Networks) -> dict[str, Occupied]:
-        """Other decisions of the final occupancy to score beside `final_occupancy`, by name (LeCO: O's top-1,
-        the paper's rule, when it samples with a threshold)."""
+        """Other decisions of the final occupancy to score beside `final_occupancy`, by name (LeCO:
+        O's top-1, the paper's rule, when it samples with a threshold)."""
         return {}
 
     def point_cloud_samples(self) -> int:
@@ -173,8 +227,8 @@ class Method:
         pass
 
     def summary_occupancy(self, final: Path, main: list[dict], first: list[dict]) -> dict:
-        """The occupancy row of a run's summary: its size and how much it keeps (`main`/`first`: the metrics
-        rows of the main phase and of any phase before it)."""
+        """The occupancy row of a run's summary: its size and how much it keeps (`main`/`first`: the
+        metrics rows of the main phase and of any phase before it)."""
         return {}
 
 
@@ -184,6 +238,6 @@ def mean_of(rows: list[dict], key: str) -> float | None:
 
 
 def method_state(saved: dict) -> dict | None:
-    """A checkpoint's non-network method state (Method.state_dict). Checkpoints written before the methods
-    had a home kept the only such state, the grid's, under "grid"; they still load."""
+    """A checkpoint's non-network method state (Method.state_dict). Checkpoints written before the
+    methods had a home kept the only such state, the grid's, under "grid"; they still load."""
     return saved["method"] if "method" in saved else saved.get("grid")

@@ -1,5 +1,6 @@
-"""Each registered method's memory model (PhaseMemory per phase) and the sizes it derives from, computed from
-the profile alone (model/sizes.py), so the API can refuse a job that cannot fit without loading PyTorch."""
+"""Each registered method's memory model (PhaseMemory per phase) and the sizes it derives from,
+computed from the profile alone (model/sizes.py), so the API can refuse a job that cannot fit
+without loading PyTorch."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ from model.profiles import Profile
 
 
 def main_phase(profile: Profile, num_images: int, samples_per_ray: int) -> PhaseMemory:
-    """The main Switch-NeRF and the background, trained, with `samples_per_ray` main samples per ray."""
+    """The main Switch-NeRF and the background, trained, with `samples_per_ray` main samples per
+    ray."""
     trained = sizes.switch_nerf(profile, num_images) + sizes.background(profile, num_images)
     return PhaseMemory(trained=trained, samples_per_ray=samples_per_ray)
 
@@ -29,10 +31,15 @@ def leco(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
     main = main_phase(profile, num_images, leco_main_samples(profile))
     samples = profile.occupancy.samples_per_ray
     phase1 = sizes.hmoe(profile, num_images) + sizes.background(profile, num_images)
-    return {"occupancy": PhaseMemory(trained=phase1, samples_per_ray=samples),
-            "main": PhaseMemory(trained=main.trained, frozen=sizes.occupancy_network(profile),
-                                samples_per_ray=main.samples_per_ray,
-                                render_samples_per_ray=max(main.samples_per_ray, samples))}
+    return {
+        "occupancy": PhaseMemory(trained=phase1, samples_per_ray=samples),
+        "main": PhaseMemory(
+            trained=main.trained,
+            frozen=sizes.occupancy_network(profile),
+            samples_per_ray=main.samples_per_ray,
+            render_samples_per_ray=max(main.samples_per_ray, samples),
+        ),
+    }
 
 
 def grid_cells(profile: Profile) -> int:
@@ -41,17 +48,27 @@ def grid_cells(profile: Profile) -> int:
 
 def grid(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
     main = main_phase(profile, num_images, profile.grid.march_steps)
-    return {"main": PhaseMemory(main.trained, samples_per_ray=main.samples_per_ray,
-                                extra_bytes=5 * grid_cells(profile))}  # float values + occupied bits
+    return {
+        "main": PhaseMemory(
+            main.trained,
+            samples_per_ray=main.samples_per_ray,
+            # float values + occupied bits
+            extra_bytes=5 * grid_cells(profile),
+        )
+    }
 
 
 def proposal_width(profile: Profile) -> int:
-    """`prop.width`, or the widest proposal MLP whose levels together do not exceed LeCO's O's parameter
-    count, so the two learned samplers are compared at equal size."""
+    """`prop.width`, or the widest proposal MLP whose levels together do not exceed LeCO's O's
+    parameter count, so the two learned samplers are compared at equal size."""
     p = profile.prop
     if p.width is not None:
         return p.width
-    target, levels, f = sizes.occupancy_network(profile), len(p.samples), profile.network.xyz_frequencies
+    target, levels, f = (
+        sizes.occupancy_network(profile),
+        len(p.samples),
+        profile.network.xyz_frequencies,
+    )
     width = 4
     while levels * sizes.proposal(width + 1, p.layers, f) <= target:
         width += 1
@@ -60,7 +77,9 @@ def proposal_width(profile: Profile) -> int:
 
 def proposal_parameters(profile: Profile) -> int:
     p = profile.prop
-    return len(p.samples) * sizes.proposal(proposal_width(profile), p.layers, profile.network.xyz_frequencies)
+    return len(p.samples) * sizes.proposal(
+        proposal_width(profile), p.layers, profile.network.xyz_frequencies
+    )
 
 
 def prop(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
@@ -68,5 +87,10 @@ def prop(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
     main = main_phase(profile, num_images, p.main_samples)
     # What backward keeps per proposal sample: each layer's input and ReLU mask, and the encoding.
     per_ray = sum(p.samples) * 4 * (2 * p.layers * width + 100)
-    return {"main": PhaseMemory(trained=main.trained + proposal_parameters(profile),
-                                samples_per_ray=main.samples_per_ray, extra_bytes_per_ray=per_ray)}
+    return {
+        "main": PhaseMemory(
+            trained=main.trained + proposal_parameters(profile),
+            samples_per_ray=main.samples_per_ray,
+            extra_bytes_per_ray=per_ray,
+        )
+    }

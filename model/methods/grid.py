@@ -1,5 +1,5 @@
-"""S+Grid: nerfacc's occupancy grid (model/occupancy_grid.py) marched through by the main network, updated
-from the main network's own density as it trains."""
+"""S+Grid: nerfacc's occupancy grid (model/occupancy_grid.py) marched through by the main network,
+updated from the main network's own density as it trains."""
 
 from __future__ import annotations
 
@@ -26,29 +26,54 @@ class GridMethod(Method):
 
     def sweep(self) -> list[SweepPoint]:
         n = self.profile.grid.march_steps
-        return [SweepPoint(tag, f"{m} march steps", {"grid.march_steps": m})
-                for tag, m in (("lean", max(n // 2, 8)), ("rich", 2 * n))]
+        return [
+            SweepPoint(tag, f"{m} march steps", {"grid.march_steps": m})
+            for tag, m in (("lean", max(n // 2, 8)), ("rich", 2 * n))
+        ]
 
     def to(self, device: torch.device) -> "GridMethod":
         self.grid.to(device)
         return self
 
-    def step(self, models: Networks, phase: str, rays: RayBatch, generator: torch.Generator | None,
-             progress: float, phase_step: int, seed: int) -> tuple[Tensor, dict]:
+    def step(
+        self,
+        models: Networks,
+        phase: str,
+        rays: RayBatch,
+        generator: torch.Generator | None,
+        progress: float,
+        phase_step: int,
+        seed: int,
+    ) -> tuple[Tensor, dict]:
         g, field = self.profile.grid, models.field
         zeros = lambda x: torch.zeros(len(x), dtype=torch.long, device=x.device)
         density = lambda x: field(x, torch.zeros_like(x), zeros(x)).sigma
         was_training = field.training
         field.eval()
         # Same generator on every rank, so the replicated grids stay identical.
-        self.grid.update(phase_step, density, grid_step_size(self.grid, g.march_steps), g.threshold, g.decay,
-                         g.warmup_steps, g.update_every, torch.Generator().manual_seed(seed * 100_003 + phase_step))
+        self.grid.update(
+            phase_step,
+            density,
+            grid_step_size(self.grid, g.march_steps),
+            g.threshold,
+            g.decay,
+            g.warmup_steps,
+            g.update_every,
+            torch.Generator().manual_seed(seed * 100_003 + phase_step),
+        )
         field.train(was_training)
         return super().step(models, phase, rays, generator, progress, phase_step, seed)
 
-    def render_main(self, models: Networks, rays: RayBatch, generator: torch.Generator | None,
-                    phase_step: int | None) -> MainRender:
-        return render_grid(models.field, models.background, rays, self.profile, self.grid, generator)
+    def render_main(
+        self,
+        models: Networks,
+        rays: RayBatch,
+        generator: torch.Generator | None,
+        phase_step: int | None,
+    ) -> MainRender:
+        return render_grid(
+            models.field, models.background, rays, self.profile, self.grid, generator
+        )
 
     def occupancy(self, models: Networks, phase: str) -> Occupied | None:
         return self.grid.occupied
@@ -57,14 +82,23 @@ class GridMethod(Method):
         return self.grid.occupied
 
     def state_dict(self) -> dict | None:
-        return {"values": self.grid.values, "binary": self.grid.binary, "queries": self.grid.queries}
+        return {
+            "values": self.grid.values,
+            "binary": self.grid.binary,
+            "queries": self.grid.queries,
+        }
 
     def load_state_dict(self, state: dict | None) -> None:
         if state is not None:
             device = self.grid.values.device
-            self.grid.values, self.grid.binary = state["values"].to(device), state["binary"].to(device)
+            self.grid.values, self.grid.binary = (
+                state["values"].to(device),
+                state["binary"].to(device),
+            )
             self.grid.queries = state["queries"]
 
     def summary_occupancy(self, final: Path, main: list[dict], first: list[dict]) -> dict:
-        return {"params": self.profile.grid.resolution**3,  # one value per cell
-                "occupancy_ratio": mean_of(main, "occupancy_ratio")}
+        return {
+            "params": self.profile.grid.resolution**3,  # one value per cell
+            "occupancy_ratio": mean_of(main, "occupancy_ratio"),
+        }

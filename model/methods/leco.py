@@ -1,6 +1,7 @@
-"""S+Ours (LeCO): phase 1 learns the scene's occupancy with the HMoE (section 3.3); the main phase trains
-Switch-NeRF on the samples its frozen gating network O keeps (section 3.4). The cpu profile's settings that are
-not in the paper (warm start, O learning online, the sampler's options) are chosen here from the profile."""
+"""S+Ours (LeCO): phase 1 learns the scene's occupancy with the HMoE (section 3.3); the main phase
+trains Switch-NeRF on the samples its frozen gating network O keeps (section 3.4). The cpu profile's
+settings that are not in the paper (warm start, O learning online, the sampler's options) are chosen
+here from the profile."""
 
 from __future__ import annotations
 
@@ -36,12 +37,22 @@ from model.warm_start import warm_start_main
 
 def hmoe(profile: Profile, num_images: int) -> HMoE:
     n, o = profile.network, profile.occupancy
-    return HMoE(num_images, width=n.width, num_scene_experts=n.num_experts, expert_layers=n.expert_layers,
-                xyz_frequencies=n.xyz_frequencies, dir_frequencies=n.dir_frequencies,
-                appearance_dim=n.appearance_dim, homogeneous=o.homogeneous, density_noise=n.density_noise,
-                empty_gate_grad=o.empty_gate_grad, gate_width=o.gate_width,
-                gate_relu_every_layer=o.gate_relu_every_layer, empty_expert_layers=o.empty_expert_layers,
-                placement_head=profile.guided.placement)
+    return HMoE(
+        num_images,
+        width=n.width,
+        num_scene_experts=n.num_experts,
+        expert_layers=n.expert_layers,
+        xyz_frequencies=n.xyz_frequencies,
+        dir_frequencies=n.dir_frequencies,
+        appearance_dim=n.appearance_dim,
+        homogeneous=o.homogeneous,
+        density_noise=n.density_noise,
+        empty_gate_grad=o.empty_gate_grad,
+        gate_width=o.gate_width,
+        gate_relu_every_layer=o.gate_relu_every_layer,
+        empty_expert_layers=o.empty_expert_layers,
+        placement_head=profile.guided.placement,
+    )
 
 
 class LeCOMethod(Method):
@@ -50,7 +61,8 @@ class LeCOMethod(Method):
         self.predictor: OccupancyPredictor | None = None
         self.query: OccupancyQuery | None = None  # O as the main phase's sampler asks it
 
-    # ----- static -------------------------------------------------------------------------------------
+    # ----- static
+    # -------------------------------------------------------------------------------------
     def build(self, num_images: int, aabb: Tensor) -> Networks:
         models = Networks()
         models.hmoe = hmoe(self.profile, num_images)
@@ -62,24 +74,42 @@ class LeCOMethod(Method):
     def components(self, num_images: int) -> dict[str, int]:
         with torch.device("meta"):
             occ = hmoe(self.profile, num_images)
-        return {"occupancy_network": count(occ.gate), "phase1.scene_experts": count(occ.scene_experts),
-                "phase1.scene_head": count(occ.scene_head),
-                "phase1.empty_expert_and_head": count(occ.empty_expert, occ.empty_head),
-                "phase1.appearance": count(occ.appearance), **super().components(num_images)}
+        return {
+            "occupancy_network": count(occ.gate),
+            "phase1.scene_experts": count(occ.scene_experts),
+            "phase1.scene_head": count(occ.scene_head),
+            "phase1.empty_expert_and_head": count(occ.empty_expert, occ.empty_head),
+            "phase1.appearance": count(occ.appearance),
+            **super().components(num_images),
+        }
 
     def sweep(self) -> list[SweepPoint]:
         g = self.profile.guided
         cull = SweepPoint("cull", "culling T < 1e-3", {"guided.cull_transmittance": 1e-3})
         if g.placement:  # O places a fixed budget per hit ray: the budget is what to sweep
-            return [SweepPoint(tag, f"{n} main samples", {"guided.main_samples": n})
-                    for tag, n in (("lean", max(g.main_samples // 2, 1)), ("rich", 2 * g.main_samples))] + [cull]
-        lean = (SweepPoint("lean", f"dilation {g.dilate - 1}", {"guided.dilate": g.dilate - 1}) if g.dilate > 0
-                else SweepPoint("lean", f"split {max(g.split // 2, 1)}", {"guided.split": max(g.split // 2, 1)}))
-        return [lean,
-                SweepPoint("rich", f"{2 * g.coarse_samples} coarse bins",
-                           {"guided.coarse_samples": 2 * g.coarse_samples}), cull]
+            return [
+                SweepPoint(tag, f"{n} main samples", {"guided.main_samples": n})
+                for tag, n in (("lean", max(g.main_samples // 2, 1)), ("rich", 2 * g.main_samples))
+            ] + [cull]
+        lean = (
+            SweepPoint("lean", f"dilation {g.dilate - 1}", {"guided.dilate": g.dilate - 1})
+            if g.dilate > 0
+            else SweepPoint(
+                "lean", f"split {max(g.split // 2, 1)}", {"guided.split": max(g.split // 2, 1)}
+            )
+        )
+        return [
+            lean,
+            SweepPoint(
+                "rich",
+                f"{2 * g.coarse_samples} coarse bins",
+                {"guided.coarse_samples": 2 * g.coarse_samples},
+            ),
+            cull,
+        ]
 
-    # ----- a run --------------------------------------------------------------------------------------
+    # ----- a run
+    # --------------------------------------------------------------------------------------
     def phase_lr(self, phase: str) -> tuple[float, float | None]:
         # Phase 1 at the occupancy lr, constant as in the paper unless occupancy.lr_final is set.
         if phase == "occupancy":
@@ -92,30 +122,45 @@ class LeCOMethod(Method):
         return super().trained_modules(models, phase)
 
     def o_learns(self) -> bool:
-        """Whether O keeps learning in the main phase: its keep/drop decisions (online) or its placement."""
+        """Whether O keeps learning in the main phase: its keep/drop decisions (online) or its
+        placement."""
         return self.profile.guided.online or self.profile.guided.placement
 
     def extra_parameters(self, models: Networks, phase: str) -> list[nn.Parameter]:
         if phase == "main" and self.o_learns():
-            return list(models.hmoe.gate.parameters())  # model/online_occupancy.py, model/placement.py
+            # model/online_occupancy.py, model/placement.py
+            return list(models.hmoe.gate.parameters())
         return []
 
-    def start_phase(self, models: Networks, phase: str, fresh: bool, device: torch.device,
-                    log: Callable[[str], None]) -> None:
+    def start_phase(
+        self,
+        models: Networks,
+        phase: str,
+        fresh: bool,
+        device: torch.device,
+        log: Callable[[str], None],
+    ) -> None:
         if phase != "main":
             return
         g = self.profile.guided
         if fresh and g.warm_start:
             behind = models.occupancy_background if g.warm_start_background else None
-            copied = warm_start_main(models.field, models.background, models.hmoe, behind, g.warm_start_density)
+            copied = warm_start_main(
+                models.field, models.background, models.hmoe, behind, g.warm_start_density
+            )
             log(f"main phase warm-started from phase 1: {', '.join(copied)}")
         models.hmoe.requires_grad_(False)
         if self.o_learns():  # O keeps learning, so the predictor shares the live network
             gate = models.hmoe.gate.requires_grad_(True)
-            self.query = OnlineOccupancy(gate, g.empty_threshold, g.online_surface, free_opacity=g.online_free_opacity)
-            self.predictor = OccupancyPredictor(gate, empty_threshold=g.empty_threshold, frozen=False)
+            self.query = OnlineOccupancy(
+                gate, g.empty_threshold, g.online_surface, free_opacity=g.online_free_opacity
+            )
+            self.predictor = OccupancyPredictor(
+                gate, empty_threshold=g.empty_threshold, frozen=False
+            )
         else:
-            self.predictor = OccupancyPredictor.from_hmoe(models.hmoe, g.empty_threshold)  # frozen O (section 3.4)
+            # frozen O (section 3.4)
+            self.predictor = OccupancyPredictor.from_hmoe(models.hmoe, g.empty_threshold)
             self.predictor.network.to(device)
             self.query = OccupancyQuery(self.predictor.network, g.empty_threshold)
 
@@ -123,47 +168,92 @@ class LeCOMethod(Method):
         g = self.profile.guided
         return g.warm_start_ramp if phase == "main" and g.warm_start else 0
 
-    def step(self, models: Networks, phase: str, rays: RayBatch, generator: torch.Generator | None,
-             progress: float, phase_step: int, seed: int) -> tuple[Tensor, dict]:
+    def step(
+        self,
+        models: Networks,
+        phase: str,
+        rays: RayBatch,
+        generator: torch.Generator | None,
+        progress: float,
+        phase_step: int,
+        seed: int,
+    ) -> tuple[Tensor, dict]:
         if phase == "occupancy":
             g = self.profile.guided
             extra = None
-            if g.placement and g.placement_in_phase1:  # O's placement head learns the HMoE's own weights
-                extra = ("placement_loss", partial(phase1_placement_loss, models.hmoe.gate, rays, g, generator))
-            return occupancy_step(models.hmoe, models.occupancy_background, rays, self.profile.occupancy,
-                                  self.profile.background.samples, generator, progress, extra)
+            # O's placement head learns the HMoE's own weights
+            if g.placement and g.placement_in_phase1:
+                extra = (
+                    "placement_loss",
+                    partial(phase1_placement_loss, models.hmoe.gate, rays, g, generator),
+                )
+            return occupancy_step(
+                models.hmoe,
+                models.occupancy_background,
+                rays,
+                self.profile.occupancy,
+                self.profile.background.samples,
+                generator,
+                progress,
+                extra,
+            )
         return super().step(models, phase, rays, generator, progress, phase_step, seed)
 
-    def render_main(self, models: Networks, rays: RayBatch, generator: torch.Generator | None,
-                    phase_step: int | None) -> MainRender:
+    def render_main(
+        self,
+        models: Networks,
+        rays: RayBatch,
+        generator: torch.Generator | None,
+        phase_step: int | None,
+    ) -> MainRender:
         g = self.profile.guided
         query = self.main_query()
-        # O's keep/drop loss starts once the main network has had `online_warmup` steps to fit what its weights
-        # will teach; its placement learns from the first step (every `placement_every`-th), its histogram
-        # annealed in from uniform. On a step where neither learns, O is asked without gradient.
+        # O's keep/drop loss starts once the main network has had `online_warmup` steps to fit what
+        # its weights will teach; its placement learns from the first step (every
+        # `placement_every`-th), its histogram annealed in from uniform. On a step where neither
+        # learns, O is asked without gradient.
         keeps = phase_step is not None and g.online_learns(phase_step)
         places = phase_step is not None and g.placement_learns(phase_step)
         query.learn = keeps or places
         learner = query if keeps and isinstance(query, OnlineOccupancy) else None
         anneal = anneal_power(phase_step, g.placement_anneal_steps, 10.0)
-        return render_guided(models.field, models.background, rays, self.profile, query, generator, learner,
-                             places, anneal)
+        return render_guided(
+            models.field,
+            models.background,
+            rays,
+            self.profile,
+            query,
+            generator,
+            learner,
+            places,
+            anneal,
+        )
 
     def main_query(self) -> OccupancyQuery:
         if self.query is None:
-            raise RuntimeError("LeCO's main phase renders with O's predictor: start_phase('main') makes it")
+            raise RuntimeError(
+                "LeCO's main phase renders with O's predictor: start_phase('main') makes it"
+            )
         return self.query
 
     def render(self, models: Networks, phase: str, rays: RayBatch) -> Rendered:
         if phase == "occupancy":
-            return render_hmoe(models.hmoe, models.occupancy_background, rays, self.profile.occupancy.samples_per_ray,
-                               self.profile.background.samples, None)[0]
+            return render_hmoe(
+                models.hmoe,
+                models.occupancy_background,
+                rays,
+                self.profile.occupancy.samples_per_ray,
+                self.profile.background.samples,
+                None,
+            )[0]
         return super().render(models, phase, rays)
 
     def occupancy(self, models: Networks, phase: str) -> Occupied | None:
         if phase != "occupancy" and not self.o_learns():
-            return None  # O is frozen in the main phase: its metrics are those at the end of phase 1
-        # A frozen copy of O as it is now, deciding as the main phase will (the final evaluation does the same).
+            # O is frozen in the main phase: its metrics are those at the end of phase 1
+            return None
+        # A frozen copy of O as it is now, deciding as the main phase will (the final evaluation
+        # does the same).
         predictor = OccupancyPredictor.from_hmoe(models.hmoe, self.profile.guided.empty_threshold)
         predictor.network.to(next(models.hmoe.parameters()).device)
         return predictor.occupied
@@ -186,12 +276,18 @@ class LeCOMethod(Method):
 
     def load_final(self, models: Networks, final: Path, device: torch.device) -> None:
         if (final / "occupancy.pt").is_file():
-            self.predictor = OccupancyPredictor.load(final / "occupancy.pt", self.profile.guided.empty_threshold)
+            self.predictor = OccupancyPredictor.load(
+                final / "occupancy.pt", self.profile.guided.empty_threshold
+            )
             self.predictor.network.to(device)
             self.query = OccupancyQuery(self.predictor.network, self.profile.guided.empty_threshold)
 
     def summary_occupancy(self, final: Path, main: list[dict], first: list[dict]) -> dict:
         saved = torch.load(final / "occupancy.pt", weights_only=True)["state_dict"]
         last = first[-1] if first else {}
-        return {"params": sum(p.numel() for p in saved.values()), "empty_fraction": last.get("fraction_empty"),
-                "density_ratio": last.get("density_ratio"), "occupancy_ratio": mean_of(main, "occupancy_ratio")}
+        return {
+            "params": sum(p.numel() for p in saved.values()),
+            "empty_fraction": last.get("fraction_empty"),
+            "density_ratio": last.get("density_ratio"),
+            "occupancy_ratio": mean_of(main, "occupancy_ratio"),
+        }

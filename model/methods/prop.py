@@ -1,12 +1,14 @@
-"""S+Prop: Switch-NeRF's foreground sampled by proposal networks (mip-NeRF 360 / nerfacto / nerfacc's
-PropNetEstimator) instead of its coarse + fine passes: the strongest learned sampler, as a baseline.
+"""S+Prop: Switch-NeRF's foreground sampled by proposal networks (mip-NeRF 360 / nerfacto /
+nerfacc's PropNetEstimator) instead of its coarse + fine passes: the strongest learned sampler, as a
+baseline.
 
-Sizes: the proposal levels together have as many parameters as LeCO's occupancy network O at the same profile
-(13,888 against O's 13,962 at `cpu`, 153,760 against 153,865 at `paper`), and the main network takes
-`prop.main_samples` per hit ray, LeCO's own count, so the two learned samplers are compared at equal size and equal
-main-network work. Every proposal forward and backward runs inside the training step, so it is charged to
-training time. Its occupancy, for the paper's Table 1, is the last proposal level's density thresholded by the
-occupancy grid's own rule (one full update of a grid at `grid.resolution`)."""
+Sizes: the proposal levels together have as many parameters as LeCO's occupancy network O at the
+same profile (13,888 against O's 13,962 at `cpu`, 153,760 against 153,865 at `paper`), and the main
+network takes `prop.main_samples` per hit ray, LeCO's own count, so the two learned samplers are
+compared at equal size and equal main-network work. Every proposal forward and backward runs inside
+the training step, so it is charged to training time. Its occupancy, for the paper's Table 1, is the
+last proposal level's density thresholded by the occupancy grid's own rule (one full update of a
+grid at `grid.resolution`)."""
 
 from __future__ import annotations
 
@@ -30,7 +32,9 @@ from model.scenes.rays import RayBatch
 
 def scatter(values: Tensor, index: Tensor, size: int, fill: float) -> Tensor:
     """(size,) filled with `fill`, `values` at `index`."""
-    return torch.full((size,), fill, dtype=values.dtype, device=values.device).index_copy(0, index, values)
+    return torch.full((size,), fill, dtype=values.dtype, device=values.device).index_copy(
+        0, index, values
+    )
 
 
 class ProposalMethod(Method):
@@ -43,20 +47,28 @@ class ProposalMethod(Method):
     def build(self, num_images: int, aabb: Tensor) -> Networks:
         models = super().build(num_images, aabb)
         p, width = self.profile.prop, proposal_width(self.profile)
-        models.proposals = nn.ModuleList(ProposalDensity(width, p.layers, self.profile.network.xyz_frequencies)
-                                         for _ in p.samples)
+        models.proposals = nn.ModuleList(
+            ProposalDensity(width, p.layers, self.profile.network.xyz_frequencies)
+            for _ in p.samples
+        )
         self.aabb = aabb.float()
         return models
 
     def components(self, num_images: int) -> dict[str, int]:
-        return {"proposal_networks": proposal_parameters(self.profile), **super().components(num_images)}
+        return {
+            "proposal_networks": proposal_parameters(self.profile),
+            **super().components(num_images),
+        }
 
     def sweep(self) -> list[SweepPoint]:
         p = self.profile.prop
-        return [SweepPoint(tag, f"{n} main samples", {"prop.main_samples": n})
-                for tag, n in (("lean", max(p.main_samples // 2, 1)), ("rich", 2 * p.main_samples))]
+        return [
+            SweepPoint(tag, f"{n} main samples", {"prop.main_samples": n})
+            for tag, n in (("lean", max(p.main_samples // 2, 1)), ("rich", 2 * p.main_samples))
+        ]
 
-    # ----- a run --------------------------------------------------------------------------------------
+    # ----- a run
+    # --------------------------------------------------------------------------------------
     def trained_modules(self, models: Networks, phase: str) -> list[nn.Module]:
         return [models.field, models.background, models.proposals]
 
@@ -64,16 +76,29 @@ class ProposalMethod(Method):
         self.aabb = self.aabb.to(device)
         return self
 
-    def step(self, models: Networks, phase: str, rays: RayBatch, generator: torch.Generator | None,
-             progress: float, phase_step: int, seed: int) -> tuple[Tensor, dict]:
+    def step(
+        self,
+        models: Networks,
+        phase: str,
+        rays: RayBatch,
+        generator: torch.Generator | None,
+        progress: float,
+        phase_step: int,
+        seed: int,
+    ) -> tuple[Tensor, dict]:
         learn = self.schedule.due(phase_step)
         hits = self.hits(rays)
         with torch.set_grad_enabled(learn):
             levels, edges = self.propose(models, rays.subset(hits), generator, phase_step)
         render = self.render_on(models, rays, hits, edges, generator)
-        loss, parts = main_loss(render, rays, self.profile.balance_weight, self.profile.guided.coarse_samples)
-        parts["proposal_samples_per_ray"] = float(sum(self.profile.prop.samples)) * len(hits) / max(len(rays), 1)
-        if learn and len(hits):  # only the proposals get this gradient: the main weights are detached inside
+        loss, parts = main_loss(
+            render, rays, self.profile.balance_weight, self.profile.guided.coarse_samples
+        )
+        parts["proposal_samples_per_ray"] = (
+            float(sum(self.profile.prop.samples)) * len(hits) / max(len(rays), 1)
+        )
+        # only the proposals get this gradient: the main weights are detached inside
+        if learn and len(hits):
             l_prop = interlevel_loss(edges, render.rendered.weights, levels)
             loss = loss + self.profile.prop.loss_weight * l_prop
             parts["interlevel_loss"] = float(l_prop.detach())
@@ -82,13 +107,20 @@ class ProposalMethod(Method):
 
     @staticmethod
     def hits(rays: RayBatch) -> Tensor:
-        """Indices of the rays that cross the foreground box: the others have no segment to sample, so neither
-        the proposals nor the main network see them (they render the background alone, as LeCO's do)."""
+        """Indices of the rays that cross the foreground box: the others have no segment to sample,
+        so neither the proposals nor the main network see them (they render the background alone, as
+        LeCO's do)."""
         return torch.nonzero(rays.far > rays.near)[:, 0]
 
-    def propose(self, models: Networks, rays: RayBatch, generator: torch.Generator | None,
-                phase_step: int | None) -> tuple[list[tuple[Tensor, Tensor]], Tensor]:
-        """Each proposal level's (edges, weights) and the main network's edges (R, main_samples + 1)."""
+    def propose(
+        self,
+        models: Networks,
+        rays: RayBatch,
+        generator: torch.Generator | None,
+        phase_step: int | None,
+    ) -> tuple[list[tuple[Tensor, Tensor]], Tensor]:
+        """Each proposal level's (edges, weights) and the main network's edges (R, main_samples +
+        1)."""
         p = self.profile.prop
         anneal = anneal_power(phase_step, p.anneal_steps, p.anneal_slope)
         edges = stratified_edges(rays.near, rays.far, p.samples[0], generator)
@@ -103,35 +135,61 @@ class ProposalMethod(Method):
             edges = pdf_edges(edges, weights, n, generator, anneal, p.histogram_padding)
         return levels, edges.detach()
 
-    def render_on(self, models: Networks, rays: RayBatch, hits: Tensor, edges: Tensor,
-                  generator: torch.Generator | None) -> MainRender:
-        """The main network on the hit rays' intervals (`edges`, one row per hit ray, batched as the proposals
-        draw them), composited in front of the background of every ray; a ray that misses the box shows its
-        background. `rendered.weights` is (hit rays, main_samples)."""
-        behind = render_background(models.background, rays, self.profile.background.samples, generator).rgb
+    def render_on(
+        self,
+        models: Networks,
+        rays: RayBatch,
+        hits: Tensor,
+        edges: Tensor,
+        generator: torch.Generator | None,
+    ) -> MainRender:
+        """The main network on the hit rays' intervals (`edges`, one row per hit ray, batched as the
+        proposals draw them), composited in front of the background of every ray; a ray that misses
+        the box shows its background. `rendered.weights` is (hit rays, main_samples)."""
+        behind = render_background(
+            models.background, rays, self.profile.background.samples, generator
+        ).rgb
         sub, out = render_batched(models.field, rays.subset(hits), edges, behind[hits])
-        rendered = Rendered(behind.index_copy(0, hits, sub.rgb), scatter(sub.depth, hits, len(rays), 0.0),
-                            scatter(sub.opacity, hits, len(rays), 0.0), sub.weights,
-                            scatter(sub.transmittance, hits, len(rays), 1.0))
+        rendered = Rendered(
+            behind.index_copy(0, hits, sub.rgb),
+            scatter(sub.depth, hits, len(rays), 0.0),
+            scatter(sub.opacity, hits, len(rays), 0.0),
+            sub.weights,
+            scatter(sub.transmittance, hits, len(rays), 1.0),
+        )
         packed = pack_edges(edges)
         samples = PackedSamples(packed.starts, packed.ends, hits[packed.ray_index])
         return MainRender(rendered, out, len(samples) / max(len(rays), 1), None, samples=samples)
 
-    def render_main(self, models: Networks, rays: RayBatch, generator: torch.Generator | None,
-                    phase_step: int | None) -> MainRender:
+    def render_main(
+        self,
+        models: Networks,
+        rays: RayBatch,
+        generator: torch.Generator | None,
+        phase_step: int | None,
+    ) -> MainRender:
         hits = self.hits(rays)
         with torch.no_grad():
             _, edges = self.propose(models, rays.subset(hits), generator, phase_step)
         return self.render_on(models, rays, hits, edges, generator)
 
     def proposal_grid(self, models: Networks) -> OccupancyGrid:
-        """The last proposal level's density through one full update of an occupancy grid: the grid's rule."""
+        """The last proposal level's density through one full update of an occupancy grid: the
+        grid's rule."""
         g, network = self.profile.grid, models.proposals[-1]
         grid = OccupancyGrid(self.aabb, g.resolution).to(next(network.parameters()).device)
         was = network.training
         network.eval()
-        grid.update(0, network, grid_step_size(grid, g.march_steps), g.threshold, g.decay, warmup_steps=1, every=1,
-                    generator=torch.Generator().manual_seed(0))
+        grid.update(
+            0,
+            network,
+            grid_step_size(grid, g.march_steps),
+            g.threshold,
+            g.decay,
+            warmup_steps=1,
+            every=1,
+            generator=torch.Generator().manual_seed(0),
+        )
         network.train(was)
         return grid
 
@@ -149,4 +207,7 @@ class ProposalMethod(Method):
             self.schedule.since_update = state["since_update"]
 
     def summary_occupancy(self, final: Path, main: list[dict], first: list[dict]) -> dict:
-        return {"params": proposal_parameters(self.profile), "occupancy_ratio": mean_of(main, "occupancy_ratio")}
+        return {
+            "params": proposal_parameters(self.profile),
+            "occupancy_ratio": mean_of(main, "occupancy_ratio"),
+        }

@@ -1,7 +1,7 @@
-"""Every method the service trains, by name: the CLI, the job schema, the API, the benchmark, the dashboard and
-the docs read this table. Adding a method is a file in this package (a `Method` subclass) and one line here (its
-MethodSpec: name, label, phases, memory model). Nothing here imports PyTorch; a method's code is loaded when a
-run first asks for it."""
+"""Every method the service trains, by name: the CLI, the job schema, the API, the benchmark, the
+dashboard and the docs read this table. Adding a method is a file in this package (a `Method`
+subclass) and one line here (its MethodSpec: name, label, phases, memory model). Nothing here
+imports PyTorch; a method's code is loaded when a run first asks for it."""
 
 from __future__ import annotations
 
@@ -15,7 +15,9 @@ def register(spec: MethodSpec) -> MethodSpec:
     """Adds a method; a name already taken by another method is refused."""
     known = METHODS.get(spec.name)
     if known is not None and known != spec:
-        raise ValueError(f"method name {spec.name!r} is already registered (by {known.implementation!r})")
+        raise ValueError(
+            f"method name {spec.name!r} is already registered (by {known.implementation!r})"
+        )
     METHODS[spec.name] = spec
     return spec
 
@@ -31,13 +33,48 @@ def with_role(role: str) -> str | None:
     return next((name for name, m in METHODS.items() if m.role == role), None)
 
 
-register(MethodSpec("leco", "S+Ours (LeCO)", "model.methods.leco:LeCOMethod", costs.leco, role="ours",
-                    phase_steps=(("occupancy", "occupancy.steps"), ("main", "main_steps")), has_occupancy=True,
-                    colour="#d62728", budget_shares=(("occupancy", "occupancy.budget_share"),)))
-register(MethodSpec("switch", "S-NeRF* (vanilla)", "model.methods.switch:SwitchNeRFMethod", costs.switch,
-                    role="reference", colour="#1f77b4"))
+register(
+    MethodSpec(
+        "leco",
+        "S+Ours (LeCO)",
+        "model.methods.leco:LeCOMethod",
+        costs.leco,
+        role="ours",
+        phase_steps=(("occupancy", "occupancy.steps"), ("main", "main_steps")),
+        has_occupancy=True,
+        colour="#d62728",
+        budget_shares=(("occupancy", "occupancy.budget_share"),),
+    )
+)
+register(
+    MethodSpec(
+        "switch",
+        "S-NeRF* (vanilla)",
+        "model.methods.switch:SwitchNeRFMethod",
+        costs.switch,
+        role="reference",
+        colour="#1f77b4",
+    )
+)
 # The paper: 0.15M parameters instead of a 2M-cell grid, hence the size target.
-register(MethodSpec("grid", "S+Grid", "model.methods.grid:GridMethod", costs.grid, has_occupancy=True,
-                    colour="#2ca02c", occupancy_size_target=0.10))
-register(MethodSpec("prop", "S+Prop", "model.methods.prop:ProposalMethod", costs.prop, has_occupancy=True,
-                    colour="#8c564b"))
+register(
+    MethodSpec(
+        "grid",
+        "S+Grid",
+        "model.methods.grid:GridMethod",
+        costs.grid,
+        has_occupancy=True,
+        colour="#2ca02c",
+        occupancy_size_target=0.10,
+    )
+)
+register(
+    MethodSpec(
+        "prop",
+        "S+Prop",
+        "model.methods.prop:ProposalMethod",
+        costs.prop,
+        has_occupancy=True,
+        colour="#8c564b",
+    )
+)

@@ -1,6 +1,7 @@
-"""What the registry knows of a method without loading PyTorch: its name, labels, role, phases, and what a run
-of it costs in memory. The API, the job schema and the dashboard read only this; the training code behind it
-(a `Method` subclass, model/methods/base.py) is imported when a run or a benchmark first asks for it."""
+"""What the registry knows of a method without loading PyTorch: its name, labels, role, phases, and
+what a run of it costs in memory. The API, the job schema and the dashboard read only this; the
+training code behind it (a `Method` subclass, model/methods/base.py) is imported when a run or a
+benchmark first asks for it."""
 
 from __future__ import annotations
 
@@ -16,7 +17,8 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class PhaseMemory:
-    """What one phase of a method keeps per rank, for the memory estimate (model/memory_estimate.py)."""
+    """What one phase of a method keeps per rank, for the memory estimate
+    (model/memory_estimate.py)."""
 
     trained: int  # parameters with gradients and Adam state
     frozen: int = 0  # parameters only read
@@ -41,23 +43,27 @@ MemoryModel = Callable[[Profile, int], dict[str, PhaseMemory]]
 
 @dataclass(frozen=True)
 class MethodSpec:
-    """One registry entry. `implementation` is the Method subclass, or "module:Class" to import it on first
-    use. Calling the spec with a profile makes the method object (`get_method(name)(profile)`)."""
+    """One registry entry. `implementation` is the Method subclass, or "module:Class" to import it
+    on first use. Calling the spec with a profile makes the method object
+    (`get_method(name)(profile)`)."""
 
     name: str
     label: str  # the benchmark's row label
     implementation: str | type[Method]
     memory: MemoryModel
-    # "ours": the method the benchmark reports speed-ups for; "reference": the unguided method its equal-PSNR
-    # target and time ratios are measured against; "baseline": every other method.
+    # "ours": the method the benchmark reports speed-ups for; "reference": the unguided method its
+    # equal-PSNR target and time ratios are measured against; "baseline": every other method.
     role: str = "baseline"
     # Each phase and the profile setting that holds its step count, in training order.
     phase_steps: tuple[tuple[str, str], ...] = (("main", "main_steps"),)
-    has_occupancy: bool = False  # an occupancy to score (the paper's Table 1) and to filter a point cloud with
+    # an occupancy to score (the paper's Table 1) and to filter a point cloud with
+    has_occupancy: bool = False
     colour: str | None = None  # in the benchmark's figures
-    # The benchmark's target for the proposed method's occupancy size against this one's (a fraction), if any.
+    # The benchmark's target for the proposed method's occupancy size against this one's (a
+    # fraction), if any.
     occupancy_size_target: float | None = None
-    # The profile setting that stops a phase at a share of a wall-clock budget (phase -> dotted key).
+    # The profile setting that stops a phase at a share of a wall-clock budget (phase -> dotted
+    # key).
     budget_shares: tuple[tuple[str, str], ...] = ()
 
     @property

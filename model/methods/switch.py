@@ -1,5 +1,5 @@
-"""S-NeRF* (vanilla Switch-NeRF): stratified coarse + inverse-CDF fine samples through one network. The
-reference every speed-up is measured against."""
+"""S-NeRF* (vanilla Switch-NeRF): stratified coarse + inverse-CDF fine samples through one network.
+The reference every speed-up is measured against."""
 
 from __future__ import annotations
 
@@ -11,12 +11,23 @@ from model.scenes.rays import RayBatch
 
 
 class SwitchNeRFMethod(Method):
-    def render_main(self, models: Networks, rays: RayBatch, generator: torch.Generator | None,
-                    phase_step: int | None) -> MainRender:
+    def render_main(
+        self,
+        models: Networks,
+        rays: RayBatch,
+        generator: torch.Generator | None,
+        phase_step: int | None,
+    ) -> MainRender:
         return render_vanilla(models.field, models.background, rays, self.profile, generator)
 
     def sweep(self) -> list[SweepPoint]:
         v = self.profile.vanilla
-        return [SweepPoint(tag, f"{c} + {f} samples", {"vanilla.coarse_samples": c, "vanilla.fine_samples": f})
-                for tag, c, f in (("lean", max(v.coarse_samples // 2, 2), v.fine_samples // 2),
-                                  ("rich", 2 * v.coarse_samples, 2 * v.fine_samples))]
+        return [
+            SweepPoint(
+                tag, f"{c} + {f} samples", {"vanilla.coarse_samples": c, "vanilla.fine_samples": f}
+            )
+            for tag, c, f in (
+                ("lean", max(v.coarse_samples // 2, 2), v.fine_samples // 2),
+                ("rich", 2 * v.coarse_samples, 2 * v.fine_samples),
+            )
+        ]

@@ -1,16 +1,27 @@
 """Scenes: one representation for photographed and generated data (see docs/SCENES.md).
 
-The names below load on first use, so a torch-free part of this package (scenes/folders.py, errors.py) can be
-imported without PyTorch (the API process does)."""
+The names below load on first use, so a torch-free part of this package (scenes/folders.py,
+errors.py) can be imported without PyTorch (the API process does)."""
 
 from importlib import import_module
 from typing import Any
 
 _HOMES = {
-    "Cameras": "cameras", "pixel_rays": "cameras", "SceneError": "errors", "FORMATS": "formats",
-    "detect_format": "formats", "load_scene": "load", "PixelTable": "rays", "RayBatch": "rays",
-    "RaySampler": "rays", "shard": "rays", "Bounds": "scene", "Normalization": "scene", "OccupancyGrid": "scene",
-    "Scene": "scene", "Views": "scene",
+    "Cameras": "cameras",
+    "pixel_rays": "cameras",
+    "SceneError": "errors",
+    "FORMATS": "formats",
+    "detect_format": "formats",
+    "load_scene": "load",
+    "PixelTable": "rays",
+    "RayBatch": "rays",
+    "RaySampler": "rays",
+    "shard": "rays",
+    "Bounds": "scene",
+    "Normalization": "scene",
+    "OccupancyGrid": "scene",
+    "Scene": "scene",
+    "Views": "scene",
 }
 
 __all__ = sorted(_HOMES)

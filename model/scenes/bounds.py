@@ -1,16 +1,17 @@
-"""Automatic foreground bounds: from the cameras and whatever geometry the dataset carries, never from a
-hand-set box or altitude range. The rule (docs/SCENES.md):
+"""Automatic foreground bounds: from the cameras and whatever geometry the dataset carries, never
+from a hand-set box or altitude range. The rule (docs/SCENES.md):
 
-1. Evidence points, from the best source present: ground-truth depth maps (back-projected train pixels),
-   else sparse SfM points, else LLFF per-image depth bounds, else the convergence of the cameras' optical
-   axes (each crossing point grown by the image footprint at its distance).
-2. Keep points within FAR_FACTOR x the median distance to their nearest camera: surfaces seen much farther
-   away than typical (the ground out to the horizon) are coarsely resolved anyway and belong to the
-   background model, which covers everything outside the box. Surface evidence (depth maps, SfM points)
-   must also be in view of at least COVERAGE_RATIO x the median point's share of the cameras: what few
-   views cover is poorly constrained and goes to the background too.
-3. Box = min/max of exact evidence (depth maps), or 0.5/99.5 percentiles per axis of estimated evidence
-   (SfM outliers), padded by MARGIN of its extent on every side, no side thinner than MIN_SIDE of the longest.
+1. Evidence points, from the best source present: ground-truth depth maps (back-projected train
+   pixels), else sparse SfM points, else LLFF per-image depth bounds, else the convergence of the
+   cameras' optical axes (each crossing point grown by the image footprint at its distance).
+2. Keep points within FAR_FACTOR x the median distance to their nearest camera: surfaces seen much
+   farther away than typical (the ground out to the horizon) are coarsely resolved anyway and belong
+   to the background model, which covers everything outside the box. Surface evidence (depth maps,
+   SfM points) must also be in view of at least COVERAGE_RATIO x the median point's share of the
+   cameras: what few views cover is poorly constrained and goes to the background too.
+3. Box = min/max of exact evidence (depth maps), or 0.5/99.5 percentiles per axis of estimated
+   evidence (SfM outliers), padded by MARGIN of its extent on every side, no side thinner than
+   MIN_SIDE of the longest.
 """
 
 from __future__ import annotations
@@ -35,13 +36,18 @@ AXIS_MISS_RATIO = 0.25
 MAX_AXIS_CAMERAS = 64
 
 
-def depth_points(cameras: Cameras, depth: Sequence[Tensor], budget: int = MAX_DEPTH_POINTS) -> Tensor:
-    """Surface points from depth maps, on a regular pixel stride so the total stays within budget."""
+def depth_points(
+    cameras: Cameras, depth: Sequence[Tensor], budget: int = MAX_DEPTH_POINTS
+) -> Tensor:
+    """Surface points from depth maps, on a regular pixel stride so the total stays within
+    budget."""
     total = sum(d.numel() for d in depth)
     stride = max(1, int((total / budget) ** 0.5 + 0.999))
     points = []
     for i, d in enumerate(depth):
-        v, u = torch.meshgrid(torch.arange(0, d.shape[0], stride), torch.arange(0, d.shape[1], stride), indexing="ij")
+        v, u = torch.meshgrid(
+            torch.arange(0, d.shape[0], stride), torch.arange(0, d.shape[1], stride), indexing="ij"
+        )
         t = d[v, u].reshape(-1)
         keep = torch.isfinite(t) & (t > 0)
         cam = torch.full((int(keep.sum()),), i, dtype=torch.long)
@@ -51,7 +57,8 @@ def depth_points(cameras: Cameras, depth: Sequence[Tensor], budget: int = MAX_DE
 
 
 def axis_convergence_points(cameras: Cameras) -> Tensor:
-    """Where pairs of optical axes (nearly) cross, each grown by the image half-footprint at that range."""
+    """Where pairs of optical axes (nearly) cross, each grown by the image half-footprint at that
+    range."""
     n = len(cameras)
     pick = torch.linspace(0, n - 1, min(n, MAX_AXIS_CAMERAS)).round().long().unique()
     o = cameras.centers[pick].double()
@@ -78,13 +85,22 @@ def axis_convergence_points(cameras: Cameras) -> Tensor:
 
 
 def nearest_camera_distance(points: Tensor, centers: Tensor, chunk: int = 65536) -> Tensor:
-    out = [torch.cdist(points[s : s + chunk], centers.double()).amin(dim=1) for s in range(0, len(points), chunk)]
+    out = [
+        torch.cdist(points[s : s + chunk], centers.double()).amin(dim=1)
+        for s in range(0, len(points), chunk)
+    ]
     return torch.cat(out) if out else torch.zeros(0, dtype=torch.float64)
 
 
 def coverage(points: Tensor, cameras: Cameras, chunk: int = 4096) -> Tensor:
-    """Share of the cameras (at most MAX_COVERAGE_CAMERAS, evenly picked) whose image each point falls in."""
-    pick = torch.linspace(0, len(cameras) - 1, min(len(cameras), MAX_COVERAGE_CAMERAS)).round().long().unique()
+    """Share of the cameras (at most MAX_COVERAGE_CAMERAS, evenly picked) whose image each point
+    falls in."""
+    pick = (
+        torch.linspace(0, len(cameras) - 1, min(len(cameras), MAX_COVERAGE_CAMERAS))
+        .round()
+        .long()
+        .unique()
+    )
     c2w = cameras.c2w[pick].double()
     fx, fy, cx, cy = cameras.intrinsics[pick].double().unbind(-1)
     width, height = cameras.width[pick].double(), cameras.height[pick].double()
@@ -112,13 +128,14 @@ def evidence(source: SourceScene) -> tuple[Tensor, str, bool]:
 
 
 def foreground_aabb(source: SourceScene) -> tuple[Tensor, str, int]:
-    """The foreground box in the rotated source frame, the evidence kind and how many points set it."""
+    """The foreground box in the rotated source frame, the evidence kind and how many points set
+    it."""
     points, kind, exact = evidence(source)
     if len(points) == 0:
         raise SceneError(
             source.root,
-            "cannot find the foreground: the cameras' optical axes never cross and the dataset has no depth "
-            "maps or sparse points to bound the scene",
+            "cannot find the foreground: the cameras' optical axes never cross and the dataset has "
+            "no depth maps or sparse points to bound the scene",
         )
     centers = torch.cat([s.cameras.centers for s in source.splits.values()])
     dist = nearest_camera_distance(points, centers)
@@ -128,25 +145,32 @@ def foreground_aabb(source: SourceScene) -> tuple[Tensor, str, int]:
         keep &= share >= COVERAGE_RATIO * share.median()
     points = points[keep]
     if len(points) == 0:
-        raise SceneError(source.root, f"cannot find the foreground: no {kind} evidence point is near the cameras")
+        raise SceneError(
+            source.root, f"cannot find the foreground: no {kind} evidence point is near the cameras"
+        )
     if exact:
         lo, hi = points.amin(0), points.amax(0)
     else:
         q = torch.tensor([0.005, 0.995], dtype=torch.float64)
-        sample = points[:: max(1, len(points) // 1_000_000)]  # torch.quantile has an input-size limit
+        # torch.quantile has an input-size limit
+        sample = points[:: max(1, len(points) // 1_000_000)]
         lo, hi = torch.quantile(sample, q, dim=0)
     extent = hi - lo
     if not bool(torch.isfinite(extent).all()) or float(extent.max()) <= 0:
-        raise SceneError(source.root, f"cannot find the foreground: its {len(points):,} {kind} evidence point(s) "
-                                      "span no volume (a single point, or all in one place)")
+        raise SceneError(
+            source.root,
+            f"cannot find the foreground: its {len(points):,} {kind} evidence point(s) span no "
+            "volume (a single point, or all in one place)",
+        )
     lo, hi = lo - MARGIN * extent, hi + MARGIN * extent
     pad = (MIN_SIDE * (hi - lo).max() - (hi - lo)).clamp(min=0) / 2
-    return torch.stack([lo - pad, hi + pad]), kind, len(points)  # float64: source coordinates can be large
+    # float64: source coordinates can be large
+    return torch.stack([lo - pad, hi + pad]), kind, len(points)
 
 
 def ray_aabb(origins: Tensor, directions: Tensor, aabb: Tensor) -> tuple[Tensor, Tensor]:
-    """Foreground segment [near, far] of each ray (slab test). A ray that misses gets near = far = 0,
-    an empty foreground segment: all of it lies in the background."""
+    """Foreground segment [near, far] of each ray (slab test). A ray that misses gets near = far =
+    0, an empty foreground segment: all of it lies in the background."""
     safe = torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions)
     inv = 1.0 / safe
     t0 = (aabb[0] - origins) * inv

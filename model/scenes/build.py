@@ -27,24 +27,37 @@ def build_scene(source: SourceScene) -> Scene:
 
     splits: dict[str, Views] = {}
     next_appearance = 0
-    for name in sorted(source.splits, key=lambda s: SPLIT_ORDER.index(s) if s in SPLIT_ORDER else 99):
+    for name in sorted(
+        source.splits, key=lambda s: SPLIT_ORDER.index(s) if s in SPLIT_ORDER else 99
+    ):
         split = source.splits[name]
         if len(split.names) == 0:
             continue
-        c2w = split.cameras.c2w.double().clone()  # subtract the origin in float64: city coordinates are large
+        # subtract the origin in float64: city coordinates are large
+        c2w = split.cameras.c2w.double().clone()
         c2w[:, :, 3] = (c2w[:, :, 3] - origin) / scale
         c2w = c2w.float()
         appearance = torch.arange(next_appearance, next_appearance + len(split.names))
         next_appearance += len(split.names)
         depth = None if split.depth is None else frames(split.depth).map(_Divide(scale))
-        splits[name] = Views(split.names, split.images, replace(split.cameras, c2w=c2w), appearance, depth)
+        splits[name] = Views(
+            split.names, split.images, replace(split.cameras, c2w=c2w), appearance, depth
+        )
 
     occupancy = None
     if source.occupied is not None:
         if source.occupancy_aabb is None:  # readers give the grid and the box it covers together
-            raise SceneError(source.root, "a ground-truth occupancy grid came without its bounding box")
-        occupancy = OccupancyGrid(source.occupied, ((source.occupancy_aabb.double() - origin) / scale).float())
-    points = None if source.points is None else ((source.points.double() - origin.double()) / scale).float()
+            raise SceneError(
+                source.root, "a ground-truth occupancy grid came without its bounding box"
+            )
+        occupancy = OccupancyGrid(
+            source.occupied, ((source.occupancy_aabb.double() - origin) / scale).float()
+        )
+    points = (
+        None
+        if source.points is None
+        else ((source.points.double() - origin.double()) / scale).float()
+    )
     bounds = Bounds(aabb=((aabb - origin) / scale).float(), source=kind, num_points=num_points)
     return Scene(
         format=source.format,
@@ -60,7 +73,8 @@ def build_scene(source: SourceScene) -> Scene:
 
 
 class _Divide:
-    """Depth in source units -> world units, as each map is read (a class, not a lambda: picklable)."""
+    """Depth in source units -> world units, as each map is read (a class, not a lambda:
+    picklable)."""
 
     def __init__(self, scale: float):
         self.scale = scale

@@ -1,8 +1,8 @@
 """Pinhole cameras (optionally OpenCV-distorted) in the project's one world convention.
 
-World frame: right-handed, z up. Camera-to-world matrices use the OpenGL camera convention: the columns
-of the 3x3 block are the camera's right, up and back axes (the camera looks along -back), the last
-column is its centre. Pixel (u, v) (u column, v row) has its centre at (u + 0.5, v + 0.5).
+World frame: right-handed, z up. Camera-to-world matrices use the OpenGL camera convention: the
+columns of the 3x3 block are the camera's right, up and back axes (the camera looks along -back),
+the last column is its centre. Pixel (u, v) (u column, v row) has its centre at (u + 0.5, v + 0.5).
 """
 
 from __future__ import annotations
@@ -37,7 +37,11 @@ class Cameras:
 
     def index(self, idx: Tensor | slice | list[int]) -> Cameras:
         return Cameras(
-            self.intrinsics[idx], self.c2w[idx], self.width[idx], self.height[idx], self.distortion[idx]
+            self.intrinsics[idx],
+            self.c2w[idx],
+            self.width[idx],
+            self.height[idx],
+            self.distortion[idx],
         )
 
     def scaled(self, sx: Tensor, sy: Tensor) -> Cameras:
@@ -71,8 +75,11 @@ def make_cameras(
     )
 
 
-def undistort_opencv(xd: Tensor, yd: Tensor, k: Tensor, iterations: int = 10) -> tuple[Tensor, Tensor]:
-    """Invert the OpenCV (k1, k2, p1, p2) model on normalised image coordinates by Newton's method."""
+def undistort_opencv(
+    xd: Tensor, yd: Tensor, k: Tensor, iterations: int = 10
+) -> tuple[Tensor, Tensor]:
+    """Invert the OpenCV (k1, k2, p1, p2) model on normalised image coordinates by Newton's
+    method."""
     k1, k2, p1, p2 = k.unbind(-1)
     x, y = xd.clone(), yd.clone()
     for _ in range(iterations):
@@ -93,7 +100,8 @@ def undistort_opencv(xd: Tensor, yd: Tensor, k: Tensor, iterations: int = 10) ->
 
 
 def pixel_rays(cameras: Cameras, cam_index: Tensor, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
-    """World-space origins and unit directions of the rays through pixel centres (u, v) of cameras[cam_index].
+    """World-space origins and unit directions of the rays through pixel centres (u, v) of
+    cameras[cam_index].
 
     u, v may be fractional (sub-pixel positions); a pixel's centre is at integer u, v here + 0.5.
     """
@@ -113,7 +121,8 @@ def pixel_rays(cameras: Cameras, cam_index: Tensor, u: Tensor, v: Tensor) -> tup
 
 
 def rotation_error(c2w: Tensor) -> Tensor:
-    """Per-camera max |R^T R - I| and |det R - 1|: zero for a rigid (orthonormal, right-handed) pose."""
+    """Per-camera max |R^T R - I| and |det R - 1|: zero for a rigid (orthonormal, right-handed)
+    pose."""
     r = c2w[:, :, :3].double()
     eye = torch.eye(3, dtype=r.dtype)
     ortho = (r.transpose(1, 2) @ r - eye).abs().amax(dim=(1, 2))

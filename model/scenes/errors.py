@@ -11,5 +11,6 @@ class SceneError(ValueError):
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
 
-    def __reduce__(self):  # crosses process boundaries whole (the service decodes uploads in worker processes)
+    # crosses process boundaries whole (the service decodes uploads in worker processes)
+    def __reduce__(self):
         return type(self), (self.path, self.problem)

@@ -1,5 +1,5 @@
-"""A split's images (or depth maps) as a sequence that decodes an item when it is indexed, so that loading a
-scene of thousands of photos holds their sizes and cameras, not their pixels."""
+"""A split's images (or depth maps) as a sequence that decodes an item when it is indexed, so that
+loading a scene of thousands of photos holds their sizes and cameras, not their pixels."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ from torch import Tensor
 
 
 class LazyFrames(Sequence):
-    """frames[i] calls the i-th loader and returns its tensor; nothing is cached, so memory stays one frame."""
+    """frames[i] calls the i-th loader and returns its tensor; nothing is cached, so memory stays
+    one frame."""
 
     def __init__(self, loaders: Sequence[Callable[[], Tensor]]):
         self._loaders = list(loaders)

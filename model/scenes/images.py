@@ -1,8 +1,8 @@
 """Reading dataset images with validation and optional integer downscaling.
 
 Loading a scene reads image headers only (`probe_image`: size, pixel limits, a truncation check on a
-PNG's tail); pixels are decoded when an `ImageFile` is called, one image at a time, by whoever needs them
-(the pixel store's build, a test)."""
+PNG's tail); pixels are decoded when an `ImageFile` is called, one image at a time, by whoever needs
+them (the pixel store's build, a test)."""
 
 from __future__ import annotations
 
@@ -37,20 +37,27 @@ def find_image(stem: Path) -> Path:
 def _open_checked(im: Image.Image, path: Path) -> tuple[int, int]:
     w, h = im.size
     if w * h > MAX_PIXELS:
-        raise SceneError(path, f"image claims {w}x{h} pixels, more pixels than the "
-                               f"{MAX_PIXELS // 10**6} megapixel limit (a corrupt or hostile header?)")
+        raise SceneError(
+            path,
+            f"image claims {w}x{h} pixels, more pixels than the {MAX_PIXELS // 10**6} megapixel "
+            "limit (a corrupt or hostile header?)",
+        )
     return w, h
 
 
-def _bomb(path: Path, exc: Exception) -> SceneError:  # PIL's own guard fires first beyond ~179 MP, at open
-    return SceneError(path, f"image claims more pixels than the {MAX_PIXELS // 10**6} megapixel limit "
-                            f"(a corrupt or hostile header?): {exc}")
+# PIL's own guard fires first beyond ~179 MP, at open
+def _bomb(path: Path, exc: Exception) -> SceneError:
+    return SceneError(
+        path,
+        f"image claims more pixels than the {MAX_PIXELS // 10**6} megapixel limit (a corrupt or "
+        f"hostile header?): {exc}",
+    )
 
 
-# A PNG cut short (an interrupted copy or upload) loses its IEND chunk, which the file's last bytes show without
-# decoding. JPEGs are not checked this way: cameras append trailers of any length after the end-of-image marker,
-# and refusing those would refuse real captures; a cut JPEG (or any file damaged inside) shows when the pixel
-# store decodes it, which then stops naming the file.
+# A PNG cut short (an interrupted copy or upload) loses its IEND chunk, which the file's last bytes
+# show without decoding. JPEGs are not checked this way: cameras append trailers of any length after
+# the end-of-image marker, and refusing those would refuse real captures; a cut JPEG (or any file
+# damaged inside) shows when the pixel store decodes it, which then stops naming the file.
 PNG_END = b"IEND\xaeB`\x82"
 
 
@@ -61,12 +68,14 @@ def _check_tail(path: Path, image_format: str | None) -> None:
         f.seek(max(0, path.stat().st_size - 64))
         tail = f.read()
     if PNG_END not in tail:
-        raise SceneError(path, "image is unreadable (truncated: the PNG has no IEND chunk at its end)")
+        raise SceneError(
+            path, "image is unreadable (truncated: the PNG has no IEND chunk at its end)"
+        )
 
 
 def probe_image(path: Path) -> tuple[int, int]:
-    """(width, height) from the header, charged to the pixel budget, after the size limit and a truncation
-    check; nothing is decoded."""
+    """(width, height) from the header, charged to the pixel budget, after the size limit and a
+    truncation check; nothing is decoded."""
     try:
         with Image.open(path) as im:
             w, h = _open_checked(im, path)
@@ -80,8 +89,9 @@ def probe_image(path: Path) -> tuple[int, int]:
     return w, h
 
 
-# RGBA is composited in float32 this many pixels at a time, so the temporaries stay near 15 MB whatever the
-# image's size; decoding then holds a few bytes per pixel, not the ~50 a whole-image float composite took.
+# RGBA is composited in float32 this many pixels at a time, so the temporaries stay near 15 MB
+# whatever the image's size; decoding then holds a few bytes per pixel, not the ~50 a whole-image
+# float composite took.
 COMPOSITE_BLOCK_PIXELS = 1 << 18
 
 
@@ -109,7 +119,8 @@ def read_image(path: Path, *, background: tuple[float, float, float] | None = No
                 rgba = np.asarray(im if mode == "RGBA" else im.convert("RGBA"))
                 array = _composite(rgba, background or (0.0, 0.0, 0.0))
             else:
-                array = np.array(im if mode == "RGB" else im.convert("RGB"), dtype=np.uint8)  # a writable copy
+                # a writable copy
+                array = np.array(im if mode == "RGB" else im.convert("RGB"), dtype=np.uint8)
     except Image.DecompressionBombError as exc:
         raise _bomb(path, exc) from None
     except (UnidentifiedImageError, OSError, SyntaxError) as exc:
@@ -124,7 +135,8 @@ def downscaled_size(width: int, height: int, factor: int) -> tuple[int, int]:
 
 @dataclass(frozen=True)
 class ImageFile:
-    """One dataset image, decoded on call: read, checked against its probed size, composited, downscaled."""
+    """One dataset image, decoded on call: read, checked against its probed size, composited,
+    downscaled."""
 
     path: Path
     width: int  # of the file, as probed
@@ -140,7 +152,8 @@ class ImageFile:
 
     def __call__(self) -> Tensor:
         image = read_image(self.path, background=self.background)
-        check_image_size(self.path, image, self.width, self.height)  # the file changed since it was probed
+        # the file changed since it was probed
+        check_image_size(self.path, image, self.width, self.height)
         return downscale_image(image, self.factor)
 
 
@@ -155,12 +168,14 @@ def downscale_image(image: Tensor, factor: int) -> Tensor:
 
 
 def downscale_depth(depth: Tensor, factor: int) -> Tensor:
-    """Depth at the pixel centres of the downscaled image (nearest sample: depth must not be blurred)."""
+    """Depth at the pixel centres of the downscaled image (nearest sample: depth must not be
+    blurred)."""
     if factor == 1:
         return depth
     h, w = depth.shape
     new_h, new_w = max(1, h // factor), max(1, w // factor)
-    # The centre of a downscaled pixel falls between source pixels for even factors: take the one below.
+    # The centre of a downscaled pixel falls between source pixels for even factors: take the one
+    # below.
     rows = (torch.arange(new_h) * factor + factor // 2).clamp(max=h - 1)
     cols = (torch.arange(new_w) * factor + factor // 2).clamp(max=w - 1)
     return depth[rows][:, cols].contiguous()

@@ -10,9 +10,10 @@ from model.scenes.rays import PixelTable
 from model.scenes.scene import Scene
 
 BOUNDS_RULE = (
-    "foreground box = extent of the evidence points ({source}) within {far}x the median distance to the "
-    "nearest camera (and, for surface evidence, in view of at least {coverage}x the median point's share of "
-    "cameras), padded {margin:.0%} per side; rays leaving it continue into the background model"
+    "foreground box = extent of the evidence points ({source}) within {far}x the median distance "
+    "to the nearest camera (and, for surface evidence, in view of at least {coverage}x the median "
+    "point's share of cameras), padded {margin:.0%} per side; rays leaving it continue into the "
+    "background model"
 )
 
 
@@ -26,22 +27,31 @@ def ray_segment_stats(scene: Scene, max_rays: int = 20_000, seed: int = 0) -> di
     near, far = near[hit], far[hit]
     stats = {"rays_sampled": len(pixels), "fraction_hitting_foreground": float(hit.float().mean())}
     if len(near):
-        stats.update(near_median=float(near.median()), near_min=float(near.min()),
-                     far_median=float(far.median()), far_max=float(far.max()))
+        stats.update(
+            near_median=float(near.median()),
+            near_min=float(near.min()),
+            far_median=float(far.median()),
+            far_max=float(far.max()),
+        )
     return stats
 
 
 def describe(scene: Scene) -> dict:
     norm, bounds = scene.normalization, scene.bounds
-    aabb_source = bounds.aabb.double() * norm.scale + norm.origin.double()  # in the z-up, unnormalised frame
+    # in the z-up, unnormalised frame
+    aabb_source = bounds.aabb.double() * norm.scale + norm.origin.double()
     splits = {}
     for name, views in scene.splits.items():
-        sizes = sorted({(int(w), int(h)) for w, h in zip(views.cameras.width, views.cameras.height)})
+        sizes = sorted(
+            {(int(w), int(h)) for w, h in zip(views.cameras.width, views.cameras.height)}
+        )
         splits[name] = {
             "images": len(views),
             "image_sizes": [f"{w}x{h}" for w, h in sizes],
-            "focal_px": [round(float(views.cameras.intrinsics[:, 0].min()), 3),
-                         round(float(views.cameras.intrinsics[:, 0].max()), 3)],
+            "focal_px": [
+                round(float(views.cameras.intrinsics[:, 0].min()), 3),
+                round(float(views.cameras.intrinsics[:, 0].max()), 3),
+            ],
             "distorted": bool(views.cameras.distortion.any()),
         }
     occupancy = None
@@ -57,7 +67,11 @@ def describe(scene: Scene) -> dict:
         "format": scene.format,
         "downscale": scene.downscale,
         # LLFF only: the factors a job's downscale may be a multiple of (images -> 1, images_N -> N)
-        **({"image_folder_factors": sorted(image_folders(scene.root))} if scene.format == "llff" else {}),
+        **(
+            {"image_folder_factors": sorted(image_folders(scene.root))}
+            if scene.format == "llff"
+            else {}
+        ),
         "cameras": scene.num_images,
         "splits": splits,
         "world_convention": "right-handed, z up; camera-to-world in OpenGL axes (right, up, back)",
@@ -69,7 +83,9 @@ def describe(scene: Scene) -> dict:
             "units": norm.units,
         },
         "bounds": {
-            "rule": BOUNDS_RULE.format(source=bounds.source, far=FAR_FACTOR, coverage=COVERAGE_RATIO, margin=MARGIN),
+            "rule": BOUNDS_RULE.format(
+                source=bounds.source, far=FAR_FACTOR, coverage=COVERAGE_RATIO, margin=MARGIN
+            ),
             "evidence": bounds.source,
             "evidence_points": bounds.num_points,
             "aabb_world": [[round(float(x), 6) for x in row] for row in bounds.aabb],
@@ -92,18 +108,23 @@ def format_info(info: dict) -> str:
         f"scene      {info['path']}",
         f"format     {info['format']} (downscale {info['downscale']})",
         f"cameras    {info['cameras']}: "
-        + ", ".join(f"{k} {v['images']} ({'/'.join(v['image_sizes'])})" for k, v in info["splits"].items()),
+        + ", ".join(
+            f"{k} {v['images']} ({'/'.join(v['image_sizes'])})" for k, v in info["splits"].items()
+        ),
         f"world      {info['world_convention']}",
-        f"normalise  {n['rule']}; origin {n['origin']}, scale {n['scale']} {n['units']} per world unit",
+        f"normalise  {n['rule']}; origin {n['origin']}, scale {n['scale']} {n['units']} per world "
+        "unit",
         f"bounds     from {b['evidence']} ({b['evidence_points']} points)",
         f"  world    min {b['aabb_world'][0]}  max {b['aabb_world'][1]}",
-        f"  source   min {b['aabb_source'][0]}  max {b['aabb_source'][1]}  size {b['size_source']} {n['units']}",
+        f"  source   min {b['aabb_source'][0]}  max {b['aabb_source'][1]}  size {b['size_source']} "
+        f"{n['units']}",
     ]
     r = b["rays"]
     if "near_median" in r:
         lines.append(
-            f"  rays     {r['fraction_hitting_foreground']:.1%} of {r['rays_sampled']} sampled train rays cross "
-            f"the box; near median {r['near_median']:.3f}, far median {r['far_median']:.3f} (world units)"
+            f"  rays     {r['fraction_hitting_foreground']:.1%} of {r['rays_sampled']} sampled "
+            f"train rays cross the box; near median {r['near_median']:.3f}, far median "
+            f"{r['far_median']:.3f} (world units)"
         )
     else:
         lines.append(f"  rays     none of {r['rays_sampled']} sampled train rays cross the box")
@@ -111,7 +132,11 @@ def format_info(info: dict) -> str:
     occ = gt["occupancy"]
     lines.append(
         f"truth      depth maps: {'yes' if gt['depth'] else 'no'}; occupancy: "
-        + (f"{'x'.join(map(str, occ['resolution']))} grid, {occ['occupied_fraction']:.2%} occupied" if occ else "no")
+        + (
+            f"{'x'.join(map(str, occ['resolution']))} grid, {occ['occupied_fraction']:.2%} occupied"
+            if occ
+            else "no"
+        )
     )
     if info["sparse_points"] is not None:
         lines.append(f"points     {info['sparse_points']} sparse points")

@@ -1,4 +1,5 @@
-"""`load_scene`: any supported folder -> the normalised Scene. Read-only: nothing is written near the data."""
+"""`load_scene`: any supported folder -> the normalised Scene. Read-only: nothing is written near
+the data."""
 
 from __future__ import annotations
 

@@ -1,11 +1,11 @@
 """A seeded pseudo-random permutation of [0, n) that is evaluated, not stored.
 
-`torch.randperm(n)` holds 8 bytes for every training pixel on every rank: 15 GB for the Mega-NeRF Building
-scene at 1/4 scale. Here position i of the epoch's order is computed from i alone: a balanced Feistel network
-over the smallest even power of two >= n is a bijection on that domain, and cycle-walking (apply it again
-while the value is >= n) turns it into a bijection on [0, n). So any slice of an epoch costs memory in its
-own length, every id appears exactly once per epoch, and a resumed run needs only (seed, epoch, offset).
-"""
+`torch.randperm(n)` holds 8 bytes for every training pixel on every rank: 15 GB for the Mega-NeRF
+Building scene at 1/4 scale. Here position i of the epoch's order is computed from i alone: a
+balanced Feistel network over the smallest even power of two >= n is a bijection on that domain, and
+cycle-walking (apply it again while the value is >= n) turns it into a bijection on [0, n). So any
+slice of an epoch costs memory in its own length, every id appears exactly once per epoch, and a
+resumed run needs only (seed, epoch, offset)."""
 
 from __future__ import annotations
 
@@ -39,7 +39,8 @@ class FeistelPermutation:
         self.keys = [_mix64(_mix64(seed) + r) & _M32 for r in range(ROUNDS)]
 
     def _round(self, right: Tensor, key: int) -> Tensor:
-        # A 32-bit multiply-xorshift hash; int64 products wrap, and masking keeps the exact low 32 bits.
+        # A 32-bit multiply-xorshift hash; int64 products wrap, and masking keeps the exact low 32
+        # bits.
         x = ((right ^ key) * 0x85EBCA6B) & _M32
         x = x ^ (x >> 13)
         x = (x * 0xC2B2AE35) & _M32

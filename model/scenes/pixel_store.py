@@ -1,15 +1,16 @@
 """Decoded training pixels on disk, built once per (scene, split, downscale) and memory-mapped.
 
-Every rank used to hold a concatenated copy of all decoded pixels of its split. A store is one raw file of
-uint8 RGB (`pixels.u8`, 3 bytes a pixel, image after image in the PixelTable's id order) and a manifest:
-image sizes, offsets, a CRC-32 per image, and a fingerprint of the source files. Ranks on one node share it
-through the page cache, nodes through a shared volume; a rank's own memory is the pages it touches.
+Every rank used to hold a concatenated copy of all decoded pixels of its split. A store is one raw
+file of uint8 RGB (`pixels.u8`, 3 bytes a pixel, image after image in the PixelTable's id order) and
+a manifest: image sizes, offsets, a CRC-32 per image, and a fingerprint of the source files. Ranks
+on one node share it through the page cache, nodes through a shared volume; a rank's own memory is
+the pages it touches.
 
-Building is atomic and resumable: the file grows in `<store>.partial/`, whose `progress.json` records the
-images already written and flushed, and the folder is renamed into place only when the manifest is complete.
-A store whose manifest, size or checksums do not match (a crash, a truncated copy, a flipped bit) is removed
-and rebuilt; a store built from other source files (another fingerprint) is never opened for this scene.
-"""
+Building is atomic and resumable: the file grows in `<store>.partial/`, whose `progress.json`
+records the images already written and flushed, and the folder is renamed into place only when the
+manifest is complete. A store whose manifest, size or checksums do not match (a crash, a truncated
+copy, a flipped bit) is removed and rebuilt; a store built from other source files (another
+fingerprint) is never opened for this scene."""
 
 from __future__ import annotations
 
@@ -30,7 +31,8 @@ from torch import Tensor
 
 VERSION = 1
 CHUNK = 16 * 2**20  # bytes per checksum read: bounded memory whatever the image size
-SYNC_EVERY = 32  # images written between progress records (each one an fsync): a crash redoes at most these
+# images written between progress records (each one an fsync): a crash redoes at most these
+SYNC_EVERY = 32
 
 
 class StoreError(RuntimeError):
@@ -57,14 +59,17 @@ class PixelStore:
     def image(self, index: int) -> Tensor:
         """One whole image, uint8 (H, W, 3), copied out of the map."""
         h, w = self.sizes[index]
-        image = torch.from_numpy(np.array(self.pixels[self.offsets[index] : self.offsets[index + 1]])).reshape(h, w, 3)
+        image = torch.from_numpy(
+            np.array(self.pixels[self.offsets[index] : self.offsets[index + 1]])
+        ).reshape(h, w, 3)
         self.release()
         return image
 
     def release(self) -> None:
-        """Unmap the pages read so far from this process. They stay in the page cache, shared by every rank on
-        the node, but no longer count in this process's resident memory: random batches over a large store
-        would otherwise leave a rank's RSS growing towards the size of the whole store."""
+        """Unmap the pages read so far from this process. They stay in the page cache, shared by
+        every rank on the node, but no longer count in this process's resident memory: random
+        batches over a large store would otherwise leave a rank's RSS growing towards the size of
+        the whole store."""
         if self.mapping is not None:
             self.mapping.madvise(mmap.MADV_DONTNEED)
 
@@ -72,14 +77,15 @@ class PixelStore:
 def _crc(data: np.ndarray) -> int:
     flat, crc = data.reshape(-1), 0
     for start in range(0, len(flat), CHUNK):
-        # .data, not memoryview(array): numpy's stubs declare arrays buffers only from Python 3.12 on.
+        # .data, not memoryview(array): numpy's stubs declare arrays buffers only from Python 3.12
+        # on.
         crc = zlib.crc32(flat[start : start + CHUNK].data, crc)
     return crc
 
 
 def _file_crcs(path: Path, offsets: list[int]) -> list[int]:
-    """The CRC-32 of each image's bytes, read through the file (not the map, whose pages would stay resident
-    in this process) in bounded chunks."""
+    """The CRC-32 of each image's bytes, read through the file (not the map, whose pages would stay
+    resident in this process) in bounded chunks."""
     crcs: list[int] = []
     buffer = bytearray(CHUNK)
     with open(path, "rb", buffering=0) as f:
@@ -110,7 +116,8 @@ def _manifest(folder: Path) -> dict:
 
 
 def open_store(folder: Path, fingerprint: str, verify: bool = True) -> PixelStore:
-    """The finished store in `folder` if it is whole and was built from sources with this fingerprint."""
+    """The finished store in `folder` if it is whole and was built from sources with this
+    fingerprint."""
     folder = Path(folder)
     manifest = _manifest(folder)
     if manifest.get("version") != VERSION or manifest.get("fingerprint") != fingerprint:
@@ -119,7 +126,9 @@ def open_store(folder: Path, fingerprint: str, verify: bool = True) -> PixelStor
     offsets = [0] + np.cumsum([h * w for h, w in sizes]).tolist()
     path = folder / "pixels.u8"
     if not path.is_file() or path.stat().st_size != 3 * offsets[-1]:
-        raise StoreError(f"{folder}: pixels.u8 is missing or not {3 * offsets[-1]:,} bytes (truncated?)")
+        raise StoreError(
+            f"{folder}: pixels.u8 is missing or not {3 * offsets[-1]:,} bytes (truncated?)"
+        )
     if verify:
         for i, (crc, found) in enumerate(zip(manifest["crc32"], _file_crcs(path, offsets))):
             if crc != found:
@@ -127,24 +136,34 @@ def open_store(folder: Path, fingerprint: str, verify: bool = True) -> PixelStor
     return PixelStore(folder, sizes, offsets, *_map(path, offsets[-1]))
 
 
-def build_store(folder: Path, fingerprint: str, sizes: list[tuple[int, int]], images: Callable[[int], Tensor],
-                progress: Callable[[int, int], None] | None = None, sync_every: int = SYNC_EVERY) -> PixelStore:
-    """Writes image i = images(i) (uint8 (H, W, 3), decoded on demand) for every i into a new store at
-    `folder`, resuming a partial build of the same plan, and returns it opened. Progress is recorded (after
-    an fsync) every `sync_every` images."""
+def build_store(
+    folder: Path,
+    fingerprint: str,
+    sizes: list[tuple[int, int]],
+    images: Callable[[int], Tensor],
+    progress: Callable[[int, int], None] | None = None,
+    sync_every: int = SYNC_EVERY,
+) -> PixelStore:
+    """Writes image i = images(i) (uint8 (H, W, 3), decoded on demand) for every i into a new store
+    at `folder`, resuming a partial build of the same plan, and returns it opened. Progress is
+    recorded (after an fsync) every `sync_every` images."""
     folder = Path(folder)
     partial = folder.with_name(folder.name + ".partial")
     plan = {"version": VERSION, "fingerprint": fingerprint, "sizes": [list(s) for s in sizes]}
     done, crcs = _resume(partial, plan)
     total = sum(h * w for h, w in sizes)
     offset = sum(h * w for h, w in sizes[:done])
-    # Plain writes, not a map: written pages stay in the page cache, not in the builder's resident memory.
+    # Plain writes, not a map: written pages stay in the page cache, not in the builder's resident
+    # memory.
     with open(partial / "pixels.u8", "r+b" if done else "w+b") as f:
         f.truncate(3 * total)
         for i in range(done, len(sizes)):
             image = images(i)
             if tuple(image.shape) != (*sizes[i], 3) or image.dtype != torch.uint8:
-                raise StoreError(f"image {i} is {tuple(image.shape)} {image.dtype}; the plan says {sizes[i]} uint8")
+                raise StoreError(
+                    f"image {i} is {tuple(image.shape)} {image.dtype}; the plan says {sizes[i]} "
+                    "uint8"
+                )
             block = np.ascontiguousarray(image.reshape(-1, 3).numpy())
             f.seek(3 * offset)
             f.write(block.data.cast("B"))
@@ -152,7 +171,8 @@ def build_store(folder: Path, fingerprint: str, sizes: list[tuple[int, int]], im
             offset += len(block)
             if len(crcs) % sync_every == 0 or i + 1 == len(sizes):
                 f.flush()
-                os.fsync(f.fileno())  # on disk before progress says so: a crash never leaves a recorded image unwritten
+                # on disk before progress says so: a crash never leaves a recorded image unwritten
+                os.fsync(f.fileno())
                 _write_json(partial / "progress.json", {**plan, "crc32": crcs})
             if progress is not None:
                 progress(i + 1, len(sizes))
@@ -165,7 +185,8 @@ def build_store(folder: Path, fingerprint: str, sizes: list[tuple[int, int]], im
 
 
 def _resume(partial: Path, plan: dict) -> tuple[int, list[int]]:
-    """(images already written, their checksums) of a partial build of the same plan, else a fresh start."""
+    """(images already written, their checksums) of a partial build of the same plan, else a fresh
+    start."""
     try:
         record = json.loads((partial / "progress.json").read_text())
         if {k: record.get(k) for k in plan} == plan and (partial / "pixels.u8").is_file():
@@ -184,9 +205,9 @@ def _write_json(path: Path, data: dict) -> None:
 
 
 def source_fingerprint(root: Path, extra: str) -> str:
-    """Every file under the scene folder by path, size and modification time (a stat each: cheap at every
-    start, where hashing the contents would read the whole capture; an edited file gets a new mtime), plus
-    `extra` (split, scale)."""
+    """Every file under the scene folder by path, size and modification time (a stat each: cheap at
+    every start, where hashing the contents would read the whole capture; an edited file gets a new
+    mtime), plus `extra` (split, scale)."""
     h = hashlib.sha256(extra.encode())
     for path in sorted(p for p in Path(root).rglob("*") if p.is_file()):
         stat = path.stat()
@@ -194,10 +215,18 @@ def source_fingerprint(root: Path, extra: str) -> str:
     return h.hexdigest()
 
 
-def ensure_store(cache: Path, root: Path, split: str, downscale: int, sizes: list[tuple[int, int]],
-                 images: Callable[[int], Tensor], log: Callable[[str], None] = lambda text: None) -> PixelStore:
-    """The store of this scene split at this scale under `cache`: opened when whole and current, else built
-    (or its partial build resumed). Ranks that ask at once wait for one builder (a file lock), then open it."""
+def ensure_store(
+    cache: Path,
+    root: Path,
+    split: str,
+    downscale: int,
+    sizes: list[tuple[int, int]],
+    images: Callable[[int], Tensor],
+    log: Callable[[str], None] = lambda text: None,
+) -> PixelStore:
+    """The store of this scene split at this scale under `cache`: opened when whole and current,
+    else built (or its partial build resumed). Ranks that ask at once wait for one builder (a file
+    lock), then open it."""
     root = Path(root).resolve()
     fingerprint = source_fingerprint(root, f"{split}:{downscale}")
     key = hashlib.sha256(str(root).encode()).hexdigest()[:16]
@@ -206,8 +235,10 @@ def ensure_store(cache: Path, root: Path, split: str, downscale: int, sizes: lis
         folder.parent.mkdir(parents=True, exist_ok=True)
         lock_file = open(folder.with_name(folder.name + ".lock"), "w")
     except OSError as error:
-        raise StoreError(f"pixel store cache folder {cache} cannot be written ({error.strerror}); "
-                         "set LECO_PIXEL_CACHE to a writable folder") from None
+        raise StoreError(
+            f"pixel store cache folder {cache} cannot be written ({error.strerror}); set "
+            "LECO_PIXEL_CACHE to a writable folder"
+        ) from None
     with lock_file as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
@@ -216,6 +247,9 @@ def ensure_store(cache: Path, root: Path, split: str, downscale: int, sizes: lis
             if folder.exists() or folder.with_name(folder.name + ".partial").exists():
                 log(f"pixel store {folder.name}: rebuilding ({why})")
         step = max(1, len(sizes) // 20)
-        report = lambda done, total: log(f"pixel store {folder.name}: {done}/{total} images") \
-            if done % step == 0 or done == total else None
+        report = lambda done, total: (
+            log(f"pixel store {folder.name}: {done}/{total} images")
+            if done % step == 0 or done == total
+            else None
+        )
         return build_store(folder, fingerprint, sizes, images, report)

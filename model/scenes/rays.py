@@ -1,5 +1,6 @@
-"""Rays in batches: pixel ids -> (origin, direction, near, far, image index, target colour), a seeded
-shuffling sampler over every training pixel, and the sharding rule for data-parallel ranks."""
+"""Rays in batches: pixel ids -> (origin, direction, near, far, image index, target colour), a
+seeded shuffling sampler over every training pixel, and the sharding rule for data-parallel
+ranks."""
 
 from __future__ import annotations
 
@@ -37,9 +38,9 @@ class RayBatch:
 
 
 class PixelTable:
-    """Flat pixel ids over all images of a Views: id = offset[image] + v * W + u. Colours come from a
-    memory-mapped PixelStore (the one given, else the one attached to the views), else from one concatenated
-    copy of the decoded images, made on the first colour read (small scenes, tests)."""
+    """Flat pixel ids over all images of a Views: id = offset[image] + v * W + u. Colours come from
+    a memory-mapped PixelStore (the one given, else the one attached to the views), else from one
+    concatenated copy of the decoded images, made on the first colour read (small scenes, tests)."""
 
     def __init__(self, views: Views, store: PixelStore | None = None):
         self.views = views
@@ -69,7 +70,9 @@ class PixelTable:
         width = self.views.cameras.width[image]
         return image, local % width, local // width
 
-    def geometry(self, pixel: Tensor, aabb: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    def geometry(
+        self, pixel: Tensor, aabb: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """(image, origins, directions, near, far) of flat pixel ids: everything but the colours."""
         image, u, v = self.locate(pixel)
         origins, directions = pixel_rays(self.views.cameras, image, u, v)
@@ -82,44 +85,62 @@ class PixelTable:
         return RayBatch(origins, directions, near, far, self.views.appearance[image], rgb, pixel)
 
     def image_pixels(self, image: int, columns: tuple[int, int] | None = None) -> Tensor:
-        """Pixel ids of one image, row-major; with columns=(u0, u1) only the columns u0 <= u < u1."""
+        """Pixel ids of one image, row-major; with columns=(u0, u1) only the columns u0 <= u <
+        u1."""
         ids = torch.arange(int(self.offsets[image]), int(self.offsets[image + 1]))
         if columns is None:
             return ids
         width = int(self.views.cameras.width[image])
         return ids.reshape(-1, width)[:, columns[0] : columns[1]].reshape(-1)
 
-    def image_rays(self, image: int, aabb: Tensor, columns: tuple[int, int] | None = None) -> RayBatch:
-        """The rays of one image (or of its columns u0 <= u < u1), row-major, for validation renders."""
+    def image_rays(
+        self, image: int, aabb: Tensor, columns: tuple[int, int] | None = None
+    ) -> RayBatch:
+        """The rays of one image (or of its columns u0 <= u < u1), row-major, for validation
+        renders."""
         return self.rays(self.image_pixels(image, columns), aabb)
 
 
 def shard(batch: Tensor, rank: int, world_size: int) -> Tensor:
     """Rank `rank`'s disjoint, equal, contiguous share of a global batch."""
     if world_size < 1 or not 0 <= rank < world_size:
-        raise ValueError(f"rank must be in [0, world_size), got rank={rank}, world_size={world_size}")
+        raise ValueError(
+            f"rank must be in [0, world_size), got rank={rank}, world_size={world_size}"
+        )
     if len(batch) % world_size:
-        raise ValueError(f"global batch of {len(batch)} rays does not split evenly over {world_size} ranks")
+        raise ValueError(
+            f"global batch of {len(batch)} rays does not split evenly over {world_size} ranks"
+        )
     per_rank = len(batch) // world_size
     return batch[rank * per_rank : (rank + 1) * per_rank]
 
 
 class RaySampler:
-    """Seeded shuffling over all pixels: each epoch is one permutation keyed by (seed, epoch); global
-    batches are consecutive slices of it (the incomplete tail is skipped) and every rank takes its shard
-    of the same global batch. The permutation is evaluated per batch (model/scenes/permutation.py), so the
-    sampler's memory is its batch, whatever the number of pixels. Its position is a state dict, so a
-    resumed run continues with the very next batch."""
+    """Seeded shuffling over all pixels: each epoch is one permutation keyed by (seed, epoch);
+    global batches are consecutive slices of it (the incomplete tail is skipped) and every rank
+    takes its shard of the same global batch. The permutation is evaluated per batch
+    (model/scenes/permutation.py), so the sampler's memory is its batch, whatever the number of
+    pixels. Its position is a state dict, so a resumed run continues with the very next batch."""
 
     def __init__(
-        self, views: Views, aabb: Tensor, batch_size: int, seed: int, rank: int = 0, world_size: int = 1,
+        self,
+        views: Views,
+        aabb: Tensor,
+        batch_size: int,
+        seed: int,
+        rank: int = 0,
+        world_size: int = 1,
         store: PixelStore | None = None,
     ):
         self.table = PixelTable(views, store)
         if batch_size % world_size:
-            raise ValueError(f"batch_size {batch_size} must be a multiple of world_size {world_size}")
+            raise ValueError(
+                f"batch_size {batch_size} must be a multiple of world_size {world_size}"
+            )
         if batch_size > len(self.table):
-            raise ValueError(f"batch_size {batch_size} exceeds the {len(self.table)} pixels of the split")
+            raise ValueError(
+                f"batch_size {batch_size} exceeds the {len(self.table)} pixels of the split"
+            )
         self.aabb, self.batch_size, self.seed = aabb, batch_size, seed
         self.rank, self.world_size = rank, world_size
         self.epoch, self.offset = 0, 0
@@ -146,7 +167,12 @@ class RaySampler:
         return self.table.rays(shard(self.next_global(), self.rank, self.world_size), self.aabb)
 
     def state_dict(self) -> dict:
-        return {"seed": self.seed, "epoch": self.epoch, "offset": self.offset, "batch_size": self.batch_size}
+        return {
+            "seed": self.seed,
+            "epoch": self.epoch,
+            "offset": self.offset,
+            "batch_size": self.batch_size,
+        }
 
     def load_state_dict(self, state: dict) -> None:
         if state["seed"] != self.seed or state["batch_size"] != self.batch_size:

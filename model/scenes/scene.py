@@ -24,21 +24,24 @@ class Views:
     """The images of one split with their cameras. Depth (ground truth, optional) is the distance
     along the unit ray from the camera centre in world units; +inf where the ray sees no surface.
 
-    Loaded scenes decode an image (or depth map) only when it is indexed (`images` is a LazyFrames). Once a
-    pixel store is attached (`store`), `image(i)` and every PixelTable of these views read from it."""
+    Loaded scenes decode an image (or depth map) only when it is indexed (`images` is a LazyFrames).
+    Once a pixel store is attached (`store`), `image(i)` and every PixelTable of these views read
+    from it."""
 
     names: list[str]
     images: Sequence[Tensor]  # uint8 (H, W, 3) each
     cameras: Cameras
     appearance: Tensor  # (N,) int64: the per-image appearance-embedding index, unique across splits
     depth: Sequence[Tensor] | None = None  # float32 (H, W) each
-    store: PixelStore | None = None  # this split's decoded pixels on disk, when a worker attached them
+    # this split's decoded pixels on disk, when a worker attached them
+    store: PixelStore | None = None
 
     def __len__(self) -> int:
         return len(self.names)
 
     def image(self, index: int) -> Tensor:
-        """uint8 (H, W, 3): from the pixel store when one is attached, else decoded from its file."""
+        """uint8 (H, W, 3): from the pixel store when one is attached, else decoded from its
+        file."""
         return self.store.image(index) if self.store is not None else self.images[index]
 
     @property
@@ -73,7 +76,8 @@ class Bounds:
 
 @dataclass
 class OccupancyGrid:
-    """Ground-truth occupancy: `occupied[i, j, k]` covers world box aabb_min + cell * [i, i+1] x ..."""
+    """Ground-truth occupancy: `occupied[i, j, k]` covers world box aabb_min + cell * [i, i+1] x
+    ..."""
 
     occupied: Tensor  # bool (X, Y, Z)
     aabb: Tensor  # (2, 3) world frame
@@ -85,7 +89,9 @@ class OccupancyGrid:
 
     @property
     def cell_size(self) -> Tensor:
-        return (self.aabb[1] - self.aabb[0]) / torch.tensor(self.occupied.shape, dtype=self.aabb.dtype)
+        return (self.aabb[1] - self.aabb[0]) / torch.tensor(
+            self.occupied.shape, dtype=self.aabb.dtype
+        )
 
     @property
     def occupied_fraction(self) -> float:
@@ -93,8 +99,11 @@ class OccupancyGrid:
 
     def lookup(self, points: Tensor) -> Tensor:
         """Occupancy at world points; points outside the grid read as free."""
-        points = points.to(self.occupied.device)  # the estimator interface takes points on any device
-        ijk = torch.floor((points.double() - self.aabb[0].double()) / self.cell_size.double()).long()
+        # the estimator interface takes points on any device
+        points = points.to(self.occupied.device)
+        ijk = torch.floor(
+            (points.double() - self.aabb[0].double()) / self.cell_size.double()
+        ).long()
         shape = torch.tensor(self.occupied.shape)
         inside = ((ijk >= 0) & (ijk < shape)).all(dim=-1)
         ijk = torch.minimum(ijk.clamp(min=0), shape - 1)

@@ -1,7 +1,8 @@
-"""Typed, bounded, finite values from a dataset's metadata. Every reader parses what a file says through these
-before using it, so a broken or hostile file is refused with a SceneError naming the file and the field, never
-a TypeError, an overflow or a NaN bound later in a worker. Sizes are checked before anything is converted, and
-no message echoes the data: a value is described by its type and shape, or a short repr."""
+"""Typed, bounded, finite values from a dataset's metadata. Every reader parses what a file says
+through these before using it, so a broken or hostile file is refused with a SceneError naming the
+file and the field, never a TypeError, an overflow or a NaN bound later in a worker. Sizes are
+checked before anything is converted, and no message echoes the data: a value is described by its
+type and shape, or a short repr."""
 
 from __future__ import annotations
 
@@ -14,9 +15,11 @@ from torch import Tensor
 
 from model.scenes.errors import SceneError
 
-# |a position| in source units. float64 maths is exact far beyond, and after normalisation everything is float32.
+# |a position| in source units. float64 maths is exact far beyond, and after normalisation
+# everything is float32.
 MAX_COORDINATE = 1e9
-# Focal length against the image's larger side: 0.01 is a ~179 degree pinhole, 1e4 a ~0.006 degree telephoto.
+# Focal length against the image's larger side: 0.01 is a ~179 degree pinhole, 1e4 a ~0.006 degree
+# telephoto.
 MIN_FOCAL_RATIO, MAX_FOCAL_RATIO = 1e-2, 1e4
 MAX_PRINCIPAL_OFFSET = 100.0  # |principal point - image centre| in image sizes
 MAX_DISTORTION = 10.0  # |k1|, |k2|, |p1|, |p2| of OpenCV's model (real lenses: well under 1)
@@ -26,7 +29,8 @@ SHORT = 40  # characters of a string value shown in a message
 
 
 def describe(raw: object) -> str:
-    """A value as a message may show it: its kind and size, never its contents beyond a short repr."""
+    """A value as a message may show it: its kind and size, never its contents beyond a short
+    repr."""
     if isinstance(raw, (Tensor, np.ndarray)):
         return f"an array of shape {tuple(raw.shape)} ({raw.dtype})"
     if isinstance(raw, (list, tuple, dict)):
@@ -39,8 +43,11 @@ def describe(raw: object) -> str:
     return f"a {type(raw).__name__}"
 
 
-def number(path: Path, raw: object, name: str, lo: float = -MAX_COORDINATE, hi: float = MAX_COORDINATE) -> float:
-    """A finite real number in [lo, hi]; JSON's null, booleans, lists, objects and numeric strings are refused."""
+def number(
+    path: Path, raw: object, name: str, lo: float = -MAX_COORDINATE, hi: float = MAX_COORDINATE
+) -> float:
+    """A finite real number in [lo, hi]; JSON's null, booleans, lists, objects and numeric strings
+    are refused."""
     if isinstance(raw, bool) or not isinstance(raw, (int, float, np.integer, np.floating)):
         if not (isinstance(raw, Tensor) and raw.numel() == 1 and not raw.dtype.is_complex):
             raise SceneError(path, f"{name} must be a number, got {describe(raw)}")
@@ -56,21 +63,31 @@ def number(path: Path, raw: object, name: str, lo: float = -MAX_COORDINATE, hi: 
 
 
 def integer(path: Path, raw: object, name: str, lo: int, hi: int) -> int:
-    """A whole number in [lo, hi] (a float that is whole, as JSON writers sometimes give, is accepted)."""
+    """A whole number in [lo, hi] (a float that is whole, as JSON writers sometimes give, is
+    accepted)."""
     value = number(path, raw, name, lo, hi)
     if value != int(value):
         raise SceneError(path, f"{name} must be a whole number, got {value:g}")
     return int(value)
 
 
-def array(path: Path, raw: object, name: str, shapes: tuple[tuple[int, ...], ...],
-          bound: float = MAX_COORDINATE) -> Tensor:
-    """A float64 tensor of one of `shapes`, finite, every entry within +-bound. Its size and dtype are read
-    before anything is converted: a strided view of one stored number claiming millions is refused as such."""
+def array(
+    path: Path,
+    raw: object,
+    name: str,
+    shapes: tuple[tuple[int, ...], ...],
+    bound: float = MAX_COORDINATE,
+) -> Tensor:
+    """A float64 tensor of one of `shapes`, finite, every entry within +-bound. Its size and dtype
+    are read before anything is converted: a strided view of one stored number claiming millions is
+    refused as such."""
     if isinstance(raw, (Tensor, np.ndarray)):
         shape, numel = tuple(raw.shape), int(np.prod(raw.shape, dtype=np.float64))
-        real = (not raw.dtype.is_complex and raw.dtype != torch.bool) if isinstance(raw, Tensor) \
+        real = (
+            (not raw.dtype.is_complex and raw.dtype != torch.bool)
+            if isinstance(raw, Tensor)
             else raw.dtype.kind in "iuf"
+        )
         if not real:
             raise SceneError(path, f"{name} must hold real numbers, got {describe(raw)}")
     elif isinstance(raw, (list, tuple)):
@@ -82,10 +99,14 @@ def array(path: Path, raw: object, name: str, shapes: tuple[tuple[int, ...], ...
         wanted = " or ".join("x".join(map(str, s)) for s in shapes)
         raise SceneError(path, f"{name} must be {wanted} numbers, got {describe(raw)}")
     try:
-        values = torch.as_tensor(np.asarray(raw, dtype=np.float64) if isinstance(raw, (list, tuple)) else raw)
+        values = torch.as_tensor(
+            np.asarray(raw, dtype=np.float64) if isinstance(raw, (list, tuple)) else raw
+        )
     except (TypeError, ValueError):
         raise SceneError(path, f"{name} must be an array of numbers, got {describe(raw)}") from None
-    values = values.to(torch.float64).reshape(next(s for s in shapes if math.prod(s) == numel)).clone()
+    values = (
+        values.to(torch.float64).reshape(next(s for s in shapes if math.prod(s) == numel)).clone()
+    )
     if not torch.isfinite(values).all():
         raise SceneError(path, f"{name} has non-finite values (NaN or Inf)")
     if bool((values.abs() > bound).any()):
@@ -94,7 +115,8 @@ def array(path: Path, raw: object, name: str, shapes: tuple[tuple[int, ...], ...
 
 
 def _nested_shape(path: Path, raw: list | tuple, name: str) -> tuple[int, ...]:
-    """The shape of a rectangular nested list of numbers, refusing ragged or oversized ones before walking them."""
+    """The shape of a rectangular nested list of numbers, refusing ragged or oversized ones before
+    walking them."""
     shape: list[int] = []
     level: object = raw
     while isinstance(level, (list, tuple)):
@@ -106,22 +128,36 @@ def _nested_shape(path: Path, raw: list | tuple, name: str) -> tuple[int, ...]:
 
 
 def image_size(path: Path, width: object, height: object, where: str = "") -> tuple[int, int]:
-    return (integer(path, width, f"image width{where}", 1, MAX_IMAGE_SIDE),
-            integer(path, height, f"image height{where}", 1, MAX_IMAGE_SIDE))
+    return (
+        integer(path, width, f"image width{where}", 1, MAX_IMAGE_SIDE),
+        integer(path, height, f"image height{where}", 1, MAX_IMAGE_SIDE),
+    )
 
 
-def check_intrinsics(path: Path, intrinsics: Tensor, width: int, height: int, where: str = "") -> None:
-    """fx, fy, cx, cy (pixels) of a width x height image: finite, focal lengths within MIN/MAX_FOCAL_RATIO of the
-    larger side, the principal point within MAX_PRINCIPAL_OFFSET image sizes of the centre."""
+def check_intrinsics(
+    path: Path, intrinsics: Tensor, width: int, height: int, where: str = ""
+) -> None:
+    """fx, fy, cx, cy (pixels) of a width x height image: finite, focal lengths within
+    MIN/MAX_FOCAL_RATIO of the larger side, the principal point within MAX_PRINCIPAL_OFFSET image
+    sizes of the centre."""
     image_size(path, width, height, where)
     fx, fy, cx, cy = array(path, intrinsics, f"camera intrinsics{where}", ((4,),)).tolist()
     side = max(width, height)
     for label, focal in (("fx", fx), ("fy", fy)):
         if not MIN_FOCAL_RATIO * side <= focal <= MAX_FOCAL_RATIO * side:
-            raise SceneError(path, f"focal length {label}{where} must be {MIN_FOCAL_RATIO:g} to {MAX_FOCAL_RATIO:g} "
-                                   f"times the image's larger side ({side} px), got {focal:g}")
-    if abs(cx - width / 2) > MAX_PRINCIPAL_OFFSET * width or abs(cy - height / 2) > MAX_PRINCIPAL_OFFSET * height:
-        raise SceneError(path, f"principal point{where} ({cx:g}, {cy:g}) is far outside the {width}x{height} image")
+            raise SceneError(
+                path,
+                f"focal length {label}{where} must be {MIN_FOCAL_RATIO:g} to {MAX_FOCAL_RATIO:g} "
+                f"times the image's larger side ({side} px), got {focal:g}",
+            )
+    if (
+        abs(cx - width / 2) > MAX_PRINCIPAL_OFFSET * width
+        or abs(cy - height / 2) > MAX_PRINCIPAL_OFFSET * height
+    ):
+        raise SceneError(
+            path,
+            f"principal point{where} ({cx:g}, {cy:g}) is far outside the {width}x{height} image",
+        )
 
 
 def distortion(path: Path, raw: object, where: str = "") -> Tensor:
@@ -136,6 +172,9 @@ def points(path: Path, raw: Tensor, what: str = "points") -> Tensor:
     bad = ~torch.isfinite(raw).all(dim=1) | (raw.abs() > MAX_COORDINATE).any(dim=1)
     if bool(bad.any()):
         first = int(torch.nonzero(bad)[0, 0])
-        raise SceneError(path, f"{what}: {int(bad.sum()):,} are non-finite or beyond +-{MAX_COORDINATE:g} "
-                               f"(the first is number {first})")
+        raise SceneError(
+            path,
+            f"{what}: {int(bad.sum()):,} are non-finite or beyond +-{MAX_COORDINATE:g} (the first "
+            f"is number {first})",
+        )
     return raw.double()

@@ -1,4 +1,5 @@
-"""The FastAPI application. It refuses to start on a database whose schema is not the one this code needs."""
+"""The FastAPI application. It refuses to start on a database whose schema is not the one this code
+needs."""
 
 from __future__ import annotations
 
@@ -15,7 +16,17 @@ from sqlalchemy.exc import InterfaceError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.api import artifacts, camera_paths, dashboard, health, job_kinds, jobs, methods, scenes, work
+from service.api import (
+    artifacts,
+    camera_paths,
+    dashboard,
+    health,
+    job_kinds,
+    jobs,
+    methods,
+    scenes,
+    work,
+)
 from service.api.gate import Gatekeeper
 from service.api.headers import SecurityHeaders
 from service.api.poll_cache import PollCache
@@ -24,14 +35,17 @@ from service.db import check_schema, first_line
 from service.settings import Settings
 from service.workpool import RETRY_AFTER_S, Busy, WorkerLost, WorkPool
 
-# An error's detail is a sentence: a message that quotes a user's file or body is cut here, whatever built it.
+# An error's detail is a sentence: a message that quotes a user's file or body is cut here, whatever
+# built it.
 MAX_DETAIL_CHARS = 1000
 MAX_VALIDATION_ERRORS = 20
 
 
 def bounded(detail: object) -> object:
     if isinstance(detail, str) and len(detail) > MAX_DETAIL_CHARS:
-        return detail[:MAX_DETAIL_CHARS] + f"... ({len(detail) - MAX_DETAIL_CHARS:,} more characters)"
+        return (
+            detail[:MAX_DETAIL_CHARS] + f"... ({len(detail) - MAX_DETAIL_CHARS:,} more characters)"
+        )
     return detail
 
 
@@ -39,9 +53,9 @@ log = logging.getLogger("leco.api")
 
 
 class RequestStats:
-    """Counts requests by (method, route, status) and the time spent answering them, for /metrics. A plain ASGI
-    middleware: Starlette's BaseHTTPMiddleware costs about a millisecond per request, which a poll-heavy API
-    cannot afford."""
+    """Counts requests by (method, route, status) and the time spent answering them, for /metrics. A
+    plain ASGI middleware: Starlette's BaseHTTPMiddleware costs about a millisecond per request,
+    which a poll-heavy API cannot afford."""
 
     def __init__(self, app: ASGIApp, stats: dict) -> None:
         self.app, self.stats = app, stats
@@ -61,34 +75,46 @@ class RequestStats:
             await self.app(scope, receive, send_status)
         finally:
             route = scope.get("route")
-            self.stats["count"][(scope["method"], getattr(route, "path", "unmatched"), str(status))] += 1
+            self.stats["count"][
+                (scope["method"], getattr(route, "path", "unmatched"), str(status))
+            ] += 1
             self.stats["seconds"] += time.perf_counter() - started
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings.from_env()
     check_schema(settings.db_url)  # raises SchemaError naming the command to run
+
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         yield
         app.state.scene_pool.close()  # its worker processes end with the server
         app.state.view_pool.close()
 
-    app = FastAPI(title="LeCO-NeRF Service", version="1", lifespan=lifespan,
-                  description="Register scenes, submit LeCO-NeRF / Switch-NeRF / occupancy-grid training jobs, "
-                              "follow their metrics, download their artifacts.")
+    app = FastAPI(
+        title="LeCO-NeRF Service",
+        version="1",
+        lifespan=lifespan,
+        description="Register scenes, submit LeCO-NeRF / Switch-NeRF / occupancy-grid training "
+        "jobs, follow their metrics, download their artifacts.",
+    )
     app.state.settings = settings
     app.state.http_stats = {"count": Counter(), "seconds": 0.0, "started": time.monotonic()}
     app.state.poll_cache = PollCache(settings.poll_cache_s)
-    app.state.scene_pool = WorkPool(settings.scene_workers, settings.scene_queue, "scene registrations")
-    app.state.upload_slots = ReceivingSlots(settings.upload_receivers, settings.upload_receivers_per_client)
+    app.state.scene_pool = WorkPool(
+        settings.scene_workers, settings.scene_queue, "scene registrations"
+    )
+    app.state.upload_slots = ReceivingSlots(
+        settings.upload_receivers, settings.upload_receivers_per_client
+    )
     app.state.view_pool = WorkPool(settings.view_workers, settings.view_queue, "view renders")
     app.state.view_cache = work.ViewCache(work.VIEW_CACHE)
 
     v1 = APIRouter(prefix="/v1")  # the token is checked by Gatekeeper, before the body is read
     for module in (scenes, jobs, artifacts, methods, job_kinds, camera_paths):
         v1.include_router(module.router)
-    v1.include_router(work.make_router())  # one pair of routes per registered kind made of a training job
+    # one pair of routes per registered kind made of a training job
+    v1.include_router(work.make_router())
     app.include_router(v1)
     app.include_router(health.router)
     app.include_router(dashboard.router)
@@ -99,35 +125,58 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.exception_handler(Busy)
     async def busy(request: Request, error: Busy) -> JSONResponse:
-        return JSONResponse({"detail": str(error)}, 429, headers={"Retry-After": str(RETRY_AFTER_S)})
+        return JSONResponse(
+            {"detail": str(error)}, 429, headers={"Retry-After": str(RETRY_AFTER_S)}
+        )
 
     @app.exception_handler(WorkerLost)
     async def worker_lost(request: Request, error: WorkerLost) -> JSONResponse:
-        return JSONResponse({"detail": str(error)}, 503, headers={"Retry-After": str(RETRY_AFTER_S)})
+        return JSONResponse(
+            {"detail": str(error)}, 503, headers={"Retry-After": str(RETRY_AFTER_S)}
+        )
 
     @app.exception_handler(OperationalError)
     @app.exception_handler(InterfaceError)
     async def database_unavailable(request: Request, error: Exception) -> JSONResponse:
-        # A database restart is not the client's fault nor a bug: 503 with a hint to retry, details in the log.
-        log.warning("%s %s: database unavailable: %s", request.method, request.url.path, first_line(error))
-        return JSONResponse({"detail": "the database is unavailable right now; retry in a few seconds"}, 503,
-                            headers={"Retry-After": "2"})
+        # A database restart is not the client's fault nor a bug: 503 with a hint to retry, details
+        # in the log.
+        log.warning(
+            "%s %s: database unavailable: %s", request.method, request.url.path, first_line(error)
+        )
+        return JSONResponse(
+            {"detail": "the database is unavailable right now; retry in a few seconds"},
+            503,
+            headers={"Retry-After": "2"},
+        )
 
     @app.exception_handler(RequestValidationError)
     async def invalid_request(request: Request, error: RequestValidationError) -> JSONResponse:
         # FastAPI's own shape ({"detail": [{"loc", "msg", "type"}]}) without echoing the input back.
         errors = error.errors()
-        detail: list[dict] = [{"loc": [bounded(part) for part in e["loc"]], "msg": bounded(e["msg"]),
-                               "type": e["type"]} for e in errors[:MAX_VALIDATION_ERRORS]]
+        detail: list[dict] = [
+            {
+                "loc": [bounded(part) for part in e["loc"]],
+                "msg": bounded(e["msg"]),
+                "type": e["type"],
+            }
+            for e in errors[:MAX_VALIDATION_ERRORS]
+        ]
         if len(errors) > MAX_VALIDATION_ERRORS:
-            detail.append({"loc": [], "msg": f"and {len(errors) - MAX_VALIDATION_ERRORS:,} more errors",
-                           "type": "too_many_errors"})
+            detail.append(
+                {
+                    "loc": [],
+                    "msg": f"and {len(errors) - MAX_VALIDATION_ERRORS:,} more errors",
+                    "type": "too_many_errors",
+                }
+            )
         return JSONResponse({"detail": detail}, 422)
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, error: StarletteHTTPException) -> Response:
         if error.status_code in (204, 304):  # no body allowed, as Starlette's own handler does
             return Response(status_code=error.status_code, headers=error.headers)
-        return JSONResponse({"detail": bounded(error.detail)}, error.status_code, headers=error.headers)
+        return JSONResponse(
+            {"detail": bounded(error.detail)}, error.status_code, headers=error.headers
+        )
 
     return app

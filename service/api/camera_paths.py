@@ -1,6 +1,6 @@
-"""GET /v1/camera-paths: the camera-path registry (workers/camera_paths) as clients and the dashboard see it:
-each kind's tag, whether it is generated from the scene (a menu entry) or brings its own cameras, and its
-fields' JSON schema."""
+"""GET /v1/camera-paths: the camera-path registry (workers/camera_paths) as clients and the
+dashboard see it: each kind's tag, whether it is generated from the scene (a menu entry) or brings
+its own cameras, and its fields' JSON schema."""
 
 from __future__ import annotations
 
@@ -16,7 +16,9 @@ router = APIRouter(prefix="/camera-paths", tags=["renders"])
 
 class PathKindOut(BaseModel):
     kind: str
-    generated: bool = Field(description="made from the scene and its options alone; else the path brings cameras")
+    generated: bool = Field(
+        description="made from the scene and its options alone; else the path brings cameras"
+    )
     description: str
     schema_: dict = Field(alias="schema", description="the JSON schema of a `path` of this kind")
 
@@ -31,8 +33,18 @@ def description_of(kind: type) -> str:
     return " ".join(text.strip().split("\n\n")[0].split())
 
 
-@router.get("", response_model=PathKindList, response_model_by_alias=True, operation_id="listCameraPaths")
+@router.get(
+    "", response_model=PathKindList, response_model_by_alias=True, operation_id="listCameraPaths"
+)
 def list_camera_paths() -> PathKindList:
-    return PathKindList(items=[PathKindOut(kind=name, generated=kind.generated, schema=kind.model_json_schema(),
-                                           description=description_of(kind))
-                               for name, kind in PATH_KINDS.items()])
+    return PathKindList(
+        items=[
+            PathKindOut(
+                kind=name,
+                generated=kind.generated,
+                schema=kind.model_json_schema(),
+                description=description_of(kind),
+            )
+            for name, kind in PATH_KINDS.items()
+        ]
+    )

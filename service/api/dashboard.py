@@ -1,5 +1,6 @@
-"""The dashboard: static files (HTML, CSS, JS; no CDN, no build step) served beside the API. The page holds
-no data of its own: everything it shows comes from /v1, with the token the user gives it once."""
+"""The dashboard: static files (HTML, CSS, JS; no CDN, no build step) served beside the API. The
+page holds no data of its own: everything it shows comes from /v1, with the token the user gives it
+once."""
 
 from __future__ import annotations
 
@@ -21,11 +22,15 @@ def home() -> RedirectResponse:
 
 @router.get("/dashboard/")
 def page() -> FileResponse:
-    return FileResponse(STATIC / "index.html", media_type="text/html", headers={"Cache-Control": "no-cache"})
+    return FileResponse(
+        STATIC / "index.html", media_type="text/html", headers={"Cache-Control": "no-cache"}
+    )
 
 
 @router.get("/dashboard/static/{name}")
 def static(name: str) -> FileResponse:
     if name not in FILES:
         raise HTTPException(404, f"no dashboard file {name!r}")
-    return FileResponse(STATIC / name, media_type=FILES[name], headers={"Cache-Control": "no-cache"})
+    return FileResponse(
+        STATIC / name, media_type=FILES[name], headers={"Cache-Control": "no-cache"}
+    )

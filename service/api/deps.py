@@ -12,8 +12,8 @@ from service.settings import Settings
 from service.workpool import WorkPool
 
 
-# Both are `async def` although they wait for nothing: FastAPI runs a plain `def` dependency in its threadpool,
-# a thread hop per request that a poll-heavy API cannot afford.
+# Both are `async def` although they wait for nothing: FastAPI runs a plain `def` dependency in its
+# threadpool, a thread hop per request that a poll-heavy API cannot afford.
 async def settings_of(request: Request) -> Settings:
     return request.app.state.settings
 
@@ -34,7 +34,7 @@ def not_found(what: str, ident: object) -> HTTPException:
     return HTTPException(404, f"{what} {ident!r} not found")
 
 
-# Row ids and steps are 32-bit integers in PostgreSQL (64-bit in SQLite): a larger number in a path or query is
-# answered 422 by validation, never handed to the database driver to overflow.
+# Row ids and steps are 32-bit integers in PostgreSQL (64-bit in SQLite): a larger number in a path
+# or query is answered 422 by validation, never handed to the database driver to overflow.
 MAX_INT = 2**31 - 1
 RowId = Annotated[int, Path(ge=1, le=MAX_INT)]

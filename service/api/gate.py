@@ -1,8 +1,8 @@
-"""The door of /v1, before any route reads a byte of the body: the bearer token first (401), then the body's
-size (413); and for every route, no NUL byte in the path or query string (422). FastAPI parses a JSON body
-before it runs a route's dependencies, so a token check there let a request with no token and a malformed or
-huge body get 422, buffered and parsed whole. This is the only token check. A plain ASGI middleware, like
-RequestStats, so polling pays nothing for it."""
+"""The door of /v1, before any route reads a byte of the body: the bearer token first (401), then
+the body's size (413); and for every route, no NUL byte in the path or query string (422). FastAPI
+parses a JSON body before it runs a route's dependencies, so a token check there let a request with
+no token and a malformed or huge body get 422, buffered and parsed whole. This is the only token
+check. A plain ASGI middleware, like RequestStats, so polling pays nothing for it."""
 
 from __future__ import annotations
 
@@ -15,21 +15,25 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service.workpool import RETRY_AFTER_S
 
 MAX_JSON_BODY = 64 * 1024  # a job request with every override is a few KiB
-# A render's body may carry a camera path of up to workers/render_config.py's MAX_FRAMES (1,200) cameras, each a
-# 4x4 matrix and intrinsics at full float precision (about 600 bytes in JSON, 1 KiB with room for a nerfstudio
-# frame's extra keys). Not imported from there: that module loads torch, the API does not.
+# A render's body may carry a camera path of up to workers/render_config.py's MAX_FRAMES (1,200)
+# cameras, each a 4x4 matrix and intrinsics at full float precision (about 600 bytes in JSON, 1 KiB
+# with room for a nerfstudio frame's extra keys). Not imported from there: that module loads torch,
+# the API does not.
 PATH_CAMERAS, CAMERA_JSON_BYTES = 1200, 1024
 MAX_PATH_BODY = MAX_JSON_BODY + PATH_CAMERAS * CAMERA_JSON_BYTES
 CARRIES_A_PATH = re.compile(r"^/v1/jobs/[^/]+/renders$")
-STREAMED = {("POST", "/v1/scenes/upload")}  # the route streams its body and caps it at LECO_MAX_UPLOAD_BYTES
-REGISTERS = {("POST", "/v1/scenes/upload"), ("POST", "/v1/scenes/synthetic")}  # take a place in the scene pool
+# the route streams its body and caps it at LECO_MAX_UPLOAD_BYTES
+STREAMED = {("POST", "/v1/scenes/upload")}
+# take a place in the scene pool
+REGISTERS = {("POST", "/v1/scenes/upload"), ("POST", "/v1/scenes/synthetic")}
 
 
 def token_ok(tokens: tuple[str, ...], authorization: str) -> bool:
     if not tokens:
         return True
     scheme, _, given = authorization.partition(" ")
-    # Constant time, and every configured token is compared, so timing says nothing about which one nearly matched.
+    # Constant time, and every configured token is compared, so timing says nothing about which one
+    # nearly matched.
     matched = False
     for token in tokens:
         matched |= hmac.compare_digest(given.strip().encode(), token.encode())
@@ -45,32 +49,45 @@ class Gatekeeper:
             return await self.app(scope, receive, send)
         query = scope.get("query_string", b"").lower()
         if "\0" in scope["path"] or b"%00" in query or b"\0" in query:
-            # No name, id or filter of ours holds a NUL, and PostgreSQL refuses one in any string (a 500).
+            # No name, id or filter of ours holds a NUL, and PostgreSQL refuses one in any string (a
+            # 500).
             return await answer(send, 422, "the request's path or query string holds a NUL byte")
         if not scope["path"].startswith("/v1/"):
             return await self.app(scope, receive, send)
         settings = scope["app"].state.settings
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
         if not token_ok(settings.api_tokens, headers.get("authorization", "")):
-            return await answer(send, 401, "missing or invalid bearer token (send 'Authorization: Bearer <token>')",
-                                {"www-authenticate": "Bearer"})
+            return await answer(
+                send,
+                401,
+                "missing or invalid bearer token (send 'Authorization: Bearer <token>')",
+                {"www-authenticate": "Bearer"},
+            )
         route = (scope["method"], scope["path"])
         if route in REGISTERS and scope["app"].state.scene_pool.full:
-            # The route refuses too (admission decides); here a client that floods without backing off costs
-            # the event loop a header parse, not a trip through routing, validation and the exception handler.
+            # The route refuses too (admission decides); here a client that floods without backing
+            # off costs the event loop a header parse, not a trip through routing, validation and
+            # the exception handler.
             busy = scope["app"].state.scene_pool.busy()
             return await answer(send, 429, str(busy), {"retry-after": str(RETRY_AFTER_S)})
         streamed = route in STREAMED
-        limit = (settings.max_upload_bytes if streamed
-                 else MAX_PATH_BODY if scope["method"] == "POST" and CARRIES_A_PATH.match(scope["path"])
-                 else MAX_JSON_BODY)
+        limit = (
+            settings.max_upload_bytes
+            if streamed
+            else MAX_PATH_BODY
+            if scope["method"] == "POST" and CARRIES_A_PATH.match(scope["path"])
+            else MAX_JSON_BODY
+        )
         declared = headers.get("content-length", "")
         if declared and (not declared.isdigit() or int(declared) > limit):
-            return await answer(send, 413, f"request body is {declared} bytes; the limit here is {limit}")
+            return await answer(
+                send, 413, f"request body is {declared} bytes; the limit here is {limit}"
+            )
         if streamed:
             return await self.app(scope, receive, send)
         chunks, size, more = [], 0, True
-        while more:  # small bodies only: read to the end (or past the limit) before the route sees any of it
+        # small bodies only: read to the end (or past the limit) before the route sees any of it
+        while more:
             message = await receive()
             if message["type"] == "http.disconnect":
                 return
@@ -78,7 +95,9 @@ class Gatekeeper:
             size += len(chunks[-1])
             more = message.get("more_body", False)
             if size > limit:
-                return await answer(send, 413, f"request body exceeds the limit of {limit} bytes here")
+                return await answer(
+                    send, 413, f"request body exceeds the limit of {limit} bytes here"
+                )
         body, replayed = b"".join(chunks), False
 
         async def replay() -> Message:

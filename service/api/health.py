@@ -1,4 +1,5 @@
-"""/healthz (the process answers), /readyz (the database at the right schema, and Ray), /metrics (Prometheus)."""
+"""/healthz (the process answers), /readyz (the database at the right schema, and Ray), /metrics
+(Prometheus)."""
 
 from __future__ import annotations
 
@@ -30,7 +31,8 @@ def ray_status(settings: Settings) -> tuple[bool, str]:
         import urllib.request
 
         request = urllib.request.Request(f"{settings.ray_address.rstrip('/')}/api/version")
-        if os.environ.get("RAY_AUTH_TOKEN"):  # a cluster with token auth refuses the call without it
+        # a cluster with token auth refuses the call without it
+        if os.environ.get("RAY_AUTH_TOKEN"):
             request.add_header("Authorization", f"Bearer {os.environ['RAY_AUTH_TOKEN']}")
         try:
             with urllib.request.urlopen(request, timeout=2) as answer:
@@ -71,25 +73,40 @@ def prometheus(request: Request, settings: Settings = Depends(settings_of)) -> s
     lines = []
     with reading(settings.db_url) as session:
         counts = dict(session.execute(select(Job.state, func.count()).group_by(Job.state)).all())
-        artifacts, size = session.execute(select(func.count(), func.coalesce(func.sum(Artifact.size), 0))).one()
+        artifacts, size = session.execute(
+            select(func.count(), func.coalesce(func.sum(Artifact.size), 0))
+        ).one()
     lines += ["# HELP leco_jobs Jobs by state.", "# TYPE leco_jobs gauge"]
     lines += [f'leco_jobs{{state="{s}"}} {counts.get(s, 0)}' for s in JOB_STATES]
-    lines += ["# HELP leco_artifacts Stored artifacts.", "# TYPE leco_artifacts gauge", f"leco_artifacts {artifacts}",
-              "# HELP leco_artifact_bytes Bytes referenced by artifact rows.", "# TYPE leco_artifact_bytes gauge",
-              f"leco_artifact_bytes {size}"]
+    lines += [
+        "# HELP leco_artifacts Stored artifacts.",
+        "# TYPE leco_artifacts gauge",
+        f"leco_artifacts {artifacts}",
+        "# HELP leco_artifact_bytes Bytes referenced by artifact rows.",
+        "# TYPE leco_artifact_bytes gauge",
+        f"leco_artifact_bytes {size}",
+    ]
     stats = request.app.state.http_stats
-    lines += ["# HELP leco_http_requests_total HTTP requests by route and status.",
-              "# TYPE leco_http_requests_total counter"]
-    lines += [f'leco_http_requests_total{{method="{m}",route="{r}",status="{s}"}} {n}'
-              for (m, r, s), n in sorted(stats["count"].items())]
-    lines += ["# HELP leco_http_request_seconds Time spent answering requests.",
-              "# TYPE leco_http_request_seconds summary",
-              f"leco_http_request_seconds_sum {stats['seconds']:.6f}",
-              f"leco_http_request_seconds_count {sum(stats['count'].values())}",
-              "# HELP leco_poll_cache_total Polled job views and metrics answered from the poll cache, or read.",
-              "# TYPE leco_poll_cache_total counter",
-              f'leco_poll_cache_total{{result="hit"}} {request.app.state.poll_cache.hits}',
-              f'leco_poll_cache_total{{result="miss"}} {request.app.state.poll_cache.misses}',
-              "# HELP leco_uptime_seconds Seconds since the API started.", "# TYPE leco_uptime_seconds gauge",
-              f"leco_uptime_seconds {time.monotonic() - stats['started']:.1f}"]
+    lines += [
+        "# HELP leco_http_requests_total HTTP requests by route and status.",
+        "# TYPE leco_http_requests_total counter",
+    ]
+    lines += [
+        f'leco_http_requests_total{{method="{m}",route="{r}",status="{s}"}} {n}'
+        for (m, r, s), n in sorted(stats["count"].items())
+    ]
+    lines += [
+        "# HELP leco_http_request_seconds Time spent answering requests.",
+        "# TYPE leco_http_request_seconds summary",
+        f"leco_http_request_seconds_sum {stats['seconds']:.6f}",
+        f"leco_http_request_seconds_count {sum(stats['count'].values())}",
+        "# HELP leco_poll_cache_total Polled job views and metrics answered from the poll cache, "
+        "or read.",
+        "# TYPE leco_poll_cache_total counter",
+        f'leco_poll_cache_total{{result="hit"}} {request.app.state.poll_cache.hits}',
+        f'leco_poll_cache_total{{result="miss"}} {request.app.state.poll_cache.misses}',
+        "# HELP leco_uptime_seconds Seconds since the API started.",
+        "# TYPE leco_uptime_seconds gauge",
+        f"leco_uptime_seconds {time.monotonic() - stats['started']:.1f}",
+    ]
     return "\n".join(lines) + "\n"

@@ -1,5 +1,6 @@
-"""GET /v1/job-kinds: the job-kind registry (service/jobs/kinds.py) as clients and the dashboard see it, so
-neither types out kind names: each kind's name, whether it trains networks, and where it is submitted."""
+"""GET /v1/job-kinds: the job-kind registry (service/jobs/kinds.py) as clients and the dashboard see
+it, so neither types out kind names: each kind's name, whether it trains networks, and where it is
+submitted."""
 
 from __future__ import annotations
 
@@ -13,7 +14,9 @@ router = APIRouter(prefix="/job-kinds", tags=["jobs"])
 
 class JobKindOut(BaseModel):
     name: str
-    trains: bool = Field(description="its finished jobs hold networks that renders, exports and views are made of")
+    trains: bool = Field(
+        description="its finished jobs hold networks that renders, exports and views are made of"
+    )
     submit: str = Field(description="where a job of this kind is submitted")
 
 
@@ -27,5 +30,9 @@ def submitted_at(route: str | None) -> str:
 
 @router.get("", response_model=JobKindList, operation_id="listJobKinds")
 def list_job_kinds() -> JobKindList:
-    return JobKindList(items=[JobKindOut(name=k.name, trains=k.trains, submit=submitted_at(k.route))
-                              for k in KINDS.values()])
+    return JobKindList(
+        items=[
+            JobKindOut(name=k.name, trains=k.trains, submit=submitted_at(k.route))
+            for k in KINDS.values()
+        ]
+    )

@@ -1,16 +1,22 @@
-"""OpenAPI links: which answer's ids feed which next request (a scene's id into a job, a job's id into its
-metrics, cancel and artifacts, an artifact's id into its download). They document the API's workflows for
-client authors, and the stateful fuzz (tests/test_api_stateful.py) follows them to build chains of calls;
-a test there checks that every link names an existing operation, parameter and response field.
+"""OpenAPI links: which answer's ids feed which next request (a scene's id into a job, a job's id
+into its metrics, cancel and artifacts, an artifact's id into its download). They document the API's
+workflows for client authors, and the stateful fuzz (tests/test_api_stateful.py) follows them to
+build chains of calls; a test there checks that every link names an existing operation, parameter
+and response field.
 
 A link's parameter is written `<location>.<name>` and its value is an OpenAPI runtime expression:
-`$response.body#/<pointer>` reads the answer, `$request.path.<name>` the request that got it (the only thing
-left of a resource after a 204)."""
+`$response.body#/<pointer>` reads the answer, `$request.path.<name>` the request that got it (the
+only thing left of a resource after a 204)."""
 
 from __future__ import annotations
 
 
-def _link(operation_id: str, description: str, parameters: dict | None = None, body: dict | str | None = None) -> dict:
+def _link(
+    operation_id: str,
+    description: str,
+    parameters: dict | None = None,
+    body: dict | str | None = None,
+) -> dict:
     link: dict[str, str | dict] = {"operationId": operation_id, "description": description}
     if parameters:
         link["parameters"] = parameters
@@ -24,8 +30,12 @@ def scene_links(pointer: str = "") -> dict:
     scene = f"$response.body#{pointer}/id"
     return {
         "GetScene": _link("getScene", "the scene", {"path.scene": scene}),
-        "GetSceneCameras": _link("getSceneCameras", "its cameras and foreground box", {"path.scene": scene}),
-        "DeleteScene": _link("deleteScene", "delete it (409 while a job uses it)", {"path.scene": scene}),
+        "GetSceneCameras": _link(
+            "getSceneCameras", "its cameras and foreground box", {"path.scene": scene}
+        ),
+        "DeleteScene": _link(
+            "deleteScene", "delete it (409 while a job uses it)", {"path.scene": scene}
+        ),
         "SubmitJob": _link("submitJob", "train it (`scene` is its id)", body={"scene": scene}),
         "ListJobsOfScene": _link("listJobs", "the jobs that train it", {"query.scene": scene}),
     }
@@ -45,8 +55,12 @@ def job_links(pointer: str = "") -> dict:
     job, scene = f"$response.body#{pointer}/id", f"$response.body#{pointer}/scene_id"
     return {
         "GetJob": _link("getJob", "the job's state and progress", {"path.job_id": job}),
-        "CancelJob": _link("cancelJob", "cancel it (again: the same answer; ended: 409)", {"path.job_id": job}),
-        "DeleteJob": _link("deleteJob", "delete it once it has ended (409 before)", {"path.job_id": job}),
+        "CancelJob": _link(
+            "cancelJob", "cancel it (again: the same answer; ended: 409)", {"path.job_id": job}
+        ),
+        "DeleteJob": _link(
+            "deleteJob", "delete it once it has ended (409 before)", {"path.job_id": job}
+        ),
         "GetJobMetrics": _link("getJobMetrics", "its metric series", {"path.job_id": job}),
         "ListJobArtifacts": _link("listJobArtifacts", "what it stored", {"path.job_id": job}),
         "GetJobScene": _link("getScene", "the scene it trains", {"path.scene": scene}),
@@ -55,20 +69,31 @@ def job_links(pointer: str = "") -> dict:
 
 
 def submitted_job_links() -> dict:
-    """From a new job (POST /v1/jobs, 201): the job's routes, and the same Idempotency-Key sent again."""
+    """From a new job (POST /v1/jobs, 201): the job's routes, and the same Idempotency-Key sent
+    again."""
     key = "$request.header.idempotency-key"
     return {
         **job_links(),
-        "ReplaySubmission": _link("submitJob", "the same key and body: the stored answer again",
-                                  {"header.idempotency-key": key}, body="$request.body"),
-        "ReuseIdempotencyKey": _link("submitJob", "the same key with another body: 422",
-                                     {"header.idempotency-key": key}),
+        "ReplaySubmission": _link(
+            "submitJob",
+            "the same key and body: the stored answer again",
+            {"header.idempotency-key": key},
+            body="$request.body",
+        ),
+        "ReuseIdempotencyKey": _link(
+            "submitJob", "the same key with another body: 422", {"header.idempotency-key": key}
+        ),
     }
 
 
 def cancelled_job_links() -> dict:
-    """From POST /v1/jobs/{job_id}/cancel (200): cancel again, follow it, delete it once it has stopped."""
-    return {name: link for name, link in job_links().items() if name in ("GetJob", "CancelJob", "DeleteJob")}
+    """From POST /v1/jobs/{job_id}/cancel (200): cancel again, follow it, delete it once it has
+    stopped."""
+    return {
+        name: link
+        for name, link in job_links().items()
+        if name in ("GetJob", "CancelJob", "DeleteJob")
+    }
 
 
 def deleted_job_links() -> dict:
@@ -87,10 +112,13 @@ def artifact_links(pointer: str = "") -> dict:
     """From an answer holding an artifact (ArtifactOut) at `pointer`."""
     artifact = f"$response.body#{pointer}/id"
     return {
-        "GetArtifact": _link("getArtifact", "the artifact's description", {"path.artifact_id": artifact}),
+        "GetArtifact": _link(
+            "getArtifact", "the artifact's description", {"path.artifact_id": artifact}
+        ),
         "DownloadArtifact": _link("downloadArtifact", "its bytes", {"path.artifact_id": artifact}),
-        "GetArtifactJob": _link("getJob", "the job that stored it",
-                                {"path.job_id": f"$response.body#{pointer}/job_id"}),
+        "GetArtifactJob": _link(
+            "getJob", "the job that stored it", {"path.job_id": f"$response.body#{pointer}/job_id"}
+        ),
     }
 
 

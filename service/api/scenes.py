@@ -24,9 +24,18 @@ router = APIRouter(prefix="/scenes", tags=["scenes"])
 
 def scene_out(row: Scene) -> SceneOut:
     info = row.info or {}
-    return SceneOut(id=row.id, name=row.name, source=row.source, state=row.state, format=row.format,
-                    cameras=info.get("cameras"), bounds=info.get("bounds"), generator=row.generator, error=row.error,
-                    created_at=row.created_at)
+    return SceneOut(
+        id=row.id,
+        name=row.name,
+        source=row.source,
+        state=row.state,
+        format=row.format,
+        cameras=info.get("cameras"),
+        bounds=info.get("bounds"),
+        generator=row.generator,
+        error=row.error,
+        created_at=row.created_at,
+    )
 
 
 def _created_scene(settings: Settings, scene_id: int) -> SceneOut:
@@ -39,18 +48,28 @@ def _created_scene(settings: Settings, scene_id: int) -> SceneOut:
 
 def find_scene(session: Session, ident: int | str) -> Scene | None:
     if isinstance(ident, int) or (str(ident).isascii() and str(ident).isdigit()):
-        if len(str(ident)) > 10:  # more digits than a 32-bit id has (and past what int() parses at 4,300)
+        # more digits than a 32-bit id has (and past what int() parses at 4,300)
+        if len(str(ident)) > 10:
             return None
         number = int(ident)
         return session.get(Scene, number) if 0 < number <= MAX_INT else None
     return session.scalars(select(Scene).where(Scene.name == str(ident))).first()
 
 
-@router.post("/synthetic", status_code=202, response_model=SceneOut, operation_id="registerSyntheticScene",
-             responses=links(202, scene_links()),
-             summary="Register a synthetic city; it is generated in the background (state 'generating' -> 'ready')")
-def create_synthetic(body: SyntheticSceneRequest, settings: Settings = Depends(settings_of),
-                     pool: WorkPool = Depends(scene_pool_of)) -> SceneOut:
+@router.post(
+    "/synthetic",
+    status_code=202,
+    response_model=SceneOut,
+    operation_id="registerSyntheticScene",
+    responses=links(202, scene_links()),
+    summary="Register a synthetic city; it is generated in the background (state 'generating' -> "
+    "'ready')",
+)
+def create_synthetic(
+    body: SyntheticSceneRequest,
+    settings: Settings = Depends(settings_of),
+    pool: WorkPool = Depends(scene_pool_of),
+) -> SceneOut:
     name = body.name or f"{body.preset}-{body.seed}"
     try:
         scene_id = registry.register_synthetic(settings, name, body.preset, body.seed, pool)
@@ -59,25 +78,49 @@ def create_synthetic(body: SyntheticSceneRequest, settings: Settings = Depends(s
     return _created_scene(settings, scene_id)
 
 
-@router.post("/upload", status_code=201, response_model=SceneOut, operation_id="uploadScene",
-             responses=links(201, scene_links()),
-             summary="Upload a dataset archive (tar or zip of a Mega-NeRF, nerfstudio, Blender or LLFF folder)",
-             openapi_extra={"requestBody": {"required": True, "content": {
-                 "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}})
-async def upload(request: Request, name: str = Query(..., pattern=NAME),
-                 settings: Settings = Depends(settings_of), pool: WorkPool = Depends(scene_pool_of)) -> SceneOut:
+@router.post(
+    "/upload",
+    status_code=201,
+    response_model=SceneOut,
+    operation_id="uploadScene",
+    responses=links(201, scene_links()),
+    summary="Upload a dataset archive (tar or zip of a Mega-NeRF, nerfstudio, Blender or LLFF "
+    "folder)",
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {
+                "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}
+            },
+        }
+    },
+)
+async def upload(
+    request: Request,
+    name: str = Query(..., pattern=NAME),
+    settings: Settings = Depends(settings_of),
+    pool: WorkPool = Depends(scene_pool_of),
+) -> SceneOut:
     if reason := id_like_name(name):
         raise HTTPException(422, reason)
     declared = request.headers.get("content-length")
     if declared and declared.isdigit() and int(declared) > settings.max_upload_bytes:
-        raise HTTPException(413, f"upload is {int(declared)} bytes; the limit is {settings.max_upload_bytes}")
+        raise HTTPException(
+            413, f"upload is {int(declared)} bytes; the limit is {settings.max_upload_bytes}"
+        )
     settings.scenes_dir.mkdir(parents=True, exist_ok=True)
     with tempfile.NamedTemporaryFile(dir=settings.scenes_dir, prefix=".archive-") as tmp:
-        # The body first, in a receiving slot under deadlines (service/api/receiving.py); only then a place in
-        # the scene pool (Busy -> 429), so a slow client holds no place another registration could use.
+        # The body first, in a receiving slot under deadlines (service/api/receiving.py); only then
+        # a place in the scene pool (Busy -> 429), so a slow client holds no place another
+        # registration could use.
         with request.app.state.upload_slots.slot(request.client.host if request.client else ""):
-            size = await receive_body(request.stream(), tmp, settings.max_upload_bytes, settings.upload_idle_s,
-                                      settings.upload_min_bytes_per_s)
+            size = await receive_body(
+                request.stream(),
+                tmp,
+                settings.max_upload_bytes,
+                settings.upload_idle_s,
+                settings.upload_min_bytes_per_s,
+            )
         tmp.flush()
         if size == 0:
             raise HTTPException(422, "empty upload: send the archive's bytes as the request body")
@@ -95,8 +138,11 @@ async def _register(settings: Settings, name: str, archive: Path, pool: WorkPool
         raise HTTPException(409, str(error)) from None
     except WorkerLost as error:  # killed while reading it: the same archive would be killed again
         raise HTTPException(422, f"archive refused: {error}") from None
-    except (ValueError, OSError) as error:  # ArchiveError, SceneError, unreadable images: the user's archive
-        raise HTTPException(422, f"archive refused: {error}".replace(str(settings.scenes_dir), "<upload>")) from None
+    # ArchiveError, SceneError, unreadable images: the user's archive
+    except (ValueError, OSError) as error:
+        raise HTTPException(
+            422, f"archive refused: {error}".replace(str(settings.scenes_dir), "<upload>")
+        ) from None
 
 
 def _register_when_running(pool: WorkPool, settings: Settings, name: str, archive: Path) -> int:
@@ -104,7 +150,12 @@ def _register_when_running(pool: WorkPool, settings: Settings, name: str, archiv
         return registry.register_upload(settings, name, archive, pool)
 
 
-@router.get("", response_model=list[SceneOut], operation_id="listScenes", responses=links(200, scene_links("/0")))
+@router.get(
+    "",
+    response_model=list[SceneOut],
+    operation_id="listScenes",
+    responses=links(200, scene_links("/0")),
+)
 def list_scenes(settings: Settings = Depends(settings_of)) -> list[SceneOut]:
     with reading(settings.db_url) as session:
         return [scene_out(r) for r in session.scalars(select(Scene).order_by(Scene.id))]
@@ -119,7 +170,12 @@ def show_scene(scene: str, settings: Settings = Depends(settings_of)) -> SceneOu
         return scene_out(row)
 
 
-@router.delete("/{scene}", status_code=204, operation_id="deleteScene", responses=links(204, deleted_scene_links()))
+@router.delete(
+    "/{scene}",
+    status_code=204,
+    operation_id="deleteScene",
+    responses=links(204, deleted_scene_links()),
+)
 def delete_scene(scene: str, settings: Settings = Depends(settings_of)) -> None:
     import shutil
 
@@ -128,19 +184,28 @@ def delete_scene(scene: str, settings: Settings = Depends(settings_of)) -> None:
         if row is None:
             raise not_found("scene", scene)
         if row.state == "generating":
-            raise HTTPException(409, f"scene {row.name!r} is still being generated; delete it when it is ready")
+            raise HTTPException(
+                409, f"scene {row.name!r} is still being generated; delete it when it is ready"
+            )
         jobs = session.scalar(select(func.count()).select_from(Job).where(Job.scene_id == row.id))
         if jobs:
-            raise HTTPException(409, f"scene {row.name!r} is used by {jobs} job(s); delete those jobs first")
+            raise HTTPException(
+                409, f"scene {row.name!r} is used by {jobs} job(s); delete those jobs first"
+            )
         path, layout = Path(row.path), registry.layout_path(settings, row.id)
         session.delete(row)
     shutil.rmtree(path, ignore_errors=True)
     layout.unlink(missing_ok=True)
 
 
-@router.get("/{scene}/cameras", operation_id="getSceneCameras",
-            summary="Camera centres and viewing directions, and the automatic foreground box")
-def cameras(scene: str, settings: Settings = Depends(settings_of), pool: WorkPool = Depends(scene_pool_of)) -> dict:
+@router.get(
+    "/{scene}/cameras",
+    operation_id="getSceneCameras",
+    summary="Camera centres and viewing directions, and the automatic foreground box",
+)
+def cameras(
+    scene: str, settings: Settings = Depends(settings_of), pool: WorkPool = Depends(scene_pool_of)
+) -> dict:
     with reading(settings.db_url) as session:
         row = find_scene(session, scene)
         if row is None:
@@ -148,11 +213,15 @@ def cameras(scene: str, settings: Settings = Depends(settings_of), pool: WorkPoo
         if row.state != "ready":
             raise HTTPException(409, f"scene {row.name!r} is {row.state}")
         scene_id, path = row.id, Path(row.path)
-    if registry.layout_path(settings, scene_id).is_file():  # written at registration: no decoding here
+    # written at registration: no decoding here
+    if registry.layout_path(settings, scene_id).is_file():
         return registry.read_layout(settings, scene_id, path, pool)
-    with pool.admitted(), pool.running():  # a scene registered before layouts were kept: loaded once, bounded
+    # a scene registered before layouts were kept: loaded once, bounded
+    with pool.admitted(), pool.running():
         try:
             return registry.read_layout(settings, scene_id, path, pool)
-        except ValueError as error:  # SceneError: over today's pixel budget, or changed on disk since
-            raise HTTPException(422, f"cannot read the scene's cameras: {error}".replace(str(path),
-                                                                                         "<scene>")) from None
+        # SceneError: over today's pixel budget, or changed on disk since
+        except ValueError as error:
+            raise HTTPException(
+                422, f"cannot read the scene's cameras: {error}".replace(str(path), "<scene>")
+            ) from None

@@ -1,5 +1,5 @@
-"""Request and response bodies. A job request IS the training job schema (workers.config.TrainConfig) plus
-the scene it trains: one schema from the API down to the loop."""
+"""Request and response bodies. A job request IS the training job schema
+(workers.config.TrainConfig) plus the scene it trains: one schema from the API down to the loop."""
 
 from __future__ import annotations
 
@@ -14,11 +14,14 @@ NAME = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$"
 
 
 def id_like_name(name: str) -> str | None:
-    """Why a scene name is refused though it matches NAME: digits alone read as an id wherever a scene is
-    referenced (`/v1/scenes/46`, `{"scene": "46"}`), so such a name would reach, or delete, another scene."""
+    """Why a scene name is refused though it matches NAME: digits alone read as an id wherever a
+    scene is referenced (`/v1/scenes/46`, `{"scene": "46"}`), so such a name would reach, or delete,
+    another scene."""
     if name.isascii() and name.isdigit():
-        return (f"scene name {name!r} is all digits, which reads as a scene id wherever scenes are referenced: "
-                "add a letter or a dash (e.g. 'scene-" + name + "')")
+        return (
+            f"scene name {name!r} is all digits, which reads as a scene id wherever scenes are "
+            "referenced: add a letter or a dash (e.g. 'scene-" + name + "')"
+        )
     return None
 
 
@@ -55,7 +58,8 @@ class JobRequest(TrainConfig):
     """A job: the scene (id or name) and the training config. Unknown fields are refused."""
 
     scene: Annotated[int, Field(ge=1, le=2**31 - 1)] | Annotated[str, Field(pattern=NAME)] = Field(
-        description="scene id or name")
+        description="scene id or name"
+    )
 
     def train_config(self) -> TrainConfig:
         return TrainConfig.model_validate(self.model_dump(exclude={"scene"}))
@@ -72,10 +76,14 @@ class PhaseOut(BaseModel):
 
 class JobOut(BaseModel):
     id: int
-    kind: str = Field(description="a registered job kind (GET /v1/job-kinds): train, or render / export of the "
-                                  "finished training job `parent_id`")
-    trains: bool = Field(description="a job of a kind that trains networks: renders, exports and views are made "
-                                     "of it once it succeeded")
+    kind: str = Field(
+        description="a registered job kind (GET /v1/job-kinds): train, or render / export of the "
+        "finished training job `parent_id`"
+    )
+    trains: bool = Field(
+        description="a job of a kind that trains networks: renders, exports and views are made of "
+        "it once it succeeded"
+    )
     parent_id: int | None
     scene_id: int
     state: str
@@ -96,7 +104,8 @@ class JobOut(BaseModel):
     finished_at: datetime | None
     phases: list[PhaseOut]
     latest_metrics: dict[str, dict[str, float]] = Field(
-        description="per phase: metric name -> value at its latest step")
+        description="per phase: metric name -> value at its latest step"
+    )
 
 
 class JobList(BaseModel):

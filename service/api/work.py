@@ -1,7 +1,7 @@
-"""Work on a finished training job: jobs of every kind made of one (renders, exports: service/jobs/kinds.py),
-each kind with a collection under the job to submit and list them, queued and run by the dispatchers like
-training; and single views, rendered to PNG by the view pool's processes with a concurrency limit and a small
-cache."""
+"""Work on a finished training job: jobs of every kind made of one (renders, exports:
+service/jobs/kinds.py), each kind with a collection under the job to submit and list them, queued
+and run by the dispatchers like training; and single views, rendered to PNG by the view pool's
+processes with a concurrency limit and a small cache."""
 
 from __future__ import annotations
 
@@ -38,18 +38,25 @@ def refuse(field: list, msg: str) -> HTTPException:
 
 
 def finished_training_job(session: Session, job_id: int, lock: bool = False) -> Job:
-    """The job a render, export or view is made of: it must exist (404), be of a kind that trains networks and
-    have succeeded (422 naming `job_id`). `lock`: its row is locked until the transaction ends, so a delete of
-    it waits for a submit (and sees the new child) or goes first (and the submit finds no job)."""
+    """The job a render, export or view is made of: it must exist (404), be of a kind that trains
+    networks and have succeeded (422 naming `job_id`). `lock`: its row is locked until the
+    transaction ends, so a delete of it waits for a submit (and sees the new child) or goes first
+    (and the submit finds no job)."""
     job = session.get(Job, job_id, with_for_update=lock)
     if job is None:
         raise not_found("job", job_id)
     if job.kind not in KINDS or not get_kind(job.kind).trains:
-        raise refuse(["path", "job_id"], f"job {job_id} is a {job.kind} job: renders, exports and views are made of "
-                                         "training jobs")
+        raise refuse(
+            ["path", "job_id"],
+            f"job {job_id} is a {job.kind} job: renders, exports and views are made of training "
+            "jobs",
+        )
     if job.state != "succeeded":
-        raise refuse(["path", "job_id"], f"job {job_id} is {job.state}: renders, exports and views need a training "
-                                         "job that succeeded")
+        raise refuse(
+            ["path", "job_id"],
+            f"job {job_id} is {job.state}: renders, exports and views need a training job that "
+            "succeeded",
+        )
     return job
 
 
@@ -61,7 +68,9 @@ def parent_info(session: Session, job: Job) -> Parent:
     return Parent(job_id=job.id, method=job.method, images=images, views=views)
 
 
-def submit_child(request: Request, settings: Settings, job_id: int, kind: JobKind, cfg: BaseModel) -> JSONResponse:
+def submit_child(
+    request: Request, settings: Settings, job_id: int, kind: JobKind, cfg: BaseModel
+) -> JSONResponse:
     with transaction(settings.db_url) as session:
         parent = finished_training_job(session, job_id, lock=True)
         info = parent_info(session, parent)
@@ -84,38 +93,69 @@ def children(settings: Settings, job_id: int, kind: str, limit: int, offset: int
         total = session.scalar(select(func.count()).select_from(query.subquery())) or 0
         rows = session.scalars(query.order_by(Job.id.desc()).limit(limit).offset(offset)).all()
         items = [job_out(session, j) for j in rows]
-    return JobList(items=items, total=total, limit=limit, offset=offset,
-                   next_offset=offset + limit if offset + limit < total else None)
+    return JobList(
+        items=items,
+        total=total,
+        limit=limit,
+        offset=offset,
+        next_offset=offset + limit if offset + limit < total else None,
+    )
 
 
 def add_kind_routes(router: APIRouter, kind: JobKind) -> None:
-    """POST and GET /jobs/{job_id}/<kind>s: submit a job of `kind` made of a finished training job, list them."""
+    """POST and GET /jobs/{job_id}/<kind>s: submit a job of `kind` made of a finished training job,
+    list them."""
     title = kind.name.title().replace("-", "").replace("_", "")
 
-    def submit_route(job_id: RowId, request: Request, settings: SettingsDep, body: BaseModel = Body()) -> JSONResponse:
+    def submit_route(
+        job_id: RowId, request: Request, settings: SettingsDep, body: BaseModel = Body()
+    ) -> JSONResponse:
         return submit_child(request, settings, job_id, kind, body)
 
-    def list_route(job_id: RowId, settings: SettingsDep, limit: int = Query(50, ge=1, le=200),
-                   offset: int = Query(0, ge=0, le=2**31 - 1)) -> JobList:
+    def list_route(
+        job_id: RowId,
+        settings: SettingsDep,
+        limit: int = Query(50, ge=1, le=200),
+        offset: int = Query(0, ge=0, le=2**31 - 1),
+    ) -> JobList:
         return children(settings, job_id, kind.name, limit, offset)
 
-    submit_route.__annotations__["body"] = kind.config  # the kind's own schema, in the OpenAPI document too
-    router.add_api_route(f"/{{job_id}}/{kind.route}", submit_route, methods=["POST"], status_code=201,
-                         response_model=JobOut, operation_id=f"submit{title}", description=kind.description,
-                         responses={422: {"description": kind.refusals}})
-    router.add_api_route(f"/{{job_id}}/{kind.route}", list_route, methods=["GET"], response_model=JobList,
-                         operation_id=f"list{title}s")
+    # the kind's own schema, in the OpenAPI document too
+    submit_route.__annotations__["body"] = kind.config
+    router.add_api_route(
+        f"/{{job_id}}/{kind.route}",
+        submit_route,
+        methods=["POST"],
+        status_code=201,
+        response_model=JobOut,
+        operation_id=f"submit{title}",
+        description=kind.description,
+        responses={422: {"description": kind.refusals}},
+    )
+    router.add_api_route(
+        f"/{{job_id}}/{kind.route}",
+        list_route,
+        methods=["GET"],
+        response_model=JobList,
+        operation_id=f"list{title}s",
+    )
 
 
 def make_router() -> APIRouter:
-    """The routes of every registered kind made of a training job, and the view route (made when the app is,
-    so a kind registered before then has its routes)."""
+    """The routes of every registered kind made of a training job, and the view route (made when the
+    app is, so a kind registered before then has its routes)."""
     router = APIRouter(prefix="/jobs", tags=["renders"])
     for kind in KINDS.values():
         if kind.route is not None:
             add_kind_routes(router, kind)
-    router.add_api_route("/{job_id}/view", view, methods=["POST"], operation_id="renderView", response_class=Response,
-                         responses=VIEW_RESPONSES)
+    router.add_api_route(
+        "/{job_id}/view",
+        view,
+        methods=["POST"],
+        operation_id="renderView",
+        response_class=Response,
+        responses=VIEW_RESPONSES,
+    )
     return router
 
 
@@ -138,21 +178,31 @@ class ViewCache:
 
 
 VIEW_RESPONSES: dict[int | str, dict] = {
-    200: {"content": {"image/png": {}}, "description": "the camera's view (X-Render-Seconds: the render's time)"},
-    422: {"description": "the job has not succeeded; a camera that is not a rotation; a preview too large"},
-    429: {"description": "the view renderers are busy: retry after Retry-After seconds"}}
+    200: {
+        "content": {"image/png": {}},
+        "description": "the camera's view (X-Render-Seconds: the render's time)",
+    },
+    422: {
+        "description": "the job has not succeeded; a camera that is not a rotation; a preview too "
+        "large"
+    },
+    429: {"description": "the view renderers are busy: retry after Retry-After seconds"},
+}
 
 
 def view(job_id: RowId, body: ViewRequest, request: Request, settings: SettingsDep) -> Response:
-    """One camera of a finished training job rendered to PNG (a preview: at most 640x480), by the method's own
-    sampler, in one of the view pool's processes; repeated requests are answered from a small cache."""
+    """One camera of a finished training job rendered to PNG (a preview: at most 640x480), by the
+    method's own sampler, in one of the view pool's processes; repeated requests are answered from a
+    small cache."""
     with reading(settings.db_url) as session:
         job = finished_training_job(session, job_id)
         try:
             check_appearance(body.appearance, parent_info(session, job).images)
         except Refused as refused:
             raise refuse(["body", refused.field], str(refused)) from None
-    key = hashlib.sha256(json.dumps([job_id, body.model_dump(mode="json")], sort_keys=True).encode()).hexdigest()
+    key = hashlib.sha256(
+        json.dumps([job_id, body.model_dump(mode="json")], sort_keys=True).encode()
+    ).hexdigest()
     cache: ViewCache = request.app.state.view_cache
     hit = cache.get(key)
     if hit is None:
@@ -160,9 +210,12 @@ def view(job_id: RowId, body: ViewRequest, request: Request, settings: SettingsD
         try:
             pool.admit()
         except Busy:
-            raise HTTPException(429, f"the view renderers are busy ({pool.workers} rendering, {pool.queue} waiting); "
-                                     f"retry in {VIEW_RETRY_AFTER_S} s",
-                                headers={"Retry-After": str(VIEW_RETRY_AFTER_S)}) from None
+            raise HTTPException(
+                429,
+                f"the view renderers are busy ({pool.workers} rendering, {pool.queue} waiting); "
+                f"retry in {VIEW_RETRY_AFTER_S} s",
+                headers={"Retry-After": str(VIEW_RETRY_AFTER_S)},
+            ) from None
         try:
             with pool.running():
                 hit = pool.call(render_view, settings, job_id, body.model_dump(mode="json"))
@@ -170,5 +223,8 @@ def view(job_id: RowId, body: ViewRequest, request: Request, settings: SettingsD
             pool.release()
         cache.put(key, hit)
     png, seconds = hit
-    return Response(png, media_type="image/png", headers={"X-Render-Seconds": f"{seconds:.4f}",
-                                                          "Cache-Control": "private, max-age=3600"})
+    return Response(
+        png,
+        media_type="image/png",
+        headers={"X-Render-Seconds": f"{seconds:.4f}", "Cache-Control": "private, max-age=3600"},
+    )

@@ -1,5 +1,5 @@
-"""An export job's work: geometry of its finished training job in the dataset's own frame (workers/export.py),
-its files stored by name at the end, so a retried attempt replaces them."""
+"""An export job's work: geometry of its finished training job in the dataset's own frame
+(workers/export.py), its files stored by name at the end, so a retried attempt replaces them."""
 
 from __future__ import annotations
 
@@ -17,7 +17,10 @@ def export(attempt: Attempt) -> None:
     store.phase_started(EXPORT_PHASE)
     export_geometry(trained, cfg, folder, store)
     target = folder / FILES[cfg.what]
-    stored = [("pointcloud" if target.suffix == ".ply" else "report", target), ("report", folder / TRANSFORM),
-              ("report", folder / "export.json")]
+    stored = [
+        ("pointcloud" if target.suffix == ".ply" else "report", target),
+        ("report", folder / TRANSFORM),
+        ("report", folder / "export.json"),
+    ]
     for kind, path in stored:
         store.artifact(kind, path, name=path.name, phase=EXPORT_PHASE, step=job.total_steps)

@@ -1,6 +1,7 @@
-"""Every kind of job the service runs, by name: the API, the queue, the dispatchers and the dashboard read
-this table and compare no kind names. Adding a kind is a file in this package (its work: what one attempt
-does) and one line here (its JobKind). Nothing here imports PyTorch; the work loads where an attempt runs."""
+"""Every kind of job the service runs, by name: the API, the queue, the dispatchers and the
+dashboard read this table and compare no kind names. Adding a kind is a file in this package (its
+work: what one attempt does) and one line here (its JobKind). Nothing here imports PyTorch; the work
+loads where an attempt runs."""
 
 from __future__ import annotations
 
@@ -20,7 +21,8 @@ if TYPE_CHECKING:
 
 
 class Refused(ValueError):
-    """A job of this kind cannot be made of this parent: `field` names the request's field at fault."""
+    """A job of this kind cannot be made of this parent: `field` names the request's field at
+    fault."""
 
     def __init__(self, field: str, message: str):
         super().__init__(message)
@@ -41,19 +43,22 @@ class Parent:
 class JobKind:
     name: str
     config: type[BaseModel]  # the job's config: the API's request body, down to the work
-    # What one attempt does, given an Attempt (service/jobs/attempt.py): the function, or "module:function" to
-    # import it where an attempt runs (the built-in kinds' work loads PyTorch; the API never imports it).
+    # What one attempt does, given an Attempt (service/jobs/attempt.py): the function, or
+    # "module:function" to import it where an attempt runs (the built-in kinds' work loads PyTorch;
+    # the API never imports it).
     work: str | Callable[[Attempt], None]
     # (phase, steps) of a new job, in order; `parent` is None for a kind made of a scene
     phases: Callable[[BaseModel, Parent | None], list[tuple[str, int]]]
-    rays_per_step: Callable[[BaseModel], int | None] = lambda cfg: None  # a step's rays, for the ETA
-    # The collection under a training job that submits and lists jobs of this kind (POST /v1/jobs/{id}/renders);
-    # None: submitted on a scene (POST /v1/jobs).
+    # a step's rays, for the ETA
+    rays_per_step: Callable[[BaseModel], int | None] = lambda cfg: None
+    # The collection under a training job that submits and lists jobs of this kind (POST
+    # /v1/jobs/{id}/renders); None: submitted on a scene (POST /v1/jobs).
     route: str | None = None
     trains: bool = False  # its finished jobs hold networks that other kinds and views are made of
     check: Callable[[BaseModel, Parent], None] = lambda cfg, parent: None  # raises Refused
     description: str = ""  # of its submit route, in the OpenAPI document
-    refusals: str = "the job has not succeeded or is not a training job; an invalid body"  # its 422s
+    # its 422s
+    refusals: str = "the job has not succeeded or is not a training job; an invalid body"
 
     def config_of(self, data: dict) -> BaseModel:
         return self.config.model_validate(data)
@@ -70,7 +75,9 @@ KINDS: dict[str, JobKind] = {}
 
 def register(kind: JobKind) -> JobKind:
     if not re.fullmatch(r"[a-z][a-z0-9-]{0,15}", kind.name):
-        raise ValueError(f"job kind {kind.name!r}: a name is 1-16 lowercase letters, digits and dashes")
+        raise ValueError(
+            f"job kind {kind.name!r}: a name is 1-16 lowercase letters, digits and dashes"
+        )
     known = KINDS.get(kind.name)
     if known is not None and known != kind:
         raise ValueError(f"job kind {kind.name!r} is already registered")
@@ -107,8 +114,11 @@ def frame_rays(cfg: BaseModel) -> int | None:
 def check_appearance(appearance: str | int, images: int) -> None:
     """A render's or a view's appearance: 'mean' or one of the training images' embeddings."""
     if appearance != "mean" and int(appearance) >= images:
-        raise Refused("appearance", f"training image {appearance} does not exist: the job's scene has {images} "
-                                    f"training images (0 to {images - 1}), or use 'mean'")
+        raise Refused(
+            "appearance",
+            f"training image {appearance} does not exist: the job's scene has {images} training "
+            f"images (0 to {images - 1}), or use 'mean'",
+        )
 
 
 def appearance_exists(cfg: BaseModel, parent: Parent) -> None:
@@ -124,22 +134,53 @@ def export_phases(cfg: BaseModel, parent: Parent | None) -> list[tuple[str, int]
 def occupancy_exists(cfg: BaseModel, parent: Parent) -> None:
     assert isinstance(cfg, ExportConfig)
     if cfg.what == "occupancy" and not get_method(parent.method).has_occupancy:
-        raise Refused("what", f"job {parent.job_id}'s method {parent.method!r} learns no occupancy: there is none "
-                              "to export (pointcloud and cameras are)")
+        raise Refused(
+            "what",
+            f"job {parent.job_id}'s method {parent.method!r} learns no occupancy: there is none to "
+            "export (pointcloud and cameras are)",
+        )
 
 
-# POST /v1/jobs submits this one (its body is a TrainConfig and the scene); the others are made of its jobs.
-TRAIN = register(JobKind("train", TrainConfig, "service.jobs.train:train", training_phases, training_rays,
-                         trains=True))
-register(JobKind("render", RenderConfig, "service.jobs.render:render", render_phases, frame_rays, route="renders",
-                 check=appearance_exists,
-                 description="A video of a finished training job along a camera path: a render job, queued and run "
-                             "by a dispatcher (progress, cancel and artifacts as for any job: `video.mp4`, "
-                             "`video.poster.png`, ...).",
-                 refusals="the job has not succeeded or is not a training job; a bad path, size or frame count"))
-register(JobKind("export", ExportConfig, "service.jobs.export:export", export_phases, route="exports",
-                 check=occupancy_exists,
-                 description="Geometry of a finished training job in the dataset's own frame and units: an export "
-                             "job whose artifacts are the file (pointcloud.ply, cameras.json or occupancy.ply), "
-                             "transform.json and export.json.",
-                 refusals="the job has not succeeded or is not a training job; an occupancy its method lacks"))
+# POST /v1/jobs submits this one (its body is a TrainConfig and the scene); the others are made of
+# its jobs.
+TRAIN = register(
+    JobKind(
+        "train",
+        TrainConfig,
+        "service.jobs.train:train",
+        training_phases,
+        training_rays,
+        trains=True,
+    )
+)
+register(
+    JobKind(
+        "render",
+        RenderConfig,
+        "service.jobs.render:render",
+        render_phases,
+        frame_rays,
+        route="renders",
+        check=appearance_exists,
+        description="A video of a finished training job along a camera path: a render job, queued "
+        "and run by a dispatcher (progress, cancel and artifacts as for any job: "
+        "`video.mp4`, `video.poster.png`, ...).",
+        refusals="the job has not succeeded or is not a training job; a bad path, size or frame "
+        "count",
+    )
+)
+register(
+    JobKind(
+        "export",
+        ExportConfig,
+        "service.jobs.export:export",
+        export_phases,
+        route="exports",
+        check=occupancy_exists,
+        description="Geometry of a finished training job in the dataset's own frame and units: an "
+        "export job whose artifacts are the file (pointcloud.ply, cameras.json or "
+        "occupancy.ply), transform.json and export.json.",
+        refusals="the job has not succeeded or is not a training job; an occupancy its method "
+        "lacks",
+    )
+)

@@ -1,5 +1,5 @@
-"""The finished training job a render, export or view is made of: its stored final networks, checked and
-loaded (workers/trained.py)."""
+"""The finished training job a render, export or view is made of: its stored final networks, checked
+and loaded (workers/trained.py)."""
 
 from __future__ import annotations
 
@@ -23,11 +23,14 @@ FINAL_NAMES = ("final/models.pt", "final/occupancy.pt")  # what a render needs o
 
 
 def final_files(settings: Settings, parent_id: int, folder: Path) -> Path:
-    """The training job's stored final networks, checked against their sha256, copied into `folder`/final."""
+    """The training job's stored final networks, checked against their sha256, copied into
+    `folder`/final."""
+
     def rows() -> list[dict]:
         with reading(settings.db_url) as session:
-            found = session.scalars(select(Artifact).where(Artifact.job_id == parent_id,
-                                                           Artifact.name.in_(FINAL_NAMES))).all()
+            found = session.scalars(
+                select(Artifact).where(Artifact.job_id == parent_id, Artifact.name.in_(FINAL_NAMES))
+            ).all()
             return [describe(r) for r in found]
 
     store, final = ArtifactStore(settings.db_url, settings.artifacts), folder / "final"
@@ -46,7 +49,8 @@ def load_parent(settings: Settings, parent_id: int, scene_path: str, folder: Pat
 
 
 def parent_of(attempt: Attempt) -> tuple[Path, Trained]:
-    """A fresh folder for an attempt of a job made of a training job, and that training job's networks."""
+    """A fresh folder for an attempt of a job made of a training job, and that training job's
+    networks."""
     job = attempt.job
     folder = run_dir_for(attempt.settings, job.id, attempt.number)
     shutil.rmtree(folder, ignore_errors=True)

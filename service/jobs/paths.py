@@ -12,6 +12,6 @@ def job_dir_for(settings: Settings, job_id: int) -> Path:
 
 
 def run_dir_for(settings: Settings, job_id: int, attempt: int) -> Path:
-    """Each attempt works in a folder of its own: an attempt that lost its lease but still runs cannot write
-    into the folder its successor resumes in."""
+    """Each attempt works in a folder of its own: an attempt that lost its lease but still runs
+    cannot write into the folder its successor resumes in."""
     return job_dir_for(settings, job_id) / f"attempt-{attempt}"

@@ -1,5 +1,5 @@
-"""A render job's work: a video of its finished training job along a camera path (workers/render_job.py),
-its files stored by name at the end, so a retried attempt replaces them."""
+"""A render job's work: a video of its finished training job along a camera path
+(workers/render_job.py), its files stored by name at the end, so a retried attempt replaces them."""
 
 from __future__ import annotations
 
@@ -17,9 +17,15 @@ def render(attempt: Attempt) -> None:
     job, store = attempt.job, attempt.store
     folder, trained = parent_of(attempt)
     cfg = RenderConfig.model_validate(job.config)
-    summary = render_video(trained, cfg, folder / "video.mp4", store, log=lambda text: log.debug(text))
+    summary = render_video(
+        trained, cfg, folder / "video.mp4", store, log=lambda text: log.debug(text)
+    )
     files = outputs(folder / "video.mp4")
-    stored = [("render", files["video"]), ("render", files["poster"]), ("report", files["path"]),
-              ("report", files["summary"])] + ([("render", files["depth"])] if cfg.depth_video else [])
+    stored = [
+        ("render", files["video"]),
+        ("render", files["poster"]),
+        ("report", files["path"]),
+        ("report", files["summary"]),
+    ] + ([("render", files["depth"])] if cfg.depth_video else [])
     for kind, path in stored:
         store.artifact(kind, path, name=path.name, phase=RENDER_PHASE, step=summary["frames"])

@@ -1,6 +1,6 @@
-"""What every camera-path kind is: a strict pydantic schema with a `kind` tag that builds its path in the world
-frame at a render's size (model/camera_paths.CameraPath). `build` imports PyTorch when called, so the schemas
-stay light for the API process."""
+"""What every camera-path kind is: a strict pydantic schema with a `kind` tag that builds its path
+in the world frame at a render's size (model/camera_paths.CameraPath). `build` imports PyTorch when
+called, so the schemas stay light for the API process."""
 
 from __future__ import annotations
 
@@ -24,12 +24,14 @@ class PathKind(BaseModel):
     model_config = STRICT
 
     kind: str
-    # Made from the scene and the options alone (a render's `frames` sets its length), so `leco render --path
-    # KIND` and the dashboard's path menu offer it; a user's path brings its own cameras instead.
+    # Made from the scene and the options alone (a render's `frames` sets its length), so `leco
+    # render --path KIND` and the dashboard's path menu offer it; a user's path brings its own
+    # cameras instead.
     generated: ClassVar[bool] = False
 
     def frame_count(self) -> int | None:
-        """The frames the path itself sets (one per camera of a user's path); None: a render's `frames`."""
+        """The frames the path itself sets (one per camera of a user's path); None: a render's
+        `frames`."""
         return None
 
     def build(self, scene: Scene, width: int, height: int, frames: int) -> CameraPath:
@@ -38,14 +40,22 @@ class PathKind(BaseModel):
 
 
 class Camera(BaseModel):
-    """One camera: a camera-to-world matrix (OpenGL axes: right, up, back, centre; 3x4 or 4x4 row by row) and
-    either pinhole intrinsics fx, fy, cx, cy at the path's size or a vertical field of view."""
+    """One camera: a camera-to-world matrix (OpenGL axes: right, up, back, centre; 3x4 or 4x4 row by
+    row) and either pinhole intrinsics fx, fy, cx, cy at the path's size or a vertical field of
+    view."""
 
     model_config = STRICT
 
-    c2w: list[Annotated[list[Finite], Field(min_length=4, max_length=4)]] = Field(min_length=3, max_length=4)
-    intrinsics: Annotated[list[Annotated[float, Field(gt=0, le=1e6)]], Field(min_length=4, max_length=4)] | None = None
-    fov_deg: float = Field(50.0, gt=1, lt=170, description="vertical field of view, used without intrinsics")
+    c2w: list[Annotated[list[Finite], Field(min_length=4, max_length=4)]] = Field(
+        min_length=3, max_length=4
+    )
+    intrinsics: (
+        Annotated[list[Annotated[float, Field(gt=0, le=1e6)]], Field(min_length=4, max_length=4)]
+        | None
+    ) = None
+    fov_deg: float = Field(
+        50.0, gt=1, lt=170, description="vertical field of view, used without intrinsics"
+    )
 
     @field_validator("c2w")
     @classmethod

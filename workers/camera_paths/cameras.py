@@ -1,5 +1,6 @@
-"""cameras: a user's path, one camera per frame or keyframes to interpolate, in the dataset's own frame
-(`source`) or the normalised world the API's cameras route and the dashboard's viewer use (`world`)."""
+"""cameras: a user's path, one camera per frame or keyframes to interpolate, in the dataset's own
+frame (`source`) or the normalised world the API's cameras route and the dashboard's viewer use
+(`world`)."""
 
 from __future__ import annotations
 
@@ -17,11 +18,18 @@ if TYPE_CHECKING:
 class CamerasPath(PathKind):
     kind: Literal["cameras"] = "cameras"
     frame: Literal["source", "world"] = "source"
-    width: int | None = Field(None, ge=1, le=8192, description="the size the intrinsics are given at (default: "
-                              "the render's)")
+    width: int | None = Field(
+        None,
+        ge=1,
+        le=8192,
+        description="the size the intrinsics are given at (default: the render's)",
+    )
     height: int | None = Field(None, ge=1, le=8192)
-    interpolate: bool = Field(False, description="the cameras are keyframes: render `frames` frames through them "
-                              "(evenly along the path, rotations interpolated); else one frame per camera")
+    interpolate: bool = Field(
+        False,
+        description="the cameras are keyframes: render `frames` frames through them (evenly along "
+        "the path, rotations interpolated); else one frame per camera",
+    )
     cameras: list[Camera] = Field(min_length=1, max_length=MAX_FRAMES)
 
     @field_validator("cameras")
@@ -38,9 +46,14 @@ class CamerasPath(PathKind):
         from model.camera_paths import interpolate, intrinsics_for_fov, user_path
 
         sx, sy = width / (self.width or width), height / (self.height or height)
-        intrinsics = [[c.intrinsics[0] * sx, c.intrinsics[1] * sy, c.intrinsics[2] * sx, c.intrinsics[3] * sy]
-                      if c.intrinsics is not None else intrinsics_for_fov(c.fov_deg, width, height).tolist()
-                      for c in self.cameras]
+        intrinsics = [
+            [c.intrinsics[0] * sx, c.intrinsics[1] * sy, c.intrinsics[2] * sx, c.intrinsics[3] * sy]
+            if c.intrinsics is not None
+            else intrinsics_for_fov(c.fov_deg, width, height).tolist()
+            for c in self.cameras
+        ]
         norm = scene.normalization if self.frame == "source" else None
-        given = user_path([c.c2w for c in self.cameras], intrinsics, width, height, norm, field="path.cameras")
+        given = user_path(
+            [c.c2w for c in self.cameras], intrinsics, width, height, norm, field="path.cameras"
+        )
         return interpolate(given, frames) if self.interpolate else given

@@ -1,4 +1,5 @@
-"""flyover: along the training cameras in capture order, smoothed (model/camera_paths.py `flyover`)."""
+"""flyover: along the training cameras in capture order, smoothed (model/camera_paths.py
+`flyover`)."""
 
 from __future__ import annotations
 
@@ -16,10 +17,21 @@ if TYPE_CHECKING:
 class FlyoverPath(PathKind):
     kind: Literal["flyover"] = "flyover"
     generated = True
-    smoothing: float = Field(0.05, ge=0, le=1, description="Gaussian sigma as a fraction of the training cameras")
-    fov_deg: float | None = Field(None, gt=1, lt=170, description="default: the training cameras' median")
+    smoothing: float = Field(
+        0.05, ge=0, le=1, description="Gaussian sigma as a fraction of the training cameras"
+    )
+    fov_deg: float | None = Field(
+        None, gt=1, lt=170, description="default: the training cameras' median"
+    )
 
     def build(self, scene: Scene, width: int, height: int, frames: int) -> CameraPath:
         from model.camera_paths import flyover, training_order
 
-        return flyover(training_order(scene), frames, width, height, fov_deg=self.fov_deg, smoothing=self.smoothing)
+        return flyover(
+            training_order(scene),
+            frames,
+            width,
+            height,
+            fov_deg=self.fov_deg,
+            smoothing=self.smoothing,
+        )

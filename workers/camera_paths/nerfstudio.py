@@ -1,4 +1,5 @@
-"""nerfstudio: nerfstudio's camera_path.json (perspective cameras), read in the dataset's own frame."""
+"""nerfstudio: nerfstudio's camera_path.json (perspective cameras), read in the dataset's own
+frame."""
 
 from __future__ import annotations
 
@@ -15,13 +16,15 @@ if TYPE_CHECKING:
 
 class NerfstudioFrame(BaseModel):
     model_config = ConfigDict(frozen=True, extra="ignore", allow_inf_nan=False)
-    camera_to_world: list[Finite] = Field(min_length=16, max_length=16, description="4x4, row by row")
+    camera_to_world: list[Finite] = Field(
+        min_length=16, max_length=16, description="4x4, row by row"
+    )
     fov: float = Field(gt=1, lt=170, description="vertical, degrees")
 
     @field_validator("camera_to_world")
     @classmethod
     def a_rotation_and_a_centre(cls, values: list[float]) -> list[float]:
-        Camera.a_rotation_and_a_centre([values[i:i + 4] for i in range(0, 16, 4)])
+        Camera.a_rotation_and_a_centre([values[i : i + 4] for i in range(0, 16, 4)])
         return values
 
 
@@ -39,6 +42,8 @@ class NerfstudioPath(PathKind):
     def build(self, scene: Scene, width: int, height: int, frames: int) -> CameraPath:
         from model.camera_paths import intrinsics_for_fov, user_path
 
-        c2w = [[f.camera_to_world[i:i + 4] for i in range(0, 16, 4)] for f in self.camera_path]
+        c2w = [[f.camera_to_world[i : i + 4] for i in range(0, 16, 4)] for f in self.camera_path]
         intrinsics = [intrinsics_for_fov(f.fov, width, height).tolist() for f in self.camera_path]
-        return user_path(c2w, intrinsics, width, height, scene.normalization, field="path.camera_path")
+        return user_path(
+            c2w, intrinsics, width, height, scene.normalization, field="path.camera_path"
+        )

@@ -19,23 +19,40 @@ class OrbitPath(PathKind):
     kind: Literal["orbit"] = "orbit"
     generated = True
     pitch_deg: float = Field(30.0, ge=0, le=89, description="below the horizon")
-    altitude: float | None = Field(None, gt=0, le=1e7, description="above the foreground box's centre, in the "
-                                   "dataset's units (metres where it has them); default: the box fills the view")
+    altitude: float | None = Field(
+        None,
+        gt=0,
+        le=1e7,
+        description="above the foreground box's centre, in the dataset's units (metres where it "
+        "has them); default: the box fills the view",
+    )
     turns: float = Field(1.0, gt=0, le=10)
     fov_deg: float = Field(50.0, gt=1, lt=170, description="vertical field of view")
 
     @model_validator(mode="after")
     def altitude_needs_a_pitch(self) -> OrbitPath:
-        # The orbit's distance is altitude / sin(pitch): at a level pitch no distance reaches that altitude.
+        # The orbit's distance is altitude / sin(pitch): at a level pitch no distance reaches that
+        # altitude.
         if self.altitude is not None and self.pitch_deg < MIN_ALTITUDE_PITCH_DEG:
-            raise ValueError(f"an orbit at an altitude needs pitch_deg >= {MIN_ALTITUDE_PITCH_DEG:g} (the camera looks "
-                             f"down at the box from altitude / sin(pitch)); got pitch_deg={self.pitch_deg:g} with "
-                             f"altitude={self.altitude:g}: raise the pitch or leave the altitude out")
+            raise ValueError(
+                f"an orbit at an altitude needs pitch_deg >= {MIN_ALTITUDE_PITCH_DEG:g} (the "
+                "camera looks down at the box from altitude / sin(pitch)); got "
+                f"pitch_deg={self.pitch_deg:g} with altitude={self.altitude:g}: raise the pitch or "
+                "leave the altitude out"
+            )
         return self
 
     def build(self, scene: Scene, width: int, height: int, frames: int) -> CameraPath:
         from model.camera_paths import orbit
 
         altitude = None if self.altitude is None else self.altitude / scene.normalization.scale
-        return orbit(scene.bounds.aabb, frames, width, height, fov_deg=self.fov_deg, pitch_deg=self.pitch_deg,
-                     altitude=altitude, turns=self.turns)
+        return orbit(
+            scene.bounds.aabb,
+            frames,
+            width,
+            height,
+            fov_deg=self.fov_deg,
+            pitch_deg=self.pitch_deg,
+            altitude=altitude,
+            turns=self.turns,
+        )

@@ -1,6 +1,7 @@
-"""Every camera-path kind a render takes, by its `kind` tag: the render schema (workers/render_config.py), the
-CLI's `--path` and the dashboard's path menu (GET /v1/camera-paths) read this table. Adding a kind is a file in
-this package (a PathKind that builds its path) and one line here."""
+"""Every camera-path kind a render takes, by its `kind` tag: the render schema
+(workers/render_config.py), the CLI's `--path` and the dashboard's path menu (GET /v1/camera-paths)
+read this table. Adding a kind is a file in this package (a PathKind that builds its path) and one
+line here."""
 
 from __future__ import annotations
 
@@ -16,7 +17,8 @@ from workers.camera_paths.orbit import OrbitPath
 from workers.camera_paths.spiral import SpiralPath
 
 PATH_KINDS: dict[str, type[PathKind]] = {}
-_listeners: list[Callable[[], None]] = []  # schemas whose `path` field follows the table (RenderConfig)
+# schemas whose `path` field follows the table (RenderConfig)
+_listeners: list[Callable[[], None]] = []
 
 
 def tag(kind: type[PathKind]) -> str:
@@ -26,7 +28,9 @@ def tag(kind: type[PathKind]) -> str:
 def register_path(kind: type[PathKind]) -> type[PathKind]:
     known = PATH_KINDS.get(tag(kind))
     if known is not None and known is not kind:
-        raise ValueError(f"camera-path kind {tag(kind)!r} is already registered by {known.__qualname__}")
+        raise ValueError(
+            f"camera-path kind {tag(kind)!r} is already registered by {known.__qualname__}"
+        )
     PATH_KINDS[tag(kind)] = kind
     changed()
     return kind

@@ -17,11 +17,23 @@ class SpiralPath(PathKind):
     kind: Literal["spiral"] = "spiral"
     generated = True
     turns: float = Field(2.0, gt=0, le=10)
-    spread: float = Field(1.0, gt=0, le=10, description="radius against the training cameras' spread")
-    fov_deg: float | None = Field(None, gt=1, lt=170, description="default: the training cameras' median")
+    spread: float = Field(
+        1.0, gt=0, le=10, description="radius against the training cameras' spread"
+    )
+    fov_deg: float | None = Field(
+        None, gt=1, lt=170, description="default: the training cameras' median"
+    )
 
     def build(self, scene: Scene, width: int, height: int, frames: int) -> CameraPath:
         from model.camera_paths import spiral, training_order
 
-        return spiral(training_order(scene), scene.bounds.aabb, frames, width, height, fov_deg=self.fov_deg,
-                      turns=self.turns, spread=self.spread)
+        return spiral(
+            training_order(scene),
+            scene.bounds.aabb,
+            frames,
+            width,
+            height,
+            fov_deg=self.fov_deg,
+            turns=self.turns,
+            spread=self.spread,
+        )

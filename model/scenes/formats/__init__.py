@@ -20,10 +20,15 @@ def detect_format(root: Path) -> str:
     if not root.exists():
         raise SceneError(root, "scene folder does not exist")
     if not root.is_dir():
-        raise SceneError(root, "is not a folder (a scene is a folder in one of the supported formats)")
+        raise SceneError(
+            root, "is not a folder (a scene is a folder in one of the supported formats)"
+        )
     for marker, name in MARKERS:
         if (root / marker).is_file():
             return name
     present = sorted(p.name for p in root.iterdir())[:10]
     expected = ", ".join(f"{m} ({n})" for m, n in MARKERS)
-    raise SceneError(root, f"unknown scene format: expected one of {expected}; found {present or 'an empty folder'}")
+    raise SceneError(
+        root,
+        f"unknown scene format: expected one of {expected}; found {present or 'an empty folder'}",
+    )

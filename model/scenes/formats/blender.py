@@ -1,4 +1,5 @@
-"""Blender / NeRF-synthetic: transforms_{train,val,test}.json, RGBA images composited on a background."""
+"""Blender / NeRF-synthetic: transforms_{train,val,test}.json, RGBA images composited on a
+background."""
 
 from __future__ import annotations
 
@@ -29,16 +30,32 @@ def load_blender(root: Path, downscale: int, background: tuple[float, float, flo
         builder = SplitBuilder()
         for i, frame in enumerate(frames(path, data)):
             where = f" (frame {i})"
-            image_path = scene_file(root, find_image(named_file(root, field(path, frame, "file_path", where), path,
-                                                                f"file_path{where}")))
+            image_path = scene_file(
+                root,
+                find_image(
+                    named_file(
+                        root, field(path, frame, "file_path", where), path, f"file_path{where}"
+                    )
+                ),
+            )
             w, h = probe_image(image_path)
             size = size or (w, h)
             check_image_size(image_path, (w, h), *size)  # the format has one camera for all frames
             focal = 0.5 * w / math.tan(0.5 * angle)
             c2w = opengl_pose(path, frame, where)
             image = ImageFile(image_path, w, h, downscale, background)
-            intrinsics = scale_intrinsics(torch.tensor([focal, focal, w / 2, h / 2]), image.size, w, h)
-            builder.add(Path(image_path).stem, image, intrinsics, c2w, size=image.size, source=path, where=where)
+            intrinsics = scale_intrinsics(
+                torch.tensor([focal, focal, w / 2, h / 2]), image.size, w, h
+            )
+            builder.add(
+                Path(image_path).stem,
+                image,
+                intrinsics,
+                c2w,
+                size=image.size,
+                source=path,
+                where=where,
+            )
         if not builder.names:
             raise SceneError(path, "split has no frames")
         splits[split] = builder.build()

@@ -1,4 +1,5 @@
-"""JSON camera files (Blender, nerfstudio): reading with messages that name the file and the field."""
+"""JSON camera files (Blender, nerfstudio): reading with messages that name the file and the
+field."""
 
 from __future__ import annotations
 
@@ -52,8 +53,12 @@ def opengl_pose(path: Path, frame: dict, where: str) -> Tensor:
     try:
         matrix = torch.tensor(raw, dtype=torch.float64)
     except (TypeError, ValueError):
-        raise SceneError(path, f"'transform_matrix'{where} must be a 4x4 array of numbers") from None
+        raise SceneError(
+            path, f"'transform_matrix'{where} must be a 4x4 array of numbers"
+        ) from None
     if matrix.shape not in ((4, 4), (3, 4)):
-        raise SceneError(path, f"'transform_matrix'{where} must be 4x4, got shape {tuple(matrix.shape)}")
+        raise SceneError(
+            path, f"'transform_matrix'{where} must be 4x4, got shape {tuple(matrix.shape)}"
+        )
     check_pose(path, matrix[:3], where)
     return matrix[:3]

@@ -1,4 +1,5 @@
-"""nerfstudio transforms.json: global or per-frame intrinsics, PINHOLE or OPENCV (k1, k2, p1, p2)."""
+"""nerfstudio transforms.json: global or per-frame intrinsics, PINHOLE or OPENCV (k1, k2, p1,
+p2)."""
 
 from __future__ import annotations
 
@@ -22,36 +23,57 @@ from model.scenes.source import (
 
 SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
 DISTORTION = ("k1", "k2", "p1", "p2")
-VAL_EVERY = 8  # without explicit split lists, every 8th frame is held out (the LLFF/nerfstudio habit)
+# without explicit split lists, every 8th frame is held out (the LLFF/nerfstudio habit)
+VAL_EVERY = 8
 
 
-def frame_camera(path: Path, data: dict, frame: dict, where: str) -> tuple[torch.Tensor, int, int, torch.Tensor]:
+def frame_camera(
+    path: Path, data: dict, frame: dict, where: str
+) -> tuple[torch.Tensor, int, int, torch.Tensor]:
     """Intrinsics, size and distortion of one frame: per-frame values override the global ones."""
     merged = {**data, **frame}
     model = str(merged.get("camera_model", "OPENCV"))
     if model not in SUPPORTED_MODELS:
-        raise SceneError(path, f"camera_model {model!r}{where} is not supported "
-                               f"(use one of {', '.join(SUPPORTED_MODELS)})")
+        raise SceneError(
+            path,
+            f"camera_model {model!r}{where} is not supported (use one of "
+            f"{', '.join(SUPPORTED_MODELS)})",
+        )
     fx = number(path, merged, "fl_x", where)
     fy = number(path, merged, "fl_y", where, default=fx)
-    w, h = values.image_size(path, field(path, merged, "w", where), field(path, merged, "h", where), where)
+    w, h = values.image_size(
+        path, field(path, merged, "w", where), field(path, merged, "h", where), where
+    )
     cx = number(path, merged, "cx", where, default=w / 2)
     cy = number(path, merged, "cy", where, default=h / 2)
     for extra in ("k3", "k4"):
         if abs(number(path, merged, extra, where, default=0.0)) > 0:
-            raise SceneError(path, f"distortion term {extra}{where} is not supported (OPENCV k1, k2, p1, p2 only)")
-    distortion = values.distortion(path, [number(path, merged, k, where, default=0.0) for k in DISTORTION], where)
+            raise SceneError(
+                path,
+                f"distortion term {extra}{where} is not supported (OPENCV k1, k2, p1, p2 only)",
+            )
+    distortion = values.distortion(
+        path, [number(path, merged, k, where, default=0.0) for k in DISTORTION], where
+    )
     if model != "OPENCV" and bool(distortion.any()):
-        raise SceneError(path, f"camera_model {model}{where} has distortion terms; declare it OPENCV")
+        raise SceneError(
+            path, f"camera_model {model}{where} has distortion terms; declare it OPENCV"
+        )
     return torch.tensor([fx, fy, cx, cy], dtype=torch.float64), w, h, distortion
 
 
 def split_of(path: Path, data: dict, file_path: str, index: int) -> str:
-    """The split from nerfstudio's {train,val,test}_filenames lists when present, else every 8th is val."""
-    lists = {s: data[f"{s}_filenames"] for s in ("train", "val", "test") if f"{s}_filenames" in data}
+    """The split from nerfstudio's {train,val,test}_filenames lists when present, else every 8th is
+    val."""
+    lists = {
+        s: data[f"{s}_filenames"] for s in ("train", "val", "test") if f"{s}_filenames" in data
+    }
     for split, listed in lists.items():
         if not isinstance(listed, list) or not all(isinstance(p, str) for p in listed):
-            raise SceneError(path, f"'{split}_filenames' must be a list of file paths, got {values.describe(listed)}")
+            raise SceneError(
+                path,
+                f"'{split}_filenames' must be a list of file paths, got {values.describe(listed)}",
+            )
     if not lists:
         return "val" if index % VAL_EVERY == 0 else "train"
     key = Path(file_path).as_posix()
@@ -70,7 +92,8 @@ def load_nerfstudio(root: Path, downscale: int) -> SourceScene:
         named = field(path, frame, "file_path", where)
         intrinsics, w, h, distortion = frame_camera(path, data, frame, where)
         c2w = opengl_pose(path, frame, where)
-        image_path = named_file(root, named, path, f"file_path{where}")  # refuses anything but a string
+        # refuses anything but a string
+        image_path = named_file(root, named, path, f"file_path{where}")
         file_path = str(named)
         if not image_path.is_file():
             raise SceneError(image_path, f"image is missing (listed in {path.name}{where})")
@@ -79,11 +102,19 @@ def load_nerfstudio(root: Path, downscale: int) -> SourceScene:
         split = split_of(path, data, file_path, i)
         if split != "unlisted":
             builders.setdefault(split, SplitBuilder()).add(
-                Path(file_path).stem, image, scale_intrinsics(intrinsics, image.size, w, h), c2w, distortion,
-                size=image.size, source=path, where=where,
+                Path(file_path).stem,
+                image,
+                scale_intrinsics(intrinsics, image.size, w, h),
+                c2w,
+                distortion,
+                size=image.size,
+                source=path,
+                where=where,
             )
     if "train" not in builders:
-        raise SceneError(path, "no training frames: 'frames' is empty or no frame is in the train split")
+        raise SceneError(
+            path, "no training frames: 'frames' is empty or no frame is in the train split"
+        )
     points = None
     if "ply_file_path" in data:
         ply = named_file(root, data["ply_file_path"], path, "ply_file_path")

@@ -1,4 +1,5 @@
-"""Sparse SfM points: COLMAP points3D.bin and the vertex positions of a PLY file (nerfstudio's sparse_pc.ply)."""
+"""Sparse SfM points: COLMAP points3D.bin and the vertex positions of a PLY file (nerfstudio's
+sparse_pc.ply)."""
 
 from __future__ import annotations
 
@@ -14,9 +15,22 @@ from model.scenes.errors import SceneError
 from model.scenes.limits import MAX_POINTS_BYTES, check_file_size
 
 PLY_TYPES = {
-    "char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4",
-    "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2",
-    "int32": "i4", "uint32": "u4", "float32": "f4", "float64": "f8",
+    "char": "i1",
+    "uchar": "u1",
+    "short": "i2",
+    "ushort": "u2",
+    "int": "i4",
+    "uint": "u4",
+    "float": "f4",
+    "double": "f8",
+    "int8": "i1",
+    "uint8": "u1",
+    "int16": "i2",
+    "uint16": "u2",
+    "int32": "i4",
+    "uint32": "u4",
+    "float32": "f4",
+    "float64": "f8",
 }
 
 
@@ -26,18 +40,24 @@ def read_colmap_points(path: Path) -> Tensor:
     data = path.read_bytes()
     try:
         (count,) = struct.unpack_from("<Q", data, 0)
-        if count > (len(data) - 8) // 51:  # each point takes at least 51 bytes: the header cannot claim more
-            raise SceneError(path, f"COLMAP points3D.bin claims {count:,} points but holds {len(data):,} bytes")
+        # each point takes at least 51 bytes: the header cannot claim more
+        if count > (len(data) - 8) // 51:
+            raise SceneError(
+                path, f"COLMAP points3D.bin claims {count:,} points but holds {len(data):,} bytes"
+            )
         offset, xyz = 8, np.empty((count, 3), dtype=np.float64)
         for i in range(count):
-            # id u64, xyz 3 f64, rgb 3 u8, error f64, track length u64, then (image id, point2D idx) i32 pairs
+            # id u64, xyz 3 f64, rgb 3 u8, error f64, track length u64, then (image id, point2D idx)
+            # i32 pairs
             xyz[i] = struct.unpack_from("<3d", data, offset + 8)
             (track,) = struct.unpack_from("<Q", data, offset + 43)
             offset += 51 + 8 * track
     except struct.error:
         raise SceneError(path, "truncated or malformed COLMAP points3D.bin") from None
     if offset != len(data):
-        raise SceneError(path, f"malformed COLMAP points3D.bin: {len(data) - offset} trailing bytes")
+        raise SceneError(
+            path, f"malformed COLMAP points3D.bin: {len(data) - offset} trailing bytes"
+        )
     return values.points(path, torch.from_numpy(xyz), "COLMAP points")
 
 
@@ -48,7 +68,7 @@ def read_ply_points(path: Path) -> Tensor:
     end = data.find(b"end_header\n")
     if not data.startswith(b"ply") or end < 0:
         raise SceneError(path, "not a PLY file (no 'ply' magic or no end_header)")
-    header = data[: end].decode("ascii", errors="replace").splitlines()
+    header = data[:end].decode("ascii", errors="replace").splitlines()
     fmt, count, props, in_vertex = None, 0, [], False
     for line in header:
         words = line.split()
@@ -56,7 +76,10 @@ def read_ply_points(path: Path) -> Tensor:
             fmt = words[1]
         elif words[:1] == ["element"]:
             if len(words) != 3 or not words[2].isdigit():
-                raise SceneError(path, f"malformed PLY element line {line.strip()[:80]!r} (element <name> <count>)")
+                raise SceneError(
+                    path,
+                    f"malformed PLY element line {line.strip()[:80]!r} (element <name> <count>)",
+                )
             in_vertex = words[1] == "vertex"
             if in_vertex:
                 count = int(words[2])
@@ -72,13 +95,17 @@ def read_ply_points(path: Path) -> Tensor:
     body = data[end + len(b"end_header\n") :]
     try:
         if fmt == "binary_little_endian":
-            vertices = np.frombuffer(body, dtype=np.dtype([(n, "<" + t) for n, t in props]), count=count)
+            vertices = np.frombuffer(
+                body, dtype=np.dtype([(n, "<" + t) for n, t in props]), count=count
+            )
             xyz = np.stack([vertices[a].astype(np.float64) for a in "xyz"], axis=1)
         elif fmt == "ascii":
             rows = np.loadtxt(body.decode().splitlines()[:count], ndmin=2)
             xyz = rows[:, [names.index(a) for a in "xyz"]].astype(np.float64)
         else:
-            raise SceneError(path, f"unsupported PLY format {fmt!r} (ascii or binary_little_endian)")
+            raise SceneError(
+                path, f"unsupported PLY format {fmt!r} (ascii or binary_little_endian)"
+            )
     except ValueError as exc:
         raise SceneError(path, f"truncated or malformed PLY vertex data ({exc})") from None
     if len(xyz) < count:

@@ -5,4 +5,12 @@ from model.scenes.synthetic.presets import PRESETS, CityPreset, get_preset
 from model.scenes.synthetic.raycast import raycast
 from model.scenes.synthetic.writer import generate
 
-__all__ = ["PRESETS", "CityGeometry", "CityPreset", "build_city", "generate", "get_preset", "raycast"]
+__all__ = [
+    "PRESETS",
+    "CityGeometry",
+    "CityPreset",
+    "build_city",
+    "generate",
+    "get_preset",
+    "raycast",
+]

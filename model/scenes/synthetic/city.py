@@ -79,8 +79,11 @@ def add_building(rng, p: CityPreset, x0: float, y0: float, lot: float, owner: in
     lo = np.array([x0 + inset[0], y0 + inset[1]])
     hi = np.array([x0 + lot - inset[2], y0 + lot - inset[3]])
     tower = rng.random() < 0.12
-    height = (p.max_height * rng.uniform(0.75, 1.0) if tower
-              else min(p.max_height * 0.6, rng.lognormal(np.log(p.max_height * 0.25), 0.4)))
+    height = (
+        p.max_height * rng.uniform(0.75, 1.0)
+        if tower
+        else min(p.max_height * 0.6, rng.lognormal(np.log(p.max_height * 0.25), 0.4))
+    )
     height = float(max(4.0, height))
     colour = (np.array([0.55, 0.5, 0.45]) + rng.uniform(-0.2, 0.25, 3)).clip(0.15, 0.9).tolist()
     size = hi - lo
@@ -94,7 +97,13 @@ def add_building(rng, p: CityPreset, x0: float, y0: float, lot: float, owner: in
         add([*lo, 0.0], [*main_hi, height], BUILDING, colour, owner)
         wing_lo = lo.copy()
         wing_lo[axis] = cut
-        add([*wing_lo, 0.0], [*wing_hi, max(4.0, height * rng.uniform(0.5, 1.4))], BUILDING, colour, owner)
+        add(
+            [*wing_lo, 0.0],
+            [*wing_hi, max(4.0, height * rng.uniform(0.5, 1.4))],
+            BUILDING,
+            colour,
+            owner,
+        )
     else:
         add([*lo, 0.0], [*hi, height], BUILDING, colour, owner)
     if rng.random() < 0.35 or tower:  # setback tier
@@ -104,8 +113,13 @@ def add_building(rng, p: CityPreset, x0: float, y0: float, lot: float, owner: in
         height += tier
     if rng.random() < 0.3:  # a thin mast on the roof
         c = lo + size * rng.uniform(0.3, 0.7, 2)
-        add([c[0] - 0.2, c[1] - 0.2, height], [c[0] + 0.2, c[1] + 0.2, height + rng.uniform(3.0, 8.0)],
-            MAST, [0.7, 0.7, 0.72], owner)
+        add(
+            [c[0] - 0.2, c[1] - 0.2, height],
+            [c[0] + 0.2, c[1] + 0.2, height + rng.uniform(3.0, 8.0)],
+            MAST,
+            [0.7, 0.7, 0.72],
+            owner,
+        )
 
 
 def add_street_furniture(rng, p: CityPreset, half: float, add) -> None:
@@ -117,8 +131,19 @@ def add_street_furniture(rng, p: CityPreset, half: float, add) -> None:
         for s in np.arange(-half + spacing / 2, half, spacing):
             jitter = rng.uniform(-1.0, 1.0)
             for x, y in ((s + jitter, edge), (edge, s + jitter)):
-                add([x - 0.15, y - 0.15, 0.0], [x + 0.15, y + 0.15, 6.0], POLE, [0.35, 0.35, 0.38], -1)
+                add(
+                    [x - 0.15, y - 0.15, 0.0],
+                    [x + 0.15, y + 0.15, 6.0],
+                    POLE,
+                    [0.35, 0.35, 0.38],
+                    -1,
+                )
         if rng.random() < 0.5:
             s = rng.uniform(-half + 5, half - 5)
-            add([s - 1.0, centre - p.street_width / 2 + 0.2, 0.0], [s + 1.0, centre - p.street_width / 2 + 2.0, 2.5],
-                KIOSK, rng.uniform(0.3, 0.95, 3).tolist(), -1)
+            add(
+                [s - 1.0, centre - p.street_width / 2 + 0.2, 0.0],
+                [s + 1.0, centre - p.street_width / 2 + 2.0, 2.5],
+                KIOSK,
+                rng.uniform(0.3, 0.95, 3).tolist(),
+                -1,
+            )

@@ -22,8 +22,9 @@ class CityPreset:
     supersample: int = 2  # per-axis samples per pixel
     val_every: int = 10  # every n-th view in capture order is held out
     # A scale scene reuses each render for several views: a render `render_margin` times the image
-    # size, cut into `crops_per_render` images at seeded offsets. A crop is an exact image of the same camera
-    # with its principal point shifted, so the scene stays consistent while rendering costs a fraction.
+    # size, cut into `crops_per_render` images at seeded offsets. A crop is an exact image of the
+    # same camera with its principal point shifted, so the scene stays consistent while rendering
+    # costs a fraction.
     crops_per_render: int = 1
     render_margin: float = 1.0
     depth_maps: bool = True  # gt/depth per view (float32 at image size: 1.2 MB a 640x480 view)
@@ -33,18 +34,71 @@ class CityPreset:
 
 
 PRESETS = {
-    "tiny": CityPreset("tiny", blocks=2, block_size=20.0, street_width=8.0, max_height=24.0, views=12,
-                       width=40, height=30, hfov_deg=65.0, altitude=45.0, pitch_deg=50.0, cell_size=0.5,
-                       val_every=6),
-    "city": CityPreset("city", blocks=4, block_size=28.0, street_width=10.0, max_height=45.0, views=80,
-                       width=100, height=75, hfov_deg=65.0, altitude=80.0, pitch_deg=45.0, cell_size=1.0),
-    "large": CityPreset("large", blocks=6, block_size=30.0, street_width=10.0, max_height=60.0, views=200,
-                        width=200, height=150, hfov_deg=65.0, altitude=100.0, pitch_deg=45.0, cell_size=1.5),
-    # Mega-NeRF's captures at the scale of the paper's 1/4-resolution training (2,000+ photos): 2,000 views of
-    # 640x480 (614M pixels, a 1.8 GB pixel store), from 125 renders; no depth maps (3.7 GB more).
-    "xl": CityPreset("xl", blocks=8, block_size=30.0, street_width=10.0, max_height=60.0, views=2000,
-                     width=640, height=480, hfov_deg=65.0, altitude=110.0, pitch_deg=45.0, cell_size=2.0,
-                     supersample=1, val_every=100, crops_per_render=16, render_margin=1.2, depth_maps=False),
+    "tiny": CityPreset(
+        "tiny",
+        blocks=2,
+        block_size=20.0,
+        street_width=8.0,
+        max_height=24.0,
+        views=12,
+        width=40,
+        height=30,
+        hfov_deg=65.0,
+        altitude=45.0,
+        pitch_deg=50.0,
+        cell_size=0.5,
+        val_every=6,
+    ),
+    "city": CityPreset(
+        "city",
+        blocks=4,
+        block_size=28.0,
+        street_width=10.0,
+        max_height=45.0,
+        views=80,
+        width=100,
+        height=75,
+        hfov_deg=65.0,
+        altitude=80.0,
+        pitch_deg=45.0,
+        cell_size=1.0,
+    ),
+    "large": CityPreset(
+        "large",
+        blocks=6,
+        block_size=30.0,
+        street_width=10.0,
+        max_height=60.0,
+        views=200,
+        width=200,
+        height=150,
+        hfov_deg=65.0,
+        altitude=100.0,
+        pitch_deg=45.0,
+        cell_size=1.5,
+    ),
+    # Mega-NeRF's captures at the scale of the paper's 1/4-resolution training (2,000+ photos):
+    # 2,000 views of 640x480 (614M pixels, a 1.8 GB pixel store), from 125 renders; no depth maps
+    # (3.7 GB more).
+    "xl": CityPreset(
+        "xl",
+        blocks=8,
+        block_size=30.0,
+        street_width=10.0,
+        max_height=60.0,
+        views=2000,
+        width=640,
+        height=480,
+        hfov_deg=65.0,
+        altitude=110.0,
+        pitch_deg=45.0,
+        cell_size=2.0,
+        supersample=1,
+        val_every=100,
+        crops_per_render=16,
+        render_margin=1.2,
+        depth_maps=False,
+    ),
 }
 
 

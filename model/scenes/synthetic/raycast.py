@@ -1,10 +1,10 @@
 """Exact ray casting against the city: the ground plane z = 0 and axis-aligned boxes (slab test).
 
-Everything is float64, so a depth is exact to machine precision and a ray grazing an edge is decided the
-same way every time. Speed comes from culling, which never changes a result: rays are sorted so that each
-chunk covers a small part of the district, and a chunk is only tested against the boxes that overlap the
-bounding box of its rays' segments inside the scene (a hit point lies on the segment and on the box).
-"""
+Everything is float64, so a depth is exact to machine precision and a ray grazing an edge is decided
+the same way every time. Speed comes from culling, which never changes a result: rays are sorted so
+that each chunk covers a small part of the district, and a chunk is only tested against the boxes
+that overlap the bounding box of its rays' segments inside the scene (a hit point lies on the
+segment and on the box)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,8 @@ from torch import Tensor
 from model.scenes.synthetic.city import CityGeometry
 
 SKY, GROUND = -1, 0
-CHUNK = 2048  # rays per chunk: small chunks cull more boxes; the Python loop cost stays ~1 ms a chunk
+# rays per chunk: small chunks cull more boxes; the Python loop cost stays ~1 ms a chunk
+CHUNK = 2048
 SORT_CELL = 8.0  # metres: the xy cell of the sort key (a few streets wide)
 TINY = 1e-30  # stands in for a zero direction component (keeps its sign, avoids 0 * inf = nan)
 SLACK = 1e-6  # metres added around each chunk's bounding box against rounding in the culling test
@@ -23,8 +24,8 @@ SLACK = 1e-6  # metres added around each chunk's bounding box against rounding i
 def raycast(
     geometry: CityGeometry, origins: Tensor, dirs: Tensor, t_max: float = float("inf")
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """First hit of each ray at 0 < t <= t_max: t (inf for none), hit id (-1 sky, 0 ground, 1 + k box k),
-    outward unit normal (zero for sky). Rays that start inside a box ignore that box."""
+    """First hit of each ray at 0 < t <= t_max: t (inf for none), hit id (-1 sky, 0 ground, 1 + k
+    box k), outward unit normal (zero for sky). Rays that start inside a box ignore that box."""
     o, d = origins.double(), dirs.double()
     n = len(o)
     t = torch.full((n,), float("inf"), dtype=torch.float64)
@@ -85,7 +86,8 @@ def slab(lo: Tensor, hi: Tensor, o: Tensor, inv: Tensor) -> tuple[Tensor, Tensor
 
 
 def nearest_box(lo: Tensor, hi: Tensor, o: Tensor, inv: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Entry distance, index and entry axis of the nearest box each ray enters from outside (inf if none)."""
+    """Entry distance, index and entry axis of the nearest box each ray enters from outside (inf if
+    none)."""
     t0 = (lo[None] - o[:, None]) * inv[:, None]  # (R, K, 3)
     t1 = (hi[None] - o[:, None]) * inv[:, None]
     t_near, axis = torch.minimum(t0, t1).max(dim=-1)

@@ -10,16 +10,26 @@ from torch import Tensor
 from model.scenes.synthetic.city import BUILDING, KIOSK, CityGeometry
 from model.scenes.synthetic.raycast import GROUND, SKY, raycast
 
-SUN = torch.tensor([math.cos(math.radians(40)) * math.cos(math.radians(135)),
-                    math.cos(math.radians(40)) * math.sin(math.radians(135)),
-                    math.sin(math.radians(40))], dtype=torch.float64)
+SUN = torch.tensor(
+    [
+        math.cos(math.radians(40)) * math.cos(math.radians(135)),
+        math.cos(math.radians(40)) * math.sin(math.radians(135)),
+        math.sin(math.radians(40)),
+    ],
+    dtype=torch.float64,
+)
 SUN_COLOUR = torch.tensor([1.0, 0.95, 0.85])
 SKY_AMBIENT = torch.tensor([0.55, 0.62, 0.75])
 
 
 def hash_noise(ijk: Tensor, salt: int = 0) -> Tensor:
     """Deterministic per-cell noise in [0, 1) from integer lattice coordinates."""
-    h = (ijk[..., 0] * 73856093) ^ (ijk[..., 1] * 19349663) ^ (ijk[..., 2] * 83492791) ^ (salt * 2654435761)
+    h = (
+        (ijk[..., 0] * 73856093)
+        ^ (ijk[..., 1] * 19349663)
+        ^ (ijk[..., 2] * 83492791)
+        ^ (salt * 2654435761)
+    )
     h = (h ^ (h >> 13)) * 1274126177
     return ((h ^ (h >> 16)) & 0xFFFF).float() / 65536.0
 
@@ -37,7 +47,8 @@ def sky(dirs: Tensor) -> Tensor:
 
 
 def ground_albedo(p: Tensor, geometry: CityGeometry) -> Tensor:
-    """Streets (asphalt, lane dashes), sidewalks, plazas with grass inside blocks, fields outside."""
+    """Streets (asphalt, lane dashes), sidewalks, plazas with grass inside blocks, fields
+    outside."""
     pr = geometry.preset
     half = geometry.extent / 2
     period = pr.block_size + pr.street_width
@@ -54,8 +65,10 @@ def ground_albedo(p: Tensor, geometry: CityGeometry) -> Tensor:
     asphalt = torch.tensor([0.22, 0.22, 0.24]) * (0.85 + 0.3 * fine)
     pavement = torch.tensor([0.58, 0.56, 0.52]) * (0.8 + 0.4 * fine)
     grass = torch.tensor([0.25, 0.45, 0.18]) * (0.7 + 0.6 * fine) * (0.85 + 0.3 * coarse)
-    field = (torch.tensor([0.45, 0.42, 0.22])
-             + torch.tensor([-0.2, 0.05, -0.05]) * hash_noise(lattice(p, 20.0), 3)[:, None])
+    field = (
+        torch.tensor([0.45, 0.42, 0.22])
+        + torch.tensor([-0.2, 0.05, -0.05]) * hash_noise(lattice(p, 20.0), 3)[:, None]
+    )
     field = field * (0.85 + 0.3 * fine)
     albedo = torch.where(inside[:, None], grass, field)
     albedo = torch.where(sidewalk[:, None], pavement, albedo)
@@ -65,8 +78,10 @@ def ground_albedo(p: Tensor, geometry: CityGeometry) -> Tensor:
     centre_y = (sy - pr.street_width / 2).abs() < 0.2
     dash_y = torch.remainder(y, 4.0) < 2.0
     dash_x = torch.remainder(x, 4.0) < 2.0
-    marking = inside & ((centre_x & in_street_x & ~in_street_y & dash_y)
-                        | (centre_y & in_street_y & ~in_street_x & dash_x))
+    marking = inside & (
+        (centre_x & in_street_x & ~in_street_y & dash_y)
+        | (centre_y & in_street_y & ~in_street_x & dash_x)
+    )
     return torch.where(marking[:, None], torch.tensor([0.9, 0.9, 0.85]), albedo)
 
 
@@ -80,9 +95,20 @@ def box_albedo(p: Tensor, normal: Tensor, box: Tensor, geometry: CityGeometry) -
     along = torch.where(normal[:, 0].abs() > 0.5, p[:, 1], p[:, 0])
     wu, wv = torch.remainder(along, 3.0), torch.remainder(p[:, 2], 3.2)
     window = (wu > 0.7) & (wu < 2.3) & (wv > 0.9) & (wv < 2.5) & (p[:, 2] > 1.0)
-    lit = hash_noise(torch.stack([torch.floor(along / 3.0).long(), torch.floor(p[:, 2] / 3.2).long(),
-                                  geometry.building[box]], -1), 5)[:, None]
-    glass = torch.tensor([0.12, 0.16, 0.24]) + 0.25 * (lit > 0.85).float() * torch.tensor([0.9, 0.8, 0.4])
+    lit = hash_noise(
+        torch.stack(
+            [
+                torch.floor(along / 3.0).long(),
+                torch.floor(p[:, 2] / 3.2).long(),
+                geometry.building[box],
+            ],
+            -1,
+        ),
+        5,
+    )[:, None]
+    glass = torch.tensor([0.12, 0.16, 0.24]) + 0.25 * (lit > 0.85).float() * torch.tensor(
+        [0.9, 0.8, 0.4]
+    )
     facade = torch.where(window[:, None], glass, base * (0.85 + 0.3 * fine))
     roof_colour = (0.55 * base + 0.2) * (0.75 + 0.5 * fine)
     albedo = torch.where(roof[:, None], roof_colour, facade)

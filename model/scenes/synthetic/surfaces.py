@@ -1,6 +1,6 @@
-"""Distances to the synthetic city's true surfaces (its boxes and the ground plane z = 0), for checking exported
-geometry in metres. Points come in the scene's source frame (Mega-NeRF's down-right-back metres,
-as `leco export` writes them)."""
+"""Distances to the synthetic city's true surfaces (its boxes and the ground plane z = 0), for
+checking exported geometry in metres. Points come in the scene's source frame (Mega-NeRF's
+down-right-back metres, as `leco export` writes them)."""
 
 from __future__ import annotations
 
@@ -18,8 +18,11 @@ def truth(scene_root: str | Path) -> tuple[np.ndarray, float]:
     return np.asarray(info["boxes"], dtype=np.float64), float(info["cell_size"])
 
 
-def distance_to_surfaces(points_drb: np.ndarray, boxes: np.ndarray, chunk: int = 4096) -> np.ndarray:
-    """Per point, metres to the nearest surface: a box's faces (from outside or inside) or the ground."""
+def distance_to_surfaces(
+    points_drb: np.ndarray, boxes: np.ndarray, chunk: int = 4096
+) -> np.ndarray:
+    """Per point, metres to the nearest surface: a box's faces (from outside or inside) or the
+    ground."""
     enu = points_drb @ DRB_FROM_ENU.numpy()  # drb = M enu, so enu = M^T drb: rows times M
     best = np.abs(enu[:, 2])
     lo, hi = boxes[:, 0], boxes[:, 1]
