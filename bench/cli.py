@@ -261,6 +261,9 @@ def add_commands(commands) -> None:
         "the scene's own scale; the paper uses 4 on Mega-NeRF scenes)",
     )
     bench.add_argument(
-        "--set", action="append", metavar="KEY=VALUE", help="profile override for every method"
+        "--set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="profile override for every method (`leco settings` lists them)",
     )
     bench.set_defaults(func=bench_command)

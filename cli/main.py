@@ -88,11 +88,13 @@ def build_parser() -> argparse.ArgumentParser:
     from bench.scale import add_commands as add_scale_commands
     from cli.render import add_commands as add_render_commands
     from cli.serve import add_commands as add_service_commands
+    from cli.settings import add_commands as add_settings_commands
     from cli.train import add_commands
 
     add_commands(commands)
     add_render_commands(commands)
     add_service_commands(commands)
+    add_settings_commands(commands)
     add_bench_commands(commands)
     add_load_commands(commands)
     add_scale_commands(commands)

@@ -265,7 +265,10 @@ def add_submit(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "it)",
     )
     sub.add_argument(
-        "--set", action="append", metavar="KEY=VALUE", help="profile override (repeatable)"
+        "--set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="profile override (repeatable; `leco settings` lists them)",
     )
     sub.add_argument("--no-follow", action="store_true", help="submit and return")
     sub.set_defaults(func=submit_command)

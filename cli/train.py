@@ -151,7 +151,8 @@ def add_commands(commands: argparse._SubParsersAction[argparse.ArgumentParser]) 
         "--set",
         action="append",
         metavar="KEY=VALUE",
-        help="override a profile setting, e.g. --set occupancy.steps=200 (repeatable)",
+        help="override a profile setting, e.g. --set occupancy.steps=200 (repeatable; `leco "
+        "settings` lists them)",
     )
     train.add_argument(
         "--backend",

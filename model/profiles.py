@@ -21,138 +21,265 @@ class Frozen(BaseModel):
 
 
 class NetworkConfig(Frozen):
-    width: int = Field(256, ge=8, le=2048)
-    num_experts: int = Field(8, ge=1, le=64)
-    expert_layers: int = Field(7, ge=1, le=16)
-    xyz_frequencies: int = Field(12, ge=0, le=24)
-    dir_frequencies: int = Field(4, ge=0, le=12)
-    appearance_dim: int = Field(48, ge=1, le=512)
-    capacity_factor: float | None = Field(None, gt=0, le=64)
-    # N(0, s) on raw density while training (Switch-NeRF)
-    density_noise: float = Field(1.0, ge=0, le=100)
+    """The main network: Switch-NeRF's mixture of scene experts behind a gate."""
+
+    width: int = Field(256, ge=8, le=2048, description="hidden units per expert layer")
+    num_experts: int = Field(8, ge=1, le=64, description="scene experts the gate chooses among")
+    expert_layers: int = Field(7, ge=1, le=16, description="hidden layers per scene expert")
+    xyz_frequencies: int = Field(
+        12, ge=0, le=24, description="positional-encoding frequencies of a point"
+    )
+    dir_frequencies: int = Field(
+        4, ge=0, le=12, description="positional-encoding frequencies of a view direction"
+    )
+    appearance_dim: int = Field(
+        48, ge=1, le=512, description="length of each image's appearance embedding"
+    )
+    capacity_factor: float | None = Field(
+        None,
+        gt=0,
+        le=64,
+        description="Switch-NeRF's expert capacity (points per expert, as a multiple of an even "
+        "share); None: no cap",
+    )
+    density_noise: float = Field(
+        1.0, ge=0, le=100, description="N(0, s) added to raw density while training (Switch-NeRF)"
+    )
 
 
 class BackgroundConfig(Frozen):
-    width: int = Field(128, ge=8, le=2048)
-    layers: int = Field(4, ge=1, le=16)
-    samples: int = Field(64, ge=1, le=1024)
+    """The background model: what lies outside the foreground box (Mega-NeRF's)."""
+
+    width: int = Field(128, ge=8, le=2048, description="hidden units per layer")
+    layers: int = Field(4, ge=1, le=16, description="hidden layers")
+    samples: int = Field(64, ge=1, le=1024, description="samples per ray beyond the box")
 
 
 class OccupancyPhaseConfig(Frozen):
-    """Phase 1 of LeCO: the HMoE and its losses (paper section 4.3)."""
+    """Phase 1 of LeCO: the HMoE and its losses (paper section 4.3). The settings after
+    `homogeneous` are not in the paper (docs/BENCHMARKS.md "ablation ladder"); their defaults keep
+    the paper's formulation."""
 
-    samples_per_ray: int = Field(512, ge=2, le=4096)
-    steps: int = Field(40_000, ge=1, le=MAX_STEPS)
-    lr: float = Field(5e-4, gt=0, le=LR_MAX)
-    lr_final: float | None = Field(None, gt=0, le=LR_MAX)  # decay to this by the phase's end;
-    # None: constant (the paper)
-    w_r: float = Field(1.0, ge=0, le=1e4)
-    w_g: float = Field(5e-4, ge=0, le=1e4)
-    # w_g decays log-linearly to this by the phase's end;
-    w_g_final: float | None = Field(None, ge=0, le=1e4)
-    # None: constant
-    w_d: float = Field(0.1, ge=0, le=1e4)
-    v: float = Field(80.0, gt=0, le=1e6)
-    homogeneous: bool = False
-    # E_e's size (the paper's Table 9): 0 is an identity layer (the paper's choice), N an N-layer
-    # MLP; homogeneous makes it a scene expert's size instead.
-    empty_expert_layers: int = Field(0, ge=0, le=16)
-    # Not in the paper (docs/BENCHMARKS.md "ablation ladder"); 0 / True keep the paper's
-    # formulation. visibility loss: visible samples (detached render weights) away from E_e
-    w_v: float = Field(0.0, ge=0, le=1e4)
-    # False: the rendering loss cannot raise E_e's gate (its value is detached)
-    empty_gate_grad: bool = True
-    # O's layers after the shared input layer; None: network.width
-    gate_width: int | None = Field(None, ge=8, le=2048)
-    # O's path: a ReLU after every hidden layer, not only between its inner two
-    gate_relu_every_layer: bool = False
-    # Under a wall-clock budget phase 1 stops at this share of it (or at `steps`, whichever comes
-    # first); the main phase gets the rest
-    budget_share: float = Field(0.25, gt=0, lt=1)
+    samples_per_ray: int = Field(512, ge=2, le=4096, description="HMoE samples per ray")
+    steps: int = Field(
+        40_000, ge=1, le=MAX_STEPS, description="phase-1 steps (a budget may stop it sooner)"
+    )
+    lr: float = Field(5e-4, gt=0, le=LR_MAX, description="Adam learning rate")
+    lr_final: float | None = Field(
+        None,
+        gt=0,
+        le=LR_MAX,
+        description="the lr decays to this by the phase's end; None: constant (the paper)",
+    )
+    w_r: float = Field(
+        1.0, ge=0, le=1e4, description="w_r: weight of the rendering loss L_r in the final loss L_f"
+    )
+    w_g: float = Field(
+        5e-4, ge=0, le=1e4, description="w_g: weight of the imbalanced gate loss L_g (Eq. 1) in L_f"
+    )
+    w_g_final: float | None = Field(
+        None,
+        ge=0,
+        le=1e4,
+        description="w_g decays log-linearly to this by the phase's end; None: constant",
+    )
+    w_d: float = Field(
+        0.1, ge=0, le=1e4, description="w_d: weight of the density loss L_d (Eq. 2) in L_f"
+    )
+    v: float = Field(80.0, gt=0, le=1e6, description="L_g counts E_e as v virtual experts (Eq. 1)")
+    homogeneous: bool = Field(
+        False, description="the empty expert is a scene expert's size (the paper's Table 9)"
+    )
+    empty_expert_layers: int = Field(
+        0,
+        ge=0,
+        le=16,
+        description="E_e's size (the paper's Table 9): 0 is an identity layer (the paper's "
+        "choice), N an N-layer MLP",
+    )
+    w_v: float = Field(
+        0.0,
+        ge=0,
+        le=1e4,
+        description="visibility loss: visible samples (detached render weights) pushed away from "
+        "E_e; 0: off",
+    )
+    empty_gate_grad: bool = Field(
+        True,
+        description="False: the rendering loss cannot raise E_e's gate (its value is detached)",
+    )
+    gate_width: int | None = Field(
+        None,
+        ge=8,
+        le=2048,
+        description="O's layers after the shared input layer; None: network.width",
+    )
+    gate_relu_every_layer: bool = Field(
+        False, description="O: a ReLU after every hidden layer, not only between its inner two"
+    )
+    budget_share: float = Field(
+        0.25,
+        gt=0,
+        lt=1,
+        description="under a wall-clock budget phase 1 stops at this share of it (or at `steps`); "
+        "the main phase gets the rest",
+    )
 
 
 class GuidedConfig(Frozen):
-    coarse_samples: int = Field(128, ge=1, le=4096)
-    split: int = Field(8, ge=1, le=64)
-    # Not in the paper; the defaults keep the paper's sampler and its from-scratch main network.
-    # while training, query O at a random point of each coarse bin, not its mid-point
-    jitter: bool = False
-    # also keep bins up to this many bins before / after a kept bin
-    dilate: int = Field(0, ge=0, le=64)
-    fallback: bool = False  # a ray with no kept bin samples every coarse bin once instead of none
-    # the main network starts from phase 1's experts, heads, background, embeddings
-    warm_start: bool = False
-    # After a warm start the main phase's lr rises linearly over this many steps (0: none). Adam's
-    # first steps move every weight by about lr whatever its gradient, which may undo what the warm
-    # start brought.
-    warm_start_ramp: int = Field(0, ge=0, le=10**6)
-    # keep p(E_e) < this; None: O's top-1 (the paper)
-    empty_threshold: float | None = Field(None, gt=0, le=1)
-    # nerfacc's early stop: a gradient-free pass drops samples the main field hides (T_i below
-    # this); None: off
-    cull_transmittance: float | None = Field(None, gt=0, lt=1)
-    # O keeps learning in the main phase from the main network's detached weights
-    # (model/online_occupancy.py)
-    online: bool = False
-    # ... a kept bin with this share of its ray's weight is a surface
-    online_surface: float = Field(0.05, gt=0, lt=1)
-    # ... O starts learning after this many main-phase steps
-    online_warmup: int = Field(500, ge=0, le=10**7)
-    # ... and then learns on every k-th step (its backward is not free)
-    online_every: int = Field(1, ge=1, le=1000)
-    # ... a kept bin is labelled free only on rays whose foreground opacity reaches this: where the
-    # foreground is semi-transparent the background is painting what it misses, and "free" would
-    # teach O to drop it (0: off)
-    online_free_opacity: float = Field(0.0, ge=0, le=1)
-    # O is asked at this many points of each coarse bin (stratified, jittered with `jitter`); a bin
-    # is kept when any is. 1: one point per bin (the paper's mid-point)
-    queries_per_bin: int = Field(1, ge=1, le=16)
-    # The main phase's background starts from phase 1's (with warm_start). Phase 1's background
-    # learned to paint what the HMoE's foreground missed (the ground of an aerial scene); False
-    # starts it fresh.
-    warm_start_background: bool = True
-    # ... and the main head's density layer starts from phase 1's (False: fresh, the colours still
-    # copied)
-    warm_start_density: bool = True
-    # With `fallback`, a ray with nothing kept gets O's k most likely bins (by its decision logit)
-    # instead of one sample in every coarse bin (0)
-    fallback_topk: int = Field(0, ge=0, le=4096)
-    # O places the samples (model/placement.py): a one-unit density head on O, trained by the
-    # interlevel loss against the main network's detached weights, and exactly `main_samples` per
-    # hit ray drawn by inverse CDF over the kept (dilated) bins, in place of `split` stratified
-    # samples per kept bin
-    placement: bool = False
-    main_samples: int = Field(21, ge=1, le=4096)
-    placement_loss_weight: float = Field(1.0, ge=0, le=1e4)
-    # added to every kept bin's weight (nerfstudio's padding)
-    placement_padding: float = Field(0.01, ge=0, le=1)
-    # uniform -> O's weights (nerfstudio's anneal)
-    placement_anneal_steps: int = Field(500, ge=0, le=MAX_STEPS)
-    # A kept bin whose share of O's (annealed) histogram on its ray is below this gets no sample: O
-    # expects almost none of the ray's weight there (0: every kept bin may get one, by its padded
-    # share)
-    placement_min_share: float = Field(0.0, ge=0, lt=1)
-    # ... and the head already learns in phase 1, against the HMoE's own detached weights, so the
-    # main phase starts with a histogram that knows the scene
-    placement_in_phase1: bool = False
-    # ... in two passes (model/fine_placement.py): the coarse histogram places this many
-    # intermediate intervals, O's head is asked at their mid-points, and the main samples follow
-    # that finer histogram (0: one pass, the main samples spread evenly inside each kept bin's
-    # share)
-    placement_fine: int = Field(0, ge=0, le=1024)
-    # O's placement losses (both passes) on every k-th main-phase step; on the others O places the
-    # samples without gradient, as S+Prop's proposals do between updates (with `online_every` = k,
-    # O's whole learning)
-    placement_every: int = Field(1, ge=1, le=1000)
-    # This share of each hit ray's main samples goes to the bins O dropped, by length
-    # (model/placement.py `explored`), so the main network can show O a surface it dropped (0:
-    # samples only in kept bins)
-    placement_explore: float = Field(0.0, ge=0, lt=1)
-    # How a kept bin's share of the samples spreads inside it (model/placement.py
-    # `within_bin_shares`): evenly (uniform), by a density linear across the bin from its
-    # neighbours' (linear), or as O's constant density in the bin puts its weight by volume
-    # rendering, towards the front of an opaque bin (volume)
-    placement_within: Literal["uniform", "linear", "volume"] = "uniform"
+    """The main phase of LeCO: how O guides Switch-NeRF's samples. Only `coarse_samples` and `split`
+    are the paper's; the defaults of the rest keep the paper's sampler and its from-scratch main
+    network (docs/BENCHMARKS.md measures each)."""
+
+    coarse_samples: int = Field(
+        128, ge=1, le=4096, description="coarse bins per ray, each one query of O"
+    )
+    split: int = Field(
+        8, ge=1, le=64, description="stratified main samples per kept bin (without placement)"
+    )
+    jitter: bool = Field(
+        False,
+        description="while training, query O at a random point of each coarse bin, not its "
+        "mid-point",
+    )
+    dilate: int = Field(
+        0, ge=0, le=64, description="also keep bins up to this many bins before / after a kept bin"
+    )
+    fallback: bool = Field(
+        False, description="a ray with no kept bin samples every coarse bin once instead of none"
+    )
+    warm_start: bool = Field(
+        False,
+        description="the main network starts from phase 1's experts, heads, background and "
+        "embeddings",
+    )
+    warm_start_ramp: int = Field(
+        0,
+        ge=0,
+        le=10**6,
+        description="after a warm start the main phase's lr rises linearly over this many steps "
+        "(0: none); Adam's first steps move every weight by about lr",
+    )
+    empty_threshold: float | None = Field(
+        None, gt=0, le=1, description="keep a bin where p(E_e) < this; None: O's top-1 (the paper)"
+    )
+    cull_transmittance: float | None = Field(
+        None,
+        gt=0,
+        lt=1,
+        description="nerfacc's early stop: a gradient-free pass drops samples the main field hides "
+        "(T_i below this); None: off",
+    )
+    online: bool = Field(
+        False,
+        description="O keeps learning in the main phase from the main network's detached weights "
+        "(model/online_occupancy.py)",
+    )
+    online_surface: float = Field(
+        0.05,
+        gt=0,
+        lt=1,
+        description="online: a kept bin with this share of its ray's weight is a surface",
+    )
+    online_warmup: int = Field(
+        500, ge=0, le=10**7, description="online: O starts learning after this many main steps"
+    )
+    online_every: int = Field(
+        1,
+        ge=1,
+        le=1000,
+        description="online: O learns on every k-th step (its backward is not free)",
+    )
+    online_free_opacity: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="online: a kept bin is labelled free only on rays whose foreground opacity "
+        "reaches this, so O is not taught to drop what the background paints (0: off)",
+    )
+    queries_per_bin: int = Field(
+        1,
+        ge=1,
+        le=16,
+        description="O is asked at this many points of each coarse bin and a bin is kept when any "
+        "is (1: the paper's mid-point)",
+    )
+    warm_start_background: bool = Field(
+        True,
+        description="with warm_start, the main phase's background starts from phase 1's, which "
+        "learned to paint what the HMoE missed; False: fresh",
+    )
+    warm_start_density: bool = Field(
+        True,
+        description="with warm_start, the main head's density layer starts from phase 1's "
+        "(False: fresh; the colours are still copied)",
+    )
+    fallback_topk: int = Field(
+        0,
+        ge=0,
+        le=4096,
+        description="with fallback, a ray with nothing kept gets O's k most likely bins instead of "
+        "one sample in every coarse bin (0)",
+    )
+    placement: bool = Field(
+        False,
+        description="O places the samples (model/placement.py): a density head on O trained by the "
+        "interlevel loss, `main_samples` per hit ray by inverse CDF over the kept bins",
+    )
+    main_samples: int = Field(21, ge=1, le=4096, description="placement: main samples per hit ray")
+    placement_loss_weight: float = Field(
+        1.0, ge=0, le=1e4, description="placement: weight of the interlevel loss on O"
+    )
+    placement_padding: float = Field(
+        0.01,
+        ge=0,
+        le=1,
+        description="placement: added to every kept bin's weight (nerfstudio's histogram padding)",
+    )
+    placement_anneal_steps: int = Field(
+        500,
+        ge=0,
+        le=MAX_STEPS,
+        description="placement: steps from uniform to O's weights (nerfstudio's anneal)",
+    )
+    placement_min_share: float = Field(
+        0.0,
+        ge=0,
+        lt=1,
+        description="placement: a kept bin with less than this share of O's histogram on its ray "
+        "gets no sample (0: every kept bin may get one)",
+    )
+    placement_in_phase1: bool = Field(
+        False,
+        description="placement: the head already learns in phase 1, against the HMoE's detached "
+        "weights",
+    )
+    placement_fine: int = Field(
+        0,
+        ge=0,
+        le=1024,
+        description="placement in two passes (model/fine_placement.py): this many intermediate "
+        "intervals asked of O again (0: one pass)",
+    )
+    placement_every: int = Field(
+        1,
+        ge=1,
+        le=1000,
+        description="placement: O's placement losses on every k-th main step; on the others it "
+        "places without gradient, as S+Prop's proposals do",
+    )
+    placement_explore: float = Field(
+        0.0,
+        ge=0,
+        lt=1,
+        description="placement: this share of each hit ray's samples goes to the bins O dropped, "
+        "by length (0: samples only in kept bins)",
+    )
+    placement_within: Literal["uniform", "linear", "volume"] = Field(
+        "uniform",
+        description="placement: how a kept bin's samples spread inside it: evenly, by a density "
+        "linear from its neighbours', or by volume rendering of O's density in the bin",
+    )
 
     @model_validator(mode="after")
     def options_need_their_switch(self) -> "GuidedConfig":
@@ -207,39 +334,85 @@ class GuidedConfig(Frozen):
 
 
 class VanillaConfig(Frozen):
-    coarse_samples: int = Field(256, ge=2, le=4096)
-    fine_samples: int = Field(512, ge=0, le=8192)
+    """Switch-NeRF's own sampler: Mega-NeRF's coarse/fine hierarchical sampling."""
+
+    coarse_samples: int = Field(256, ge=2, le=4096, description="coarse samples per ray")
+    fine_samples: int = Field(
+        512, ge=0, le=8192, description="fine samples per ray, by the coarse weights"
+    )
 
 
 class GridConfig(Frozen):
-    resolution: int = Field(128, ge=4, le=512)
-    update_every: int = Field(16, ge=1, le=MAX_STEPS)
-    decay: float = Field(0.95, gt=0, lt=1)
-    threshold: float = Field(0.01, gt=0, le=1e6)
-    warmup_steps: int = Field(256, ge=0, le=MAX_STEPS)
-    # samples across the box diagonal: sets the marching step size
-    march_steps: int = Field(1024, ge=8, le=16384)
+    """S+Grid: an Instant-NGP-style occupancy grid (nerfacc's OccGridEstimator)."""
+
+    resolution: int = Field(128, ge=4, le=512, description="cells per side of the grid")
+    update_every: int = Field(
+        16, ge=1, le=MAX_STEPS, description="steps between updates of the grid's densities"
+    )
+    decay: float = Field(0.95, gt=0, lt=1, description="EMA decay of a cell's density per update")
+    threshold: float = Field(
+        0.01, gt=0, le=1e6, description="a cell whose density reaches this is occupied"
+    )
+    warmup_steps: int = Field(
+        256, ge=0, le=MAX_STEPS, description="steps during which every cell is updated"
+    )
+    march_steps: int = Field(
+        1024,
+        ge=8,
+        le=16384,
+        description="samples across the box diagonal: sets the marching step size",
+    )
 
 
 class ProposalConfig(Frozen):
     """S+Prop (model/methods/prop.py): proposal networks in place of Switch-NeRF's coarse/fine
     sampling."""
 
-    # per proposal level (nerfacto's)
-    samples: tuple[int, ...] = Field((256, 96), min_length=1, max_length=4)
-    # Main-network samples per ray, set to LeCO's at the same profile (docs/PROFILES.md says how).
-    main_samples: int = Field(148, ge=1, le=4096)
-    # None: sized so all levels total LeCO's O (model/methods/prop.py)
-    width: int | None = Field(None, ge=4, le=2048)
-    layers: int = Field(2, ge=1, le=8)
-    anneal_slope: float = Field(10.0, gt=0, le=1e3)  # nerfstudio's proposal_weights_anneal_slope
-    # ... and proposal_weights_anneal_max_num_iters
-    anneal_steps: int = Field(1000, ge=0, le=MAX_STEPS)
-    # nerfacc's get_proposal_requires_grad_fn(target=5, num_steps=1000)
-    update_every: int = Field(5, ge=1, le=1000)
-    update_warmup: int = Field(1000, ge=0, le=MAX_STEPS)
-    histogram_padding: float = Field(0.01, ge=0, le=1)  # nerfstudio's PDFSampler default
-    loss_weight: float = Field(1.0, ge=0, le=1e4)  # nerfstudio's interlevel_loss_mult
+    samples: tuple[int, ...] = Field(
+        (256, 96),
+        min_length=1,
+        max_length=4,
+        description="samples per proposal level (nerfacto's)",
+    )
+    main_samples: int = Field(
+        148,
+        ge=1,
+        le=4096,
+        description="main-network samples per ray, set to LeCO's at the same profile "
+        "(docs/PROFILES.md)",
+    )
+    width: int | None = Field(
+        None,
+        ge=4,
+        le=2048,
+        description="hidden units; None: sized so all levels total LeCO's O",
+    )
+    layers: int = Field(2, ge=1, le=8, description="hidden layers per proposal network")
+    anneal_slope: float = Field(
+        10.0, gt=0, le=1e3, description="nerfstudio's proposal_weights_anneal_slope"
+    )
+    anneal_steps: int = Field(
+        1000,
+        ge=0,
+        le=MAX_STEPS,
+        description="nerfstudio's proposal_weights_anneal_max_num_iters",
+    )
+    update_every: int = Field(
+        5,
+        ge=1,
+        le=1000,
+        description="the proposals learn on every k-th step after the warm-up (nerfacc's "
+        "get_proposal_requires_grad_fn)",
+    )
+    update_warmup: int = Field(
+        1000, ge=0, le=MAX_STEPS, description="steps during which the proposals learn every step"
+    )
+    histogram_padding: float = Field(
+        0.01, ge=0, le=1, description="nerfstudio's PDFSampler histogram padding"
+    )
+    loss_weight: float = Field(
+        1.0, ge=0, le=1e4, description="weight of the interlevel loss (interlevel_loss_mult)"
+    )
 
     @field_validator("samples")
     @classmethod
@@ -250,7 +423,9 @@ class ProposalConfig(Frozen):
 
 
 class Profile(Frozen):
-    name: str
+    """Sizes and sampling of every method at one scale; a job may override any field."""
+
+    name: str = Field(description="the profile's name (paper, cpu, smoke)")
     network: NetworkConfig = NetworkConfig()
     background: BackgroundConfig = BackgroundConfig()
     occupancy: OccupancyPhaseConfig = OccupancyPhaseConfig()
@@ -258,14 +433,25 @@ class Profile(Frozen):
     vanilla: VanillaConfig = VanillaConfig()
     grid: GridConfig = GridConfig()
     prop: ProposalConfig = ProposalConfig()
-    rays_per_device: int = Field(1024, ge=1, le=65536)
-    # Switch-NeRF (guided or not) steps after any occupancy phase
-    main_steps: int = Field(500_000, ge=1, le=MAX_STEPS)
-    balance_weight: float = Field(5e-4, ge=0, le=1e4)  # Switch-NeRF's balance loss
-    # jittered samples while training; off makes a step deterministic given the rays
-    perturb: bool = True
-    lr: float = Field(5e-4, gt=0, le=LR_MAX)
-    lr_final: float = Field(5e-5, gt=0, le=LR_MAX)
+    rays_per_device: int = Field(1024, ge=1, le=65536, description="rays per step per worker")
+    main_steps: int = Field(
+        500_000,
+        ge=1,
+        le=MAX_STEPS,
+        description="Switch-NeRF steps (guided or not) after any occupancy phase",
+    )
+    balance_weight: float = Field(
+        5e-4, ge=0, le=1e4, description="weight of Switch-NeRF's balance loss"
+    )
+    perturb: bool = Field(
+        True,
+        description="jittered samples while training; off makes a step deterministic given the "
+        "rays",
+    )
+    lr: float = Field(5e-4, gt=0, le=LR_MAX, description="the main phase's Adam learning rate")
+    lr_final: float = Field(
+        5e-5, gt=0, le=LR_MAX, description="the main phase's lr decays to this by its end"
+    )
 
 
 PROFILES: dict[str, Profile] = {
@@ -339,3 +525,20 @@ def get_profile(name: str) -> Profile:
     if name not in PROFILES:
         raise ValueError(f"unknown profile {name!r}: choose one of {', '.join(PROFILES)}")
     return PROFILES[name]
+
+
+def settings(profile: Profile) -> list[tuple[str, object, str]]:
+    """Every setting of a profile by its dotted key (what `--set` and a job's overrides take), with
+    its value there and its description."""
+    rows: list[tuple[str, object, str]] = []
+
+    def walk(section: BaseModel, prefix: str) -> None:
+        for name, field in type(section).model_fields.items():
+            value = getattr(section, name)
+            if isinstance(value, BaseModel):
+                walk(value, f"{prefix}{name}.")
+            elif name != "name":
+                rows.append((prefix + name, value, field.description or ""))
+
+    walk(profile, "")
+    return rows

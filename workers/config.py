@@ -26,38 +26,86 @@ class TrainConfig(BaseModel):
     # Validated against the registry (model/methods/registry.py) when the config is made, so a
     # method registered later (a plug-in, a test's toy method) is accepted; the enum tells API
     # clients the built-in ones.
-    method: str = Field(json_schema_extra={"enum": list(METHODS)}, max_length=64)
-    # Validated below (with a message naming the profiles); the enum tells API clients and the fuzz
-    # the choices.
-    profile: str = Field("cpu", json_schema_extra={"enum": list(PROFILES)})
-    overrides: dict[str, Any] = Field(default_factory=dict)
-    workers: int = Field(1, ge=1, le=MAX_WORKERS)
-    use_gpu: bool = False
-    # wall-clock budget for the whole run (both phases)
-    budget_min: float | None = Field(None, gt=0, le=7 * 24 * 60)
-    seed: int = Field(0, ge=0, le=2**31 - 1)
-    # Integer factor applied to images and intrinsics for training and evaluation alike (None: the
-    # scene's own scale; for LLFF its smallest images_N folder). The paper trains and scores
-    # Mega-NeRF scenes at 4.
-    downscale: int | None = Field(None, ge=1, le=64)
-    checkpoint_every: int = Field(200, ge=1, le=MAX_STEPS)
-    metrics_every: int = Field(10, ge=1, le=MAX_STEPS)
-    # Validation renders during training (None: only at the end); at least every 10 steps, or it
-    # only renders.
-    val_every: int | None = Field(None, ge=10, le=MAX_STEPS)
-    # Validation PSNR/SSIM (and occupancy metrics while one is learned) every this many seconds of
-    # training time and at each phase's end; not counted as training time
-    # (workers/periodic_eval.py).
-    eval_every_s: float | None = Field(None, gt=0, le=86_400)
-    eval_views: int = Field(4, ge=1, le=1000)
-    # Validation protocol (workers/appearance.py): right halves scored, appearance embeddings fitted
-    # on the left halves for this many steps with the networks frozen (0: the mean of the training
-    # embeddings).
-    val_appearance_steps: int = Field(32, ge=0, le=1000)
-    # worker-group restarts Ray Train may make from the last checkpoint
-    max_failures: int = Field(3, ge=0, le=100)
-    # consecutive skipped steps before the run fails
-    max_nonfinite_steps: int = Field(20, ge=1, le=10_000)
+    method: str = Field(
+        json_schema_extra={"enum": list(METHODS)},
+        max_length=64,
+        description="the method to train (GET /v1/methods lists them)",
+    )
+    profile: str = Field(
+        "cpu",
+        json_schema_extra={"enum": list(PROFILES)},
+        description="the size profile whose settings the run starts from (docs/PROFILES.md)",
+    )
+    overrides: dict[str, Any] = Field(
+        default_factory=dict,
+        description='profile settings by dotted key, e.g. {"occupancy.steps": 200} '
+        "(`leco settings` lists them)",
+    )
+    workers: int = Field(
+        1,
+        ge=1,
+        le=MAX_WORKERS,
+        description="data-parallel workers, each with its share of the rays",
+    )
+    use_gpu: bool = Field(False, description="one GPU per worker (CUDA)")
+    budget_min: float | None = Field(
+        None,
+        gt=0,
+        le=7 * 24 * 60,
+        description="wall-clock budget for the whole run (both phases), in minutes; None: the "
+        "profile's steps",
+    )
+    seed: int = Field(0, ge=0, le=2**31 - 1, description="seeds weights, rays and samples")
+    downscale: int | None = Field(
+        None,
+        ge=1,
+        le=64,
+        description="integer factor applied to images and intrinsics for training and evaluation "
+        "alike (None: the scene's own scale; for LLFF its smallest images_N folder); the paper "
+        "uses 4 on Mega-NeRF scenes",
+    )
+    checkpoint_every: int = Field(
+        200, ge=1, le=MAX_STEPS, description="steps between checkpoints (a restart resumes there)"
+    )
+    metrics_every: int = Field(
+        10, ge=1, le=MAX_STEPS, description="steps between rows of the metrics log"
+    )
+    val_every: int | None = Field(
+        None,
+        ge=10,
+        le=MAX_STEPS,
+        description="steps between validation renders (None: only at the end)",
+    )
+    eval_every_s: float | None = Field(
+        None,
+        gt=0,
+        le=86_400,
+        description="validation PSNR/SSIM (and occupancy metrics while one is learned) every this "
+        "many seconds of training time and at each phase's end; not counted as training time",
+    )
+    eval_views: int = Field(
+        4, ge=1, le=1000, description="validation views each periodic evaluation renders"
+    )
+    val_appearance_steps: int = Field(
+        32,
+        ge=0,
+        le=1000,
+        description="validation protocol: right halves scored, appearance embeddings fitted on the "
+        "left halves for this many steps with the networks frozen (0: the training embeddings' "
+        "mean)",
+    )
+    max_failures: int = Field(
+        3,
+        ge=0,
+        le=100,
+        description="worker-group restarts Ray Train may make from the last checkpoint",
+    )
+    max_nonfinite_steps: int = Field(
+        20,
+        ge=1,
+        le=10_000,
+        description="consecutive skipped (non-finite) steps before the run fails",
+    )
 
     @field_validator("method")
     @classmethod
@@ -86,7 +134,7 @@ class TrainConfig(BaseModel):
                     raise ValueError(f"override {key!r}: {part!r} is not a section of the profile")
                 node = node[part]
             if parts[-1] not in node or isinstance(node[parts[-1]], dict):
-                raise ValueError(f"override {key!r}: no such setting in the profile")
+                raise ValueError(f"override {key!r}: no such setting in the profile{near(key)}")
             node[parts[-1]] = value
         try:
             return Profile.model_validate(data)
@@ -110,6 +158,17 @@ class TrainConfig(BaseModel):
 
     def phase_steps(self, phase: str) -> int:
         return get_method(self.method).steps(self.resolved_profile(), phase)
+
+
+def near(key: str) -> str:
+    """A hint naming the settings closest to a mistyped key (`leco settings` lists them all)."""
+    from difflib import get_close_matches
+
+    from model.profiles import settings
+
+    keys = [k for k, _, _ in settings(PROFILES["cpu"])]
+    close = get_close_matches(key, keys, n=3, cutoff=0.85)
+    return f" (did you mean {' or '.join(close)}?)" if close else " (`leco settings` lists them)"
 
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:

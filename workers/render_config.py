@@ -37,19 +37,21 @@ class RenderConfig(BaseModel):
 
     model_config = STRICT
 
-    width: int = Field(320, ge=16, le=MAX_SIDE)
-    height: int = Field(240, ge=16, le=MAX_SIDE)
+    width: int = Field(320, ge=16, le=MAX_SIDE, description="frame width in pixels (even)")
+    height: int = Field(240, ge=16, le=MAX_SIDE, description="frame height in pixels (even)")
     frames: int = Field(
         120, ge=2, le=MAX_FRAMES, description="of a generated path; a user path has one per camera"
     )
-    fps: float = Field(24.0, ge=1, le=60)
+    fps: float = Field(24.0, ge=1, le=60, description="frames per second of the video")
     appearance: Literal["mean"] | Annotated[int, Field(ge=0, le=2**31 - 1)] = Field(
         "mean",
         description="'mean' of the training views' appearance embeddings, or a training image's "
         "index",
     )
-    depth_video: bool = False
-    path: path_type() = Field(default_factory=OrbitPath)  # type: ignore[valid-type]  # the registry's kinds
+    depth_video: bool = Field(False, description="also a depth video, near light and far dark")
+    path: path_type() = Field(  # type: ignore[valid-type]  # the registry's kinds
+        default_factory=OrbitPath, description="the camera path, one of GET /v1/camera-paths"
+    )
 
     @field_validator("width", "height")
     @classmethod
@@ -108,10 +110,18 @@ class ViewRequest(BaseModel):
     model_config = STRICT
 
     camera: Camera
-    frame: Literal["world", "source"] = "world"
-    width: int = Field(160, ge=8, le=MAX_VIEW_SIDE)
-    height: int = Field(120, ge=8, le=MAX_VIEW_SIDE)
-    appearance: Literal["mean"] | Annotated[int, Field(ge=0, le=2**31 - 1)] = "mean"
+    frame: Literal["world", "source"] = Field(
+        "world",
+        description="the camera's frame: the normalised world (the dashboard's) or the dataset's "
+        "own",
+    )
+    width: int = Field(160, ge=8, le=MAX_VIEW_SIDE, description="image width in pixels")
+    height: int = Field(120, ge=8, le=MAX_VIEW_SIDE, description="image height in pixels")
+    appearance: Literal["mean"] | Annotated[int, Field(ge=0, le=2**31 - 1)] = Field(
+        "mean",
+        description="'mean' of the training views' appearance embeddings, or a training image's "
+        "index",
+    )
     depth: bool = Field(False, description="a depth image instead of colour")
 
     @field_validator("height")
@@ -128,7 +138,9 @@ class ExportConfig(BaseModel):
 
     model_config = STRICT
 
-    what: Literal["pointcloud", "cameras", "occupancy"]
+    what: Literal["pointcloud", "cameras", "occupancy"] = Field(
+        description="a point cloud of the surfaces, the cameras, or the occupancy's kept cells"
+    )
     # pointcloud: expected-depth points of training and validation pixels whose rays are nearly
     # opaque
     stride: int = Field(1, ge=1, le=64, description="every stride-th pixel along rows and columns")
@@ -140,4 +152,4 @@ class ExportConfig(BaseModel):
     )
     # occupancy: the cells of a regular grid over the foreground box that the method's occupancy
     # keeps
-    resolution: int = Field(128, ge=8, le=512)
+    resolution: int = Field(128, ge=8, le=512, description="occupancy: cells per side of the grid")

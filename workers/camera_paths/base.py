@@ -47,12 +47,12 @@ class Camera(BaseModel):
     model_config = STRICT
 
     c2w: list[Annotated[list[Finite], Field(min_length=4, max_length=4)]] = Field(
-        min_length=3, max_length=4
+        min_length=3, max_length=4, description="camera-to-world, 3x4 or 4x4, row by row"
     )
     intrinsics: (
         Annotated[list[Annotated[float, Field(gt=0, le=1e6)]], Field(min_length=4, max_length=4)]
         | None
-    ) = None
+    ) = Field(None, description="fx, fy, cx, cy in pixels at the path's size")
     fov_deg: float = Field(
         50.0, gt=1, lt=170, description="vertical field of view, used without intrinsics"
     )

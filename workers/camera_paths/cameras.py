@@ -17,20 +17,26 @@ if TYPE_CHECKING:
 
 class CamerasPath(PathKind):
     kind: Literal["cameras"] = "cameras"
-    frame: Literal["source", "world"] = "source"
+    frame: Literal["source", "world"] = Field(
+        "source", description="the cameras' frame: the dataset's own or the normalised world"
+    )
     width: int | None = Field(
         None,
         ge=1,
         le=8192,
         description="the size the intrinsics are given at (default: the render's)",
     )
-    height: int | None = Field(None, ge=1, le=8192)
+    height: int | None = Field(
+        None, ge=1, le=8192, description="the height the intrinsics are given at"
+    )
     interpolate: bool = Field(
         False,
         description="the cameras are keyframes: render `frames` frames through them (evenly along "
         "the path, rotations interpolated); else one frame per camera",
     )
-    cameras: list[Camera] = Field(min_length=1, max_length=MAX_FRAMES)
+    cameras: list[Camera] = Field(
+        min_length=1, max_length=MAX_FRAMES, description="one per frame, or keyframes"
+    )
 
     @field_validator("cameras")
     @classmethod

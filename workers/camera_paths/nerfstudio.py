@@ -31,10 +31,18 @@ class NerfstudioFrame(BaseModel):
 class NerfstudioPath(PathKind):
     model_config = ConfigDict(frozen=True, extra="ignore", allow_inf_nan=False)
     kind: Literal["nerfstudio"] = "nerfstudio"
-    camera_type: Literal["perspective"] = "perspective"
-    render_width: int | None = Field(None, ge=1, le=8192)
-    render_height: int | None = Field(None, ge=1, le=8192)
-    camera_path: list[NerfstudioFrame] = Field(min_length=1, max_length=MAX_FRAMES)
+    camera_type: Literal["perspective"] = Field(
+        "perspective", description="the one camera model read"
+    )
+    render_width: int | None = Field(
+        None, ge=1, le=8192, description="its size (default: the render's)"
+    )
+    render_height: int | None = Field(
+        None, ge=1, le=8192, description="its size (default: the render's)"
+    )
+    camera_path: list[NerfstudioFrame] = Field(
+        min_length=1, max_length=MAX_FRAMES, description="one camera per frame"
+    )
 
     def frame_count(self) -> int | None:
         return len(self.camera_path)

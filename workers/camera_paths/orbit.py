@@ -26,7 +26,7 @@ class OrbitPath(PathKind):
         description="above the foreground box's centre, in the dataset's units (metres where it "
         "has them); default: the box fills the view",
     )
-    turns: float = Field(1.0, gt=0, le=10)
+    turns: float = Field(1.0, gt=0, le=10, description="times around the box")
     fov_deg: float = Field(50.0, gt=1, lt=170, description="vertical field of view")
 
     @model_validator(mode="after")

@@ -16,7 +16,7 @@ if TYPE_CHECKING:
 class SpiralPath(PathKind):
     kind: Literal["spiral"] = "spiral"
     generated = True
-    turns: float = Field(2.0, gt=0, le=10)
+    turns: float = Field(2.0, gt=0, le=10, description="turns of the spiral")
     spread: float = Field(
         1.0, gt=0, le=10, description="radius against the training cameras' spread"
     )
