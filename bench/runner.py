@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench.variants import Variant
+from model.errors import Failed
 from model.profiles import MAX_STEPS
 from workers.config import TrainConfig
 from workers.sinks import read_metrics
@@ -22,7 +23,7 @@ UNBOUNDED_STEPS = MAX_STEPS  # with a budget, the clock ends the run, not a step
 CHECKPOINT_EVERY = 1000  # checkpoints are not training time, but they are wall time: keep them rare
 
 
-class BenchError(RuntimeError):
+class BenchError(Failed):
     pass
 
 

@@ -102,14 +102,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# What the command line returns for each kind of error (model/errors.py); a traceback means a bug.
+EXIT_CODES = {"invalid": 2, "conflict": 2, "busy": 3, "unavailable": 3, "failed": 2}
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from pydantic import ValidationError
 
-    from cli.submit import ClientError
-    from model.scenes.errors import SceneError
-    from service.db import SchemaError
-    from workers.run import RunError
+    from model.errors import LecoError
 
     try:
         return args.func(args)
@@ -119,15 +120,10 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(f"leco: error: invalid job config: {problems}", file=sys.stderr)
         return 2
-    except (
-        SceneError,
-        FileExistsError,
-        FileNotFoundError,
-        ValueError,
-        RunError,
-        SchemaError,
-        ClientError,
-    ) as exc:
+    except LecoError as exc:
+        print(f"leco: error: {exc}", file=sys.stderr)
+        return EXIT_CODES[exc.kind]
+    except (FileExistsError, FileNotFoundError, ValueError) as exc:  # a path or value given
         print(f"leco: error: {exc}", file=sys.stderr)
         return 2
 

@@ -13,13 +13,14 @@ import uuid
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
+from model.errors import Failed
 from service.settings import TOKEN_FILE
 
 if TYPE_CHECKING:
     import httpx  # imported where used at run time, so the CLI starts without it
 
 
-class ClientError(RuntimeError):
+class ClientError(Failed):
     pass
 
 

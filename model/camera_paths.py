@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from model.errors import InvalidInput
 from model.rotation import rotation_problem
 from model.scenes.cameras import Cameras, make_cameras
 from model.scenes.scene import Normalization, Scene
@@ -27,7 +28,7 @@ from model.scenes.scene import Normalization, Scene
 UP = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
 
 
-class PathError(ValueError):
+class PathError(InvalidInput):
     """A camera path that cannot be rendered; `field` names what is wrong (e.g.
     `path.cameras.3.c2w`)."""
 

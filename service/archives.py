@@ -21,8 +21,10 @@ from functools import partial
 from pathlib import Path
 from typing import IO, Callable, Iterator
 
+from model.errors import InvalidInput
 
-class ArchiveError(ValueError):
+
+class ArchiveError(InvalidInput):
     """An archive a user uploaded that we refuse, with a message naming the member and what is
     wrong."""
 

@@ -16,6 +16,7 @@ from sqlalchemy import Connection, Engine, create_engine, event
 from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
+from model.errors import Failed, Unavailable
 from workers.store import StoreWriteError
 
 if TYPE_CHECKING:
@@ -33,7 +34,7 @@ UNAVAILABLE = (OperationalError, InterfaceError)
 MIGRATIONS = Path(__file__).resolve().parents[1] / "migrations"
 
 
-class SchemaError(RuntimeError):
+class SchemaError(Failed):
     """The database is not at the schema this code needs; the message says what to run."""
 
 
@@ -97,7 +98,7 @@ def reading(url: str) -> Iterator[Session]:
         yield session
 
 
-class DatabaseUnavailable(StoreWriteError):
+class DatabaseUnavailable(Unavailable, StoreWriteError):
     """The database did not answer within the retry budget."""
 
     retryable = True

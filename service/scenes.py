@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 from sqlalchemy import select
 
+from model.errors import Conflict
 from service.db import transaction
 from service.settings import Settings
 from service.tables import Scene
@@ -25,7 +26,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("leco.scenes")
 
 
-class SceneConflict(ValueError):
+class SceneConflict(Conflict):
     pass
 
 

@@ -15,15 +15,17 @@ from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from typing import Any, Callable, Iterator
 
+from model import errors
+
 RETRY_AFTER_S = 10
 NICE = 10  # the pool's processes' niceness, added to the API process's
 
 
-class Busy(RuntimeError):
-    pass
+class Busy(errors.Busy):
+    """Every worker process of the pool is taken."""
 
 
-class WorkerLost(RuntimeError):
+class WorkerLost(errors.Unavailable):
     """The process running the work stopped (killed, most likely out of memory) before it
     answered."""
 

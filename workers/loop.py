@@ -20,6 +20,7 @@ from typing import Any
 
 import torch
 
+from model.errors import Failed
 from model.methods.base import method_state
 from model.scenes import RaySampler, load_scene
 from model.schedules import phase_progress
@@ -41,11 +42,11 @@ from workers.store import RunStore, StoreWriteError
 from workers.validation import write_validation_renders
 
 
-class NonFiniteRun(RuntimeError):
-    pass
+class NonFiniteRun(Failed):
+    """Too many consecutive steps were not finite (`max_nonfinite_steps`)."""
 
 
-class StoreFailed(RuntimeError):
+class StoreFailed(Failed):
     """Rank 0 could not write to the launcher's store (StoreWriteError); every rank stops at a step
     boundary."""
 
@@ -54,7 +55,7 @@ class StoreFailed(RuntimeError):
         self.retryable = retryable
 
 
-class RunStopped(RuntimeError):
+class RunStopped(Failed):
     """The launcher asked the run to stop (a cancel, a lost lease); it stopped at a step boundary
     after a checkpoint."""
 

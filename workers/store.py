@@ -7,8 +7,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Protocol
 
+from model.errors import Failed
 
-class StoreWriteError(RuntimeError):
+
+class StoreWriteError(Failed):
     """A write the store cannot make, and retrying would not help (disk full, an unwritable artifact
     root, the database away for longer than its retries): the run stops on every rank at the next
     step boundary, keeping its last checkpoint, and fails with this reason. `retryable` errors are
@@ -18,12 +20,12 @@ class StoreWriteError(RuntimeError):
     retryable = False
 
 
-class StopRequested(RuntimeError):
+class StopRequested(Failed):
     """A job's work stopped because its store asked it to (`stop_reason`): cancelled, or its lease
     lost."""
 
 
-class RunError(RuntimeError):
+class RunError(Failed):
     """A run that cannot start or did not finish, with the reason a user can act on."""
 
 

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from model.errors import InvalidInput
 
-class SceneError(ValueError):
+
+class SceneError(InvalidInput):
     def __init__(self, path: str | Path, problem: str):
         self.path = Path(path)
         self.problem = problem

@@ -29,13 +29,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from model.errors import Failed
+
 VERSION = 1
 CHUNK = 16 * 2**20  # bytes per checksum read: bounded memory whatever the image size
 # images written between progress records (each one an fsync): a crash redoes at most these
 SYNC_EVERY = 32
 
 
-class StoreError(RuntimeError):
+class StoreError(Failed):
     """A store that cannot be used; the message says what is wrong with it."""
 
 

@@ -16,6 +16,7 @@ from sqlalchemy.exc import InterfaceError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from model.errors import LecoError
 from service.api import (
     artifacts,
     camera_paths,
@@ -33,7 +34,7 @@ from service.api.poll_cache import PollCache
 from service.api.receiving import ReceivingSlots
 from service.db import check_schema, first_line
 from service.settings import Settings
-from service.workpool import RETRY_AFTER_S, Busy, WorkerLost, WorkPool
+from service.workpool import RETRY_AFTER_S, WorkPool
 
 # An error's detail is a sentence: a message that quotes a user's file or body is cut here, whatever
 # built it.
@@ -50,6 +51,9 @@ def bounded(detail: object) -> object:
 
 
 log = logging.getLogger("leco.api")
+# The HTTP status of each kind of error (model/errors.py), and the kinds worth retrying.
+STATUSES = {"invalid": 422, "conflict": 409, "busy": 429, "unavailable": 503, "failed": 500}
+RETRY_KINDS = ("busy", "unavailable")
 
 
 class RequestStats:
@@ -123,17 +127,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(SecurityHeaders)
     app.add_middleware(RequestStats, stats=app.state.http_stats)
 
-    @app.exception_handler(Busy)
-    async def busy(request: Request, error: Busy) -> JSONResponse:
-        return JSONResponse(
-            {"detail": str(error)}, 429, headers={"Retry-After": str(RETRY_AFTER_S)}
-        )
-
-    @app.exception_handler(WorkerLost)
-    async def worker_lost(request: Request, error: WorkerLost) -> JSONResponse:
-        return JSONResponse(
-            {"detail": str(error)}, 503, headers={"Retry-After": str(RETRY_AFTER_S)}
-        )
+    @app.exception_handler(LecoError)
+    async def leco_error(request: Request, error: LecoError) -> JSONResponse:
+        # A route that needs a field named (a refused body) or a prefix catches its error itself;
+        # the rest reach here and are reported by their kind (model/errors.py).
+        status = STATUSES[error.kind]
+        if status == 500:
+            log.error("%s %s: %s", request.method, request.url.path, first_line(error))
+        retry = {"Retry-After": str(RETRY_AFTER_S)} if error.kind in RETRY_KINDS else None
+        return JSONResponse({"detail": bounded(str(error))}, status, headers=retry)
 
     @app.exception_handler(OperationalError)
     @app.exception_handler(InterfaceError)

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Callable
 
 from pydantic import BaseModel
 
+from model.errors import InvalidInput
 from model.methods import get_method
 from workers.config import TrainConfig
 from workers.render_config import EXPORT_PHASE, RENDER_PHASE, ExportConfig, RenderConfig
@@ -20,7 +21,7 @@ if TYPE_CHECKING:
     from service.jobs.attempt import Attempt
 
 
-class Refused(ValueError):
+class Refused(InvalidInput):
     """A job of this kind cannot be made of this parent: `field` names the request's field at
     fault."""
 
