@@ -1,5 +1,5 @@
 """`leco bench-scale`: large scenes measured. Train a few steps with N data-parallel Ray workers on
-each scene given, twice on the first (the first start builds its pixel stores, the second reuses
+each scene given, twice on the first (the first start builds its pixel caches, the second reuses
 them), and print per run: images, training pixels, store build (or open) time, time to first step,
 each rank's peak RSS, and rays/s.
 
@@ -140,7 +140,7 @@ def add_commands(commands) -> None:
         "--steps", type=int, default=40, help="main-phase steps per run (and phase-1 steps)"
     )
     scale.add_argument(
-        "--cache", default=None, help="pixel-store cache folder (default: a new temporary one)"
+        "--cache", default=None, help="pixel cache folder (default: a new temporary one)"
     )
     scale.set_defaults(func=scale_command)
 

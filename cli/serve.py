@@ -49,7 +49,7 @@ def prepare(settings: Settings, upgrade_embedded: bool) -> None:
         upgrade(settings.db_url)
     check_schema(settings.db_url)
     collect_orphans(settings)
-    # Training pixel stores (model/scenes/pixel_store.py) live on the data volume, shared by every
+    # Training pixel caches (model/scenes/pixel_cache.py) live on the data volume, shared by every
     # job and, through the environment Ray's workers inherit, by every rank on this node.
     os.environ.setdefault("LECO_PIXEL_CACHE", str(settings.data_dir.resolve() / "pixel-cache"))
 

@@ -22,7 +22,7 @@ from model.fields.background import BackgroundField
 from model.fields.output import FieldOutput
 from model.fields.switch_nerf import SwitchNeRF
 from model.losses import balance_loss, dispatch_fractions, rendering_loss
-from model.occupancy_grid import OccupancyGrid
+from model.occupancy_grid import GridEstimator
 from model.occupancy_phase import field_on_edges, render_background
 from model.profiles import Profile
 from model.rendering import Rendered, composite_batched, composite_packed, packed_transmittance
@@ -135,7 +135,7 @@ def cull_occluded(field: SwitchNeRF, rays: RayBatch, samples: PackedSamples, eps
     return reach >= eps
 
 
-def grid_step_size(grid: OccupancyGrid, march_steps: int) -> float:
+def grid_step_size(grid: GridEstimator, march_steps: int) -> float:
     """nerfacc's render_step_size: the box diagonal over the number of marching steps."""
     return float((grid.aabb[1] - grid.aabb[0]).norm()) / march_steps
 
@@ -145,7 +145,7 @@ def render_grid(
     background: BackgroundField,
     rays: RayBatch,
     profile: Profile,
-    grid: OccupancyGrid,
+    grid: GridEstimator,
     generator: torch.Generator | None,
 ) -> MainRender:
     behind = render_background(background, rays, profile.background.samples, generator).rgb

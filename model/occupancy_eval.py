@@ -21,7 +21,7 @@ from torch import Tensor
 
 from model.metrics import occupancy_metrics
 from model.scenes.rays import PixelTable
-from model.scenes.scene import OccupancyGrid, Views
+from model.scenes.scene import GroundTruthOccupancy, Views
 
 CHUNK = 1 << 15  # rays per chunk while marking crossed cells
 NUDGE = 0.5  # march steps (a quarter cell) behind the visible surface
@@ -199,7 +199,7 @@ def evaluate_occupancy(
 
 def evaluate_occupancy_exact(
     occupied: Callable[[Tensor], Tensor],
-    truth: OccupancyGrid,
+    truth: GroundTruthOccupancy,
     views: Views,
     resolution: int = 64,
     rules: Rules | None = None,

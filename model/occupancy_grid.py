@@ -17,7 +17,10 @@ from torch import Tensor
 from model.samplers import PackedSamples
 
 
-class OccupancyGrid:
+class GridEstimator:
+    """nerfacc's OccGridEstimator in plain PyTorch: a binary grid over the foreground box, kept
+    from the density it was last asked (the module's docstring says how)."""
+
     def __init__(self, aabb: Tensor, resolution: int = 128):
         self.aabb = aabb.float()
         self.resolution = resolution
@@ -26,7 +29,7 @@ class OccupancyGrid:
         self.binary = torch.ones(resolution**3, dtype=torch.bool)
         self.queries = 0  # density evaluations spent on updates, for honest cost accounting
 
-    def to(self, device: torch.device | str) -> "OccupancyGrid":
+    def to(self, device: torch.device | str) -> "GridEstimator":
         """Moves the grid to the main network's device (its random draws stay on the CPU
         generator)."""
         self.aabb, self.values, self.binary = (

@@ -23,7 +23,7 @@ def shared_dataset(name: str) -> Path:
 
 @pytest.fixture(scope="session", autouse=True)
 def pixel_cache(tmp_path_factory) -> Path:
-    """Training pixel stores (model/scenes/pixel_store.py) go to a folder of this session, never to
+    """Training pixel caches (model/scenes/pixel_cache.py) go to a folder of this session, never to
     the user's ~/.cache; services and Ray workers the tests start inherit it."""
     import os
 

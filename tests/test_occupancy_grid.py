@@ -2,7 +2,7 @@
 
 import torch
 
-from model.occupancy_grid import OccupancyGrid, cull_by_transmittance
+from model.occupancy_grid import GridEstimator, cull_by_transmittance
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
@@ -13,7 +13,7 @@ def ball(points):
 
 
 def test_warmup_queries_every_cell_then_a_quarter_plus_occupied():
-    grid = OccupancyGrid(AABB, resolution=16)
+    grid = GridEstimator(AABB, resolution=16)
     g = torch.Generator().manual_seed(0)
     assert grid.update(0, ball, step_size=0.01, generator=g) and grid.queries == 16**3
     assert not grid.update(5, ball, step_size=0.01, generator=g)  # only every 16 steps
@@ -27,7 +27,7 @@ def test_warmup_queries_every_cell_then_a_quarter_plus_occupied():
 
 
 def test_decay_max_and_threshold_rule():
-    grid = OccupancyGrid(AABB, resolution=8)
+    grid = GridEstimator(AABB, resolution=8)
     grid.update(0, lambda p: torch.full((len(p),), 2.0), step_size=0.01)  # value 0.02 everywhere
     assert torch.allclose(grid.values, torch.full((512,), 0.02))
     grid.update(16, lambda p: torch.zeros(len(p)), step_size=0.01)  # decays, max keeps the old
@@ -37,7 +37,7 @@ def test_decay_max_and_threshold_rule():
 
 
 def test_sampling_keeps_only_occupied_cells_and_culling_drops_hidden_samples():
-    grid = OccupancyGrid(AABB, resolution=32)
+    grid = GridEstimator(AABB, resolution=32)
     grid.update(0, ball, step_size=0.01)
     origins = torch.tensor([[-2.0, 0.0, 0.0], [-2.0, 0.9, 0.9]])
     dirs = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])

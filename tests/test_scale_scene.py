@@ -1,6 +1,6 @@
 """The scale scene built small: views are crops of shared renders, and a crop is an exact image of
 its camera (the principal point shifted by its offset), so crops of one render agree pixel for
-pixel. Loading it reads headers only; its pixels reach a run through the store, one image decoded at
+pixel. Loading it reads headers only; its pixels reach a run through the cache, one image decoded at
 a time."""
 
 from dataclasses import replace
@@ -10,7 +10,7 @@ import torch
 
 from model.scenes import load_scene
 from model.scenes.frames import LazyFrames
-from model.scenes.pixel_store import ensure_store
+from model.scenes.pixel_cache import ensure_cache
 from model.scenes.rays import PixelTable
 from model.scenes.synthetic import PRESETS, generate
 from model.scenes.synthetic.writer import crop_offsets
@@ -79,10 +79,10 @@ def test_loading_decodes_nothing_and_the_store_decodes_each_image_once(
     assert decoded == []  # headers only
     views = scene.train
     sizes = [(int(h), int(w)) for h, w in zip(views.cameras.height, views.cameras.width)]
-    store = ensure_store(tmp_path, out, "train", 1, sizes, lambda i: views.images[i])
+    cache = ensure_cache(tmp_path, out, "train", 1, sizes, lambda i: views.images[i])
     assert sorted(decoded) == sorted(f"{name}.png" for name in views.names)  # one decode per image
-    views.store = store
+    views.cache = cache
     table = PixelTable(views)
     pixel = torch.tensor([0, 5, len(table) - 1])
-    assert table.store is store and torch.equal(table.colours(pixel), store.gather(pixel))
+    assert table.cache is cache and torch.equal(table.colours(pixel), cache.gather(pixel))
     assert torch.equal(views.image(3), views.images[3])

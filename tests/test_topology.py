@@ -228,7 +228,7 @@ def test_a_smoke_job_runs_end_to_end_through_leco_submit(topology):
         ]
         names = all_artifacts_intact(api, job["id"])
     assert {"summary.json", "final/models.pt", "final/occupancy.pt", "occupancy.ply"} <= names
-    # Both ranks, on the Ray worker node, read one pixel store per split from the data volume (what
+    # Both ranks, on the Ray worker node, read one pixel cache per split from the data volume (what
     # the dispatcher passes as LECO_PIXEL_CACHE), whole and finished: one build, shared.
     stores = sorted(p.name for p in (topology.data / "pixel-cache").iterdir() if p.is_dir())
     assert [name.rsplit("-", 2)[1:] for name in stores] == [["train", "x1"], ["val", "x1"]], stores

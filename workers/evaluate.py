@@ -25,7 +25,7 @@ from model.scenes.rays import PixelTable
 from model.scenes.scene import Scene, Views
 from workers.appearance import prepare_validation_appearance, protocol, right_columns, scored_truth
 from workers.config import TrainConfig
-from workers.pixels import attach_pixel_stores
+from workers.pixels import attach_pixel_caches
 from workers.trained import load_run
 from workers.validation import render_image, save_triptych
 
@@ -41,7 +41,7 @@ def load_final(run_dir: Path, device: torch.device) -> tuple[TrainConfig, Scene,
     trained = load_run(run_dir, device)
     scene = trained.scene
     # what evaluation reads
-    attach_pixel_stores(scene, ("val",) if "val" in scene.splits else ("train",))
+    attach_pixel_caches(scene, ("val",) if "val" in scene.splits else ("train",))
     return trained.cfg, scene, trained.method, trained.models
 
 

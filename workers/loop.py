@@ -35,7 +35,7 @@ from workers.distributed import (
 from workers.memory import SavedTensorBytes
 from workers.models import PhaseObjects, build_models, build_optimizer
 from workers.periodic_eval import PeriodicEval
-from workers.pixels import attach_pixel_stores
+from workers.pixels import attach_pixel_caches
 from workers.session import Session
 from workers.sinks import JsonlSink
 from workers.store import RunStore, StoreWriteError
@@ -82,7 +82,7 @@ class RankRun:
         self.profile = cfg.resolved_profile()
         self.scene = load_scene(scene_dir, downscale=cfg.downscale)
         self.timeline["scene_loaded_at"] = time.time()
-        attach_pixel_stores(self.scene)
+        attach_pixel_caches(self.scene)
         self.timeline["pixels_ready_at"] = time.time()
         self.aabb = self.scene.bounds.aabb
         self.method = cfg.method_for_run()

@@ -10,15 +10,15 @@ from torch import Tensor
 
 from model.main_phase import MainRender, grid_step_size, render_grid
 from model.methods.base import Method, Networks, Occupied, SweepPoint, mean_of
-from model.occupancy_grid import OccupancyGrid
+from model.occupancy_grid import GridEstimator
 from model.scenes.rays import RayBatch
 
 
 class GridMethod(Method):
-    grid: OccupancyGrid  # made by build()
+    grid: GridEstimator  # made by build()
 
     def build(self, num_images: int, aabb: Tensor) -> Networks:
-        self.grid = OccupancyGrid(aabb.float(), self.profile.grid.resolution)
+        self.grid = GridEstimator(aabb.float(), self.profile.grid.resolution)
         return super().build(num_images, aabb)
 
     def components(self, num_images: int) -> dict[str, int]:

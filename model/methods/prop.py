@@ -21,7 +21,7 @@ from model.fields.proposal import ProposalDensity
 from model.main_phase import MainRender, grid_step_size, main_loss, render_batched
 from model.methods.base import Method, Networks, Occupied, SweepPoint, mean_of
 from model.methods.costs import proposal_parameters, proposal_width
-from model.occupancy_grid import OccupancyGrid
+from model.occupancy_grid import GridEstimator
 from model.occupancy_phase import render_background
 from model.profiles import Profile
 from model.proposal_sampling import UpdateSchedule, anneal_power, interlevel_loss, pdf_edges
@@ -173,11 +173,11 @@ class ProposalMethod(Method):
             _, edges = self.propose(models, rays.subset(hits), generator, phase_step)
         return self.render_on(models, rays, hits, edges, generator)
 
-    def proposal_grid(self, models: Networks) -> OccupancyGrid:
+    def proposal_grid(self, models: Networks) -> GridEstimator:
         """The last proposal level's density through one full update of an occupancy grid: the
         grid's rule."""
         g, network = self.profile.grid, models.proposals[-1]
-        grid = OccupancyGrid(self.aabb, g.resolution).to(next(network.parameters()).device)
+        grid = GridEstimator(self.aabb, g.resolution).to(next(network.parameters()).device)
         was = network.training
         network.eval()
         grid.update(

@@ -19,7 +19,7 @@ _HOMES = {
     "shard": "rays",
     "Bounds": "scene",
     "Normalization": "scene",
-    "OccupancyGrid": "scene",
+    "GroundTruthOccupancy": "scene",
     "Scene": "scene",
     "Views": "scene",
 }

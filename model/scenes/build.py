@@ -10,7 +10,7 @@ from torch import Tensor
 from model.scenes.bounds import foreground_aabb
 from model.scenes.errors import SceneError
 from model.scenes.frames import frames
-from model.scenes.scene import Bounds, Normalization, OccupancyGrid, Scene, Views
+from model.scenes.scene import Bounds, GroundTruthOccupancy, Normalization, Scene, Views
 from model.scenes.source import SourceScene
 
 SPLIT_ORDER = ("train", "val", "test")
@@ -50,7 +50,7 @@ def build_scene(source: SourceScene) -> Scene:
             raise SceneError(
                 source.root, "a ground-truth occupancy grid came without its bounding box"
             )
-        occupancy = OccupancyGrid(
+        occupancy = GroundTruthOccupancy(
             source.occupied, ((source.occupancy_aabb.double() - origin) / scale).float()
         )
     points = (

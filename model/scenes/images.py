@@ -2,7 +2,7 @@
 
 Loading a scene reads image headers only (`probe_image`: size, pixel limits, a truncation check on a
 PNG's tail); pixels are decoded when an `ImageFile` is called, one image at a time, by whoever needs
-them (the pixel store's build, a test)."""
+them (the pixel cache's build, a test)."""
 
 from __future__ import annotations
 
@@ -57,7 +57,7 @@ def _bomb(path: Path, exc: Exception) -> SceneError:
 # A PNG cut short (an interrupted copy or upload) loses its IEND chunk, which the file's last bytes
 # show without decoding. JPEGs are not checked this way: cameras append trailers of any length after
 # the end-of-image marker, and refusing those would refuse real captures; a cut JPEG (or any file
-# damaged inside) shows when the pixel store decodes it, which then stops naming the file.
+# damaged inside) shows when the pixel cache decodes it, which then stops naming the file.
 PNG_END = b"IEND\xaeB`\x82"
 
 

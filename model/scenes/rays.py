@@ -12,7 +12,7 @@ from torch import Tensor
 from model.scenes.bounds import ray_aabb
 from model.scenes.cameras import pixel_rays
 from model.scenes.permutation import FeistelPermutation
-from model.scenes.pixel_store import PixelStore
+from model.scenes.pixel_cache import PixelCache
 from model.scenes.scene import Views
 
 
@@ -39,17 +39,17 @@ class RayBatch:
 
 class PixelTable:
     """Flat pixel ids over all images of a Views: id = offset[image] + v * W + u. Colours come from
-    a memory-mapped PixelStore (the one given, else the one attached to the views), else from one
+    a memory-mapped PixelCache (the one given, else the one attached to the views), else from one
     concatenated copy of the decoded images, made on the first colour read (small scenes, tests)."""
 
-    def __init__(self, views: Views, store: PixelStore | None = None):
+    def __init__(self, views: Views, cache: PixelCache | None = None):
         self.views = views
         sizes = (views.cameras.width * views.cameras.height).long()
         self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), sizes.cumsum(0)])
-        store = store if store is not None else views.store
-        if store is not None and store.offsets != self.offsets.tolist():
-            raise ValueError(f"pixel store {store.folder} holds other image sizes than these views")
-        self.store = store
+        cache = cache if cache is not None else views.cache
+        if cache is not None and cache.offsets != self.offsets.tolist():
+            raise ValueError(f"pixel cache {cache.folder} holds other image sizes than these views")
+        self.cache = cache
         self._colours: Tensor | None = None
 
     def __len__(self) -> int:
@@ -57,8 +57,8 @@ class PixelTable:
 
     def colours(self, pixel: Tensor) -> Tensor:
         """uint8 (B, 3) colours of flat pixel ids."""
-        if self.store is not None:
-            return self.store.gather(pixel)
+        if self.cache is not None:
+            return self.cache.gather(pixel)
         if self._colours is None:
             self._colours = torch.cat([img.reshape(-1, 3) for img in self.views.images])
         return self._colours[pixel]
@@ -130,9 +130,9 @@ class RaySampler:
         seed: int,
         rank: int = 0,
         world_size: int = 1,
-        store: PixelStore | None = None,
+        cache: PixelCache | None = None,
     ):
-        self.table = PixelTable(views, store)
+        self.table = PixelTable(views, cache)
         if batch_size % world_size:
             raise ValueError(
                 f"batch_size {batch_size} must be a multiple of world_size {world_size}"

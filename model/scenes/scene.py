@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from model.scenes.cameras import Cameras
-from model.scenes.pixel_store import PixelStore
+from model.scenes.pixel_cache import PixelCache
 
 
 @dataclass
@@ -25,7 +25,7 @@ class Views:
     along the unit ray from the camera centre in world units; +inf where the ray sees no surface.
 
     Loaded scenes decode an image (or depth map) only when it is indexed (`images` is a LazyFrames).
-    Once a pixel store is attached (`store`), `image(i)` and every PixelTable of these views read
+    Once a pixel cache is attached (`cache`), `image(i)` and every PixelTable of these views read
     from it."""
 
     names: list[str]
@@ -34,15 +34,15 @@ class Views:
     appearance: Tensor  # (N,) int64: the per-image appearance-embedding index, unique across splits
     depth: Sequence[Tensor] | None = None  # float32 (H, W) each
     # this split's decoded pixels on disk, when a worker attached them
-    store: PixelStore | None = None
+    cache: PixelCache | None = None
 
     def __len__(self) -> int:
         return len(self.names)
 
     def image(self, index: int) -> Tensor:
-        """uint8 (H, W, 3): from the pixel store when one is attached, else decoded from its
+        """uint8 (H, W, 3): from the pixel cache when one is attached, else decoded from its
         file."""
-        return self.store.image(index) if self.store is not None else self.images[index]
+        return self.cache.image(index) if self.cache is not None else self.images[index]
 
     @property
     def num_pixels(self) -> int:
@@ -75,7 +75,7 @@ class Bounds:
 
 
 @dataclass
-class OccupancyGrid:
+class GroundTruthOccupancy:
     """Ground-truth occupancy: `occupied[i, j, k]` covers world box aabb_min + cell * [i, i+1] x
     ..."""
 
@@ -118,7 +118,7 @@ class Scene:
     normalization: Normalization
     bounds: Bounds
     downscale: int = 1
-    occupancy: OccupancyGrid | None = None
+    occupancy: GroundTruthOccupancy | None = None
     points: Tensor | None = None  # sparse points (world frame) when the dataset ships them
     extras: dict = field(default_factory=dict)  # format-specific facts shown by `leco scene info`
 

@@ -78,7 +78,7 @@ PRESETS = {
         cell_size=1.5,
     ),
     # Mega-NeRF's captures at the scale of the paper's 1/4-resolution training (2,000+ photos):
-    # 2,000 views of 640x480 (614M pixels, a 1.8 GB pixel store), from 125 renders; no depth maps
+    # 2,000 views of 640x480 (614M pixels, a 1.8 GB pixel cache), from 125 renders; no depth maps
     # (3.7 GB more).
     "xl": CityPreset(
         "xl",

@@ -1,15 +1,15 @@
 """Decoded training pixels on disk, built once per (scene, split, downscale) and memory-mapped.
 
-Every rank used to hold a concatenated copy of all decoded pixels of its split. A store is one raw
+Every rank used to hold a concatenated copy of all decoded pixels of its split. A cache is one raw
 file of uint8 RGB (`pixels.u8`, 3 bytes a pixel, image after image in the PixelTable's id order) and
 a manifest: image sizes, offsets, a CRC-32 per image, and a fingerprint of the source files. Ranks
 on one node share it through the page cache, nodes through a shared volume; a rank's own memory is
 the pages it touches.
 
-Building is atomic and resumable: the file grows in `<store>.partial/`, whose `progress.json`
+Building is atomic and resumable: the file grows in `<cache>.partial/`, whose `progress.json`
 records the images already written and flushed, and the folder is renamed into place only when the
-manifest is complete. A store whose manifest, size or checksums do not match (a crash, a truncated
-copy, a flipped bit) is removed and rebuilt; a store built from other source files (another
+manifest is complete. A cache whose manifest, size or checksums do not match (a crash, a truncated
+copy, a flipped bit) is removed and rebuilt; a cache built from other source files (another
 fingerprint) is never opened for this scene."""
 
 from __future__ import annotations
@@ -37,17 +37,17 @@ CHUNK = 16 * 2**20  # bytes per checksum read: bounded memory whatever the image
 SYNC_EVERY = 32
 
 
-class StoreError(Failed):
-    """A store that cannot be used; the message says what is wrong with it."""
+class PixelCacheError(Failed):
+    """A cache that cannot be used; the message says what is wrong with it."""
 
 
 @dataclass(frozen=True)
-class PixelStore:
+class PixelCache:
     folder: Path
     sizes: list[tuple[int, int]]  # (height, width) per image
     offsets: list[int]  # first pixel id of each image, then the total
     pixels: np.ndarray  # (num_pixels, 3) uint8, read-only, over `mapping`
-    mapping: mmap.mmap | None  # None for an empty store
+    mapping: mmap.mmap | None  # None for an empty cache
 
     def __len__(self) -> int:
         return self.offsets[-1]
@@ -70,8 +70,8 @@ class PixelStore:
     def release(self) -> None:
         """Unmap the pages read so far from this process. They stay in the page cache, shared by
         every rank on the node, but no longer count in this process's resident memory: random
-        batches over a large store would otherwise leave a rank's RSS growing towards the size of
-        the whole store."""
+        batches over a large cache would otherwise leave a rank's RSS growing towards the size of
+        the whole cache."""
         if self.mapping is not None:
             self.mapping.madvise(mmap.MADV_DONTNEED)
 
@@ -114,39 +114,41 @@ def _manifest(folder: Path) -> dict:
     try:
         return json.loads((folder / "manifest.json").read_text())
     except (OSError, ValueError) as error:
-        raise StoreError(f"{folder}: no readable manifest ({error})") from None
+        raise PixelCacheError(f"{folder}: no readable manifest ({error})") from None
 
 
-def open_store(folder: Path, fingerprint: str, verify: bool = True) -> PixelStore:
-    """The finished store in `folder` if it is whole and was built from sources with this
+def open_cache(folder: Path, fingerprint: str, verify: bool = True) -> PixelCache:
+    """The finished cache in `folder` if it is whole and was built from sources with this
     fingerprint."""
     folder = Path(folder)
     manifest = _manifest(folder)
     if manifest.get("version") != VERSION or manifest.get("fingerprint") != fingerprint:
-        raise StoreError(f"{folder}: built from other sources or by another version")
+        raise PixelCacheError(f"{folder}: built from other sources or by another version")
     sizes = [tuple(s) for s in manifest["sizes"]]
     offsets = [0] + np.cumsum([h * w for h, w in sizes]).tolist()
     path = folder / "pixels.u8"
     if not path.is_file() or path.stat().st_size != 3 * offsets[-1]:
-        raise StoreError(
+        raise PixelCacheError(
             f"{folder}: pixels.u8 is missing or not {3 * offsets[-1]:,} bytes (truncated?)"
         )
     if verify:
         for i, (crc, found) in enumerate(zip(manifest["crc32"], _file_crcs(path, offsets))):
             if crc != found:
-                raise StoreError(f"{folder}: image {i} does not match its checksum (corrupted)")
-    return PixelStore(folder, sizes, offsets, *_map(path, offsets[-1]))
+                raise PixelCacheError(
+                    f"{folder}: image {i} does not match its checksum (corrupted)"
+                )
+    return PixelCache(folder, sizes, offsets, *_map(path, offsets[-1]))
 
 
-def build_store(
+def build_cache(
     folder: Path,
     fingerprint: str,
     sizes: list[tuple[int, int]],
     images: Callable[[int], Tensor],
     progress: Callable[[int, int], None] | None = None,
     sync_every: int = SYNC_EVERY,
-) -> PixelStore:
-    """Writes image i = images(i) (uint8 (H, W, 3), decoded on demand) for every i into a new store
+) -> PixelCache:
+    """Writes image i = images(i) (uint8 (H, W, 3), decoded on demand) for every i into a new cache
     at `folder`, resuming a partial build of the same plan, and returns it opened. Progress is
     recorded (after an fsync) every `sync_every` images."""
     folder = Path(folder)
@@ -162,7 +164,7 @@ def build_store(
         for i in range(done, len(sizes)):
             image = images(i)
             if tuple(image.shape) != (*sizes[i], 3) or image.dtype != torch.uint8:
-                raise StoreError(
+                raise PixelCacheError(
                     f"image {i} is {tuple(image.shape)} {image.dtype}; the plan says {sizes[i]} "
                     "uint8"
                 )
@@ -181,9 +183,9 @@ def build_store(
     _write_json(partial / "manifest.json", {**plan, "crc32": crcs})
     (partial / "progress.json").unlink(missing_ok=True)
     if folder.exists():
-        shutil.rmtree(folder)  # a stale or corrupt store this one replaces
-    os.replace(partial, folder)  # the whole store appears at once, or not at all
-    return open_store(folder, fingerprint, verify=False)
+        shutil.rmtree(folder)  # a stale or corrupt cache this one replaces
+    os.replace(partial, folder)  # the whole cache appears at once, or not at all
+    return open_cache(folder, fingerprint, verify=False)
 
 
 def _resume(partial: Path, plan: dict) -> tuple[int, list[int]]:
@@ -217,41 +219,41 @@ def source_fingerprint(root: Path, extra: str) -> str:
     return h.hexdigest()
 
 
-def ensure_store(
-    cache: Path,
+def ensure_cache(
+    cache_dir: Path,
     root: Path,
     split: str,
     downscale: int,
     sizes: list[tuple[int, int]],
     images: Callable[[int], Tensor],
     log: Callable[[str], None] = lambda text: None,
-) -> PixelStore:
-    """The store of this scene split at this scale under `cache`: opened when whole and current,
+) -> PixelCache:
+    """The cache of this scene split at this scale under `cache_dir`: opened when whole and current,
     else built (or its partial build resumed). Ranks that ask at once wait for one builder (a file
     lock), then open it."""
     root = Path(root).resolve()
     fingerprint = source_fingerprint(root, f"{split}:{downscale}")
     key = hashlib.sha256(str(root).encode()).hexdigest()[:16]
-    folder = Path(cache) / f"{root.name}-{key}-{split}-x{downscale}"
+    folder = Path(cache_dir) / f"{root.name}-{key}-{split}-x{downscale}"
     try:
         folder.parent.mkdir(parents=True, exist_ok=True)
         lock_file = open(folder.with_name(folder.name + ".lock"), "w")
     except OSError as error:
-        raise StoreError(
-            f"pixel store cache folder {cache} cannot be written ({error.strerror}); set "
+        raise PixelCacheError(
+            f"pixel cache folder {cache_dir} cannot be written ({error.strerror}); set "
             "LECO_PIXEL_CACHE to a writable folder"
         ) from None
     with lock_file as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
-            return open_store(folder, fingerprint)
-        except StoreError as why:
+            return open_cache(folder, fingerprint)
+        except PixelCacheError as why:
             if folder.exists() or folder.with_name(folder.name + ".partial").exists():
-                log(f"pixel store {folder.name}: rebuilding ({why})")
+                log(f"pixel cache {folder.name}: rebuilding ({why})")
         step = max(1, len(sizes) // 20)
         report = lambda done, total: (
-            log(f"pixel store {folder.name}: {done}/{total} images")
+            log(f"pixel cache {folder.name}: {done}/{total} images")
             if done % step == 0 or done == total
             else None
         )
-        return build_store(folder, fingerprint, sizes, images, report)
+        return build_cache(folder, fingerprint, sizes, images, report)
