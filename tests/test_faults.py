@@ -1,7 +1,8 @@
 """Faults in the service, each ending with a check that nothing was lost: the database going away
 mid-job (PostgreSQL refusing connections and dropping the open ones), the artifact root full (a real
-256 KiB tmpfs) or unwritable, and a job whose losses go non-finite. The job runs on a local Ray (2
-CPU workers) under a dispatcher thread, as `leco serve` runs it."""
+256 KiB tmpfs) or unwritable, a job whose losses go non-finite, and the database away in the middle
+of a render or an export (the other job kinds). The job runs on a local Ray (2 CPU workers) under a
+dispatcher thread, as `leco serve` runs it."""
 
 import subprocess
 import threading
@@ -220,3 +221,46 @@ def test_repeated_non_finite_losses_fail_the_job_and_keep_its_last_good_checkpoi
     finally:
         dispatcher.stop(wait=True)
         api.__exit__(None, None, None)
+
+
+# ----- the database away in the middle of a render or an export
+# ----------------------------------------------------------------
+@pytest.mark.parametrize(
+    "route, body, files",
+    [
+        ("renders", {"frames": 40, "width": 160, "height": 120}, {"video.mp4"}),
+        ("exports", {"what": "pointcloud", "stride": 1, "min_opacity": 0.0}, {"pointcloud.ply"}),
+    ],
+)
+def test_a_database_outage_mid_render_or_export_pauses_it_and_loses_nothing(
+    route, body, files, tmp_path
+):
+    url = fresh_postgres_database()
+    settings = Settings(
+        data_dir=tmp_path / "data", database_url=url, local_cpus=2, lease_s=40.0, backend="local"
+    )
+    upgrade(url)
+    api, dispatcher, thread = run_service(settings)
+    try:
+        parent = submit_switch(api, workers=1, overrides={"main_steps": 20})
+        assert wait_for(api, parent, lambda j: j["state"] in ("succeeded", "failed"))["state"] == (
+            "succeeded"
+        )
+        job_id = api.post(f"/v1/jobs/{parent}/{route}", json=body).json()["id"]
+        running = wait_for(api, job_id, lambda j: j["state"] != "queued", timeout=60)
+        block_connections(url, True)
+        try:
+            time.sleep(6.0)  # longer than the dispatcher's heartbeat period (lease / 4)
+        finally:
+            block_connections(url, False)
+        assert running["state"] == "running" and running["step"] < running["total_steps"]
+        job = wait_for(api, job_id, lambda j: j["state"] in ("succeeded", "failed"), timeout=300)
+        assert job["state"] == "succeeded", job["error"]
+        assert job["attempts"] == 1  # its writes waited for the database; the lease held
+        assert thread.is_alive()
+        names = [m["name"] for m in assert_store_consistent(settings, job_id)]
+        assert files <= set(names) and len(names) == len(set(names))  # each file stored once
+    finally:
+        dispatcher.stop(wait=True)
+        api.__exit__(None, None, None)
+        drop_postgres_database(url)
