@@ -196,7 +196,7 @@ def command_line(args: argparse.Namespace) -> str:
 
 
 def add_commands(commands) -> None:
-    from model.methods import METHODS
+    from model.methods import METHODS, family_of, with_role
 
     bench = commands.add_parser(
         "bench",
@@ -215,8 +215,9 @@ def add_commands(commands) -> None:
     )
     bench.add_argument(
         "--methods",
-        default=",".join(METHODS),
-        help=f"comma-separated, from: {', '.join(METHODS)} (default: all of them)",
+        default=",".join(family_of(with_role("ours"))),
+        help=f"comma-separated, from: {', '.join(METHODS)} (default: the Switch-NeRF family, "
+        f"{', '.join(family_of(with_role('ours')))})",
     )
     bench.add_argument(
         "--ladder",

@@ -38,17 +38,22 @@ def estimate_peak_bytes(method: str, profile: Profile, num_images: int) -> dict:
     of the method's (its registry entry's memory model, model/methods/costs.py) for each part."""
     n, b = profile.network, profile.background
     phases: dict[str, PhaseMemory] = get_method(method).memory(profile, num_images)
-    per_sample = saved_bytes_per_sample(n.width, n.expert_layers)
-    behind = profile.rays_per_device * b.samples * 4 * (2 * b.layers * b.width + 100)
+    mlp_sample = saved_bytes_per_sample(n.width, n.expert_layers)
+    mlp_behind = 4 * (2 * b.layers * b.width + 100)
     rays = profile.rays_per_device
     training = {
-        k: rays * (p.samples_per_ray * per_sample + p.extra_bytes_per_ray) + behind
+        k: rays
+        * (
+            p.samples_per_ray * (p.bytes_per_sample or mlp_sample)
+            + p.extra_bytes_per_ray
+            + b.samples * (p.background_bytes_per_sample or mlp_behind)
+        )
         for k, p in phases.items()
     }
     render = max(
         EVAL_CHUNK
         * (p.render_samples_per_ray or p.samples_per_ray)
-        * live_bytes_per_sample(n.width)
+        * (p.bytes_per_sample or live_bytes_per_sample(n.width))
         for p in phases.values()
     )
     parts = {
@@ -70,10 +75,12 @@ def estimate_peak_bytes(method: str, profile: Profile, num_images: int) -> dict:
 
 DRIVERS = {
     "parameters": "network.width, network.num_experts, network.expert_layers, "
-    "network.appearance_dim",
+    "network.appearance_dim; for the hash-grid methods ngp.levels, ngp.log2_table_size, "
+    "ngp.features",
     "activations": "rays_per_device (or a validation render's 4,096 rays) x samples per ray "
     "(vanilla.*_samples, guided.coarse_samples x guided.split, grid.march_steps, "
-    "occupancy.samples_per_ray) x network.width x network.expert_layers",
+    "occupancy.samples_per_ray) x network.width x network.expert_layers (ngp.levels x "
+    "ngp.features, ngp.width for the hash-grid methods)",
     "estimator": "grid.resolution (the occupancy grid's cells)",
 }
 

@@ -422,6 +422,49 @@ class ProposalConfig(Frozen):
         return samples
 
 
+class NGPConfig(Frozen):
+    """The hash-grid field of `ngp`, `ngp-leco` and `ngp-prop` (model/fields/ngp.py): Instant-NGP's
+    encoding and MLPs for the box, and a smaller hash grid on the contracted space for the
+    background. The defaults are Instant-NGP's (Müller et al. 2022, Table 1 and section 5.4)."""
+
+    levels: int = Field(16, ge=1, le=32, description="hash-encoding levels L")
+    features: int = Field(2, ge=1, le=8, description="features per level F")
+    log2_table_size: int = Field(
+        19, ge=8, le=24, description="log2 of the entries T of each level's hash table"
+    )
+    min_resolution: int = Field(
+        16, ge=2, le=1024, description="cells per side of the coarsest level N_min"
+    )
+    max_resolution: int = Field(
+        2048, ge=2, le=65536, description="cells per side of the finest level N_max"
+    )
+    width: int = Field(64, ge=8, le=256, description="hidden units of the density and colour MLPs")
+    background_levels: int = Field(
+        16, ge=1, le=32, description="the background's hash-encoding levels"
+    )
+    background_log2_table_size: int = Field(
+        19, ge=8, le=24, description="log2 of the background's table entries per level"
+    )
+    background_max_resolution: int = Field(
+        2048, ge=2, le=65536, description="cells per side of the background's finest level"
+    )
+    lr: float = Field(
+        1e-2, gt=0, le=LR_MAX, description="the main phase's Adam learning rate (Instant-NGP's)"
+    )
+    lr_final: float = Field(
+        1e-3, gt=0, le=LR_MAX, description="the main phase's lr decays to this by its end"
+    )
+
+    @model_validator(mode="after")
+    def finest_not_below_coarsest(self) -> "NGPConfig":
+        if self.max_resolution < self.min_resolution:
+            raise ValueError(
+                f"ngp.max_resolution ({self.max_resolution}) is below ngp.min_resolution "
+                f"({self.min_resolution}): the finest level cannot be coarser than the first"
+            )
+        return self
+
+
 class Profile(Frozen):
     """Sizes and sampling of every method at one scale; a job may override any field."""
 
@@ -433,6 +476,7 @@ class Profile(Frozen):
     vanilla: VanillaConfig = VanillaConfig()
     grid: GridConfig = GridConfig()
     prop: ProposalConfig = ProposalConfig()
+    ngp: NGPConfig = NGPConfig()
     rays_per_device: int = Field(1024, ge=1, le=65536, description="rays per step per worker")
     main_steps: int = Field(
         500_000,
@@ -492,6 +536,16 @@ PROFILES: dict[str, Profile] = {
         # LeCO's main samples per ray on the city at this profile: 21.2 (8-minute benchmark,
         # docs/BENCHMARKS.md).
         prop=ProposalConfig(samples=(64, 32), main_samples=21),
+        # Sized for this machine's minutes (docs/PROFILES.md): 8 levels up to 512 cells a side,
+        # 2^16 entries each, and a 4-level background.
+        ngp=NGPConfig(
+            levels=8,
+            log2_table_size=16,
+            max_resolution=512,
+            background_levels=4,
+            background_log2_table_size=14,
+            background_max_resolution=128,
+        ),
         rays_per_device=256,
         main_steps=1500,
         lr=2e-3,
@@ -513,6 +567,16 @@ PROFILES: dict[str, Profile] = {
         vanilla=VanillaConfig(coarse_samples=8, fine_samples=16),
         grid=GridConfig(resolution=32, warmup_steps=4, update_every=4, march_steps=64),
         prop=ProposalConfig(samples=(16, 8), main_samples=8, anneal_steps=10, update_warmup=10),
+        ngp=NGPConfig(
+            levels=2,
+            log2_table_size=8,
+            min_resolution=4,
+            max_resolution=16,
+            width=16,
+            background_levels=2,
+            background_log2_table_size=8,
+            background_max_resolution=16,
+        ),
         rays_per_device=64,
         main_steps=20,
         lr=5e-3,

@@ -7,6 +7,8 @@ shape."""
 
 from __future__ import annotations
 
+import math
+
 from model.profiles import Profile
 
 BACKGROUND_FREQUENCIES = 10  # model/fields/background.py's point encoding
@@ -90,3 +92,57 @@ def proposal(width: int, layers: int, xyz_frequencies: int) -> int:
         + (layers - 1) * linear(width, width)
         + linear(width, 1)
     )
+
+
+def level_resolutions(levels: int, min_resolution: int, max_resolution: int) -> list[int]:
+    """A hash encoding's cells per side at every level, N_l = floor(N_min * b^l) (Instant-NGP's Eq.
+    2 and 3)."""
+    if levels == 1:
+        return [min_resolution]
+    growth = math.exp((math.log(max_resolution) - math.log(min_resolution)) / (levels - 1))
+    return [int(math.floor(min_resolution * growth**level)) for level in range(levels)]
+
+
+def level_sizes(resolutions: list[int], table_size: int) -> list[int]:
+    """Entries of each level's table: its corners when they fit, else the hash table's T."""
+    return [min((n + 1) ** 3, table_size) for n in resolutions]
+
+
+NGP_GEOMETRY_FEATURES, NGP_SH = 15, 16  # model/fields/ngp.py
+
+
+def hash_field(
+    levels: int, features: int, log2_table: int, low: int, high: int, width: int, appearance: int
+) -> int:
+    """One HashField (model/fields/ngp.py) without its appearance table: the hash tables, the
+    density MLP (one hidden layer) and the colour MLP (two), all without biases."""
+    table = features * sum(level_sizes(level_resolutions(levels, low, high), 2**log2_table))
+    density = linear(levels * features, width, False) + linear(
+        width, 1 + NGP_GEOMETRY_FEATURES, False
+    )
+    colour_in = NGP_GEOMETRY_FEATURES + NGP_SH + appearance
+    colour = linear(colour_in, width, False) + linear(width, width, False) + linear(width, 3, False)
+    return table + density + colour
+
+
+def ngp_field(profile: Profile, num_images: int) -> int:
+    g, a = profile.ngp, profile.network.appearance_dim
+    body = hash_field(
+        g.levels, g.features, g.log2_table_size, g.min_resolution, g.max_resolution, g.width, a
+    )
+    return num_images * a + body
+
+
+def ngp_background(profile: Profile, num_images: int) -> int:
+    g, a = profile.ngp, profile.network.appearance_dim
+    top = max(g.background_max_resolution, g.min_resolution)
+    body = hash_field(
+        g.background_levels,
+        g.features,
+        g.background_log2_table_size,
+        g.min_resolution,
+        top,
+        g.width,
+        a,
+    )
+    return num_images * a + body

@@ -9,7 +9,8 @@ import torch
 import torch.nn.functional as F
 
 from model.fields.contraction import contract, contracted_unit
-from model.fields.hash_encoding import PRIMES, HashEncoding, level_resolutions
+from model.fields.hash_encoding import PRIMES, HashEncoding
+from model.sizes import level_resolutions
 
 
 def dense_reference(encoding: HashEncoding, x: torch.Tensor) -> torch.Tensor:

@@ -52,13 +52,14 @@ def toy():
 
 
 def test_registry_lists_every_method_once_and_refuses_a_second_owner_of_a_name():
-    assert list(METHODS) == ["leco", "switch", "grid", "prop"]
-    assert [get_method(n).role for n in METHODS] == ["ours", "reference", "baseline", "baseline"]
+    assert list(METHODS) == ["leco", "switch", "grid", "prop", "ngp", "ngp-leco", "ngp-prop"]
+    roles = [get_method(n).role for n in METHODS]
+    assert roles == ["ours", "reference"] + ["baseline"] * 5
 
     with pytest.raises(ValueError, match="'grid' is already registered"):
         register(MethodSpec("grid", "Impostor", UniformSamples, uniform_memory))
     with pytest.raises(
-        ValueError, match="unknown method 'nope': choose one of leco, switch, grid, prop"
+        ValueError, match="unknown method 'nope': choose one of leco, switch, grid, prop, ngp"
     ):
         TrainConfig(method="nope")
 

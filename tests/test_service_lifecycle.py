@@ -14,9 +14,12 @@ from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy import select
 
 from service.api.app import create_app
+from service.db import reading
 from service.dispatcher import Dispatcher
+from service.tables import Artifact
 from workers.run import ensure_ray
 
 pytestmark = pytest.mark.slow
@@ -201,3 +204,60 @@ def test_a_killed_dispatcher_loses_its_lease_and_the_job_resumes_once(api, servi
         a for a in api.get(f"/v1/jobs/{job_id}/artifacts").json() if a["name"] == "summary.json"
     )
     assert json.loads(api.get(summary["url"]).content)["steps"]["total"] == 300
+
+
+def test_a_dispatcher_killed_mid_render_hands_it_back_and_one_video_is_stored(service_settings):
+    """The render kind under the same fault as training: SIGKILL mid-attempt, the lease expires,
+    the next attempt renders again and stores the one video."""
+    settings = service_settings.model_copy(update={"backend": "local"})
+    with TestClient(create_app(settings)) as api:
+        body = {"scene": ready_scene(api), "method": "switch", "profile": "smoke"}
+        parent = api.post("/v1/jobs", json={**body, "overrides": {"main_steps": 10}}).json()["id"]
+        trainer = Dispatcher(settings, poll_s=0.2)
+        threading.Thread(target=trainer.run_forever, daemon=True).start()
+        try:
+            done = wait_for(api, parent, lambda j: j["state"] in ("succeeded", "failed"))
+            assert done["state"] == "succeeded", done["error"]
+        finally:
+            trainer.stop(wait=True)
+        render = {"frames": 60, "width": 160, "height": 120}
+        job_id = api.post(f"/v1/jobs/{parent}/renders", json=render).json()["id"]
+        env = {
+            **os.environ,
+            "DATABASE_URL": settings.db_url,
+            "LECO_DATA_DIR": str(settings.data_dir),
+            "LECO_LEASE_S": "4",
+            "LECO_LOCAL_CPUS": "2",
+            "LECO_BACKEND": "local",
+            "RAY_ADDRESS": "",
+        }
+        first = subprocess.Popen(
+            [sys.executable, "-m", "cli", "dispatch"],
+            cwd=ROOT,
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+        try:
+            killed_at = wait_for(api, job_id, lambda j: j["step"] >= 2)["step"]
+            os.kill(first.pid, signal.SIGKILL)
+            first.wait(10)
+        finally:
+            try:
+                os.killpg(first.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        assert killed_at < 60
+        second = Dispatcher(settings, poll_s=0.2)
+        threading.Thread(target=second.run_forever, daemon=True).start()
+        try:
+            job = wait_for(api, job_id, lambda j: j["state"] in ("succeeded", "failed"), 300)
+        finally:
+            second.stop(wait=True)
+        assert job["state"] == "succeeded" and job["attempts"] == 2, job
+    with reading(settings.db_url) as session:
+        rows = session.execute(
+            select(Artifact.attempt).where(Artifact.job_id == job_id, Artifact.name == "video.mp4")
+        ).all()
+    assert rows == [(2,)]  # stored once, by the attempt that finished

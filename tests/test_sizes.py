@@ -10,6 +10,7 @@ from model.fields.proposal import ProposalDensity
 from model.methods.base import background, count, switch_nerf
 from model.methods.costs import proposal_width
 from model.methods.leco import hmoe
+from model.methods.ngp import ngp_networks
 from workers.config import TrainConfig
 
 SHAPES = [
@@ -22,6 +23,11 @@ SHAPES = [
         "network.num_experts": 3,
         "network.expert_layers": 2,
         "network.appearance_dim": 5,
+        "ngp.levels": 3,
+        "ngp.features": 4,
+        "ngp.log2_table_size": 9,
+        "ngp.width": 24,
+        "ngp.background_levels": 1,
         "network.xyz_frequencies": 4,
         "network.dir_frequencies": 2,
         "background.width": 18,
@@ -36,7 +42,10 @@ def test_sizes_count_what_the_networks_hold(profile, overrides):
     p = TrainConfig(method="leco", profile=profile, overrides=overrides).resolved_profile()
     with torch.device("meta"):
         occupancy = hmoe(p, 7)
+        field, behind = ngp_networks(p, 7, torch.zeros(2, 3))
         built = {
+            "ngp_field": count(field),
+            "ngp_background": count(behind),
             "switch_nerf": count(switch_nerf(p, 7)),
             "background": count(background(p, 7)),
             "hmoe": count(occupancy),
@@ -46,6 +55,8 @@ def test_sizes_count_what_the_networks_hold(profile, overrides):
             ),
         }
     assert {
+        "ngp_field": sizes.ngp_field(p, 7),
+        "ngp_background": sizes.ngp_background(p, 7),
         "switch_nerf": sizes.switch_nerf(p, 7),
         "background": sizes.background(p, 7),
         "hmoe": sizes.hmoe(p, 7),

@@ -10,27 +10,14 @@ levels, L * F values per point."""
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor, nn
+
+from model.sizes import level_resolutions, level_sizes
 
 PRIMES = (1, 2654435761, 805459861)
 # the 8 corners of a cell, as offsets (x, y, z) from its lowest corner
 CORNERS = torch.tensor([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)])
-
-
-def level_resolutions(levels: int, min_resolution: int, max_resolution: int) -> list[int]:
-    """N_l for every level (the paper's Eq. 2 and 3)."""
-    if levels == 1:
-        return [min_resolution]
-    growth = math.exp((math.log(max_resolution) - math.log(min_resolution)) / (levels - 1))
-    return [int(math.floor(min_resolution * growth**level)) for level in range(levels)]
-
-
-def level_sizes(resolutions: list[int], table_size: int) -> list[int]:
-    """Entries of each level's table: its corners when they fit, else the hash table's T."""
-    return [min((n + 1) ** 3, table_size) for n in resolutions]
 
 
 class HashEncoding(nn.Module):

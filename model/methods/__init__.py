@@ -4,7 +4,7 @@ and load on first use."""
 
 from typing import Any
 
-from model.methods.registry import METHODS, get_method, register, with_role
+from model.methods.registry import METHODS, family_of, get_method, register, with_role
 from model.methods.spec import MethodSpec, PhaseMemory, SweepPoint
 
 __all__ = [
@@ -17,6 +17,7 @@ __all__ = [
     "get_method",
     "register",
     "with_role",
+    "family_of",
 ]
 
 

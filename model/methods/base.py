@@ -90,15 +90,22 @@ class Method:
     # ----- what a run of it costs, before it runs
     # ---------------------------------------------------------
     def build(self, num_images: int, aabb: Tensor) -> Networks:
-        """The networks every method shares: the main Switch-NeRF (`field`) and the background."""
+        """The main phase's networks (`field` and `background`), which every method has."""
         models = Networks()
-        models.field = switch_nerf(self.profile, num_images)
-        models.background = background(self.profile, num_images)
+        models.field, models.background = self.main_networks(num_images, aabb)
         return models
 
+    def main_networks(self, num_images: int, aabb: Tensor) -> tuple[nn.Module, nn.Module]:
+        """The network the main phase trains and the background beside it: Switch-NeRF and
+        Mega-NeRF's background, unless a family of methods (model/methods/ngp.py) says otherwise."""
+        return switch_nerf(self.profile, num_images), background(self.profile, num_images)
+
     def components(self, num_images: int) -> dict[str, int]:
-        """Parameter count of every component a run trains (model_info); built on the meta
-        device."""
+        """Parameter count of every component a run trains (model_info)."""
+        return self.main_components(num_images)
+
+    def main_components(self, num_images: int) -> dict[str, int]:
+        """The main networks' parameter counts, built on the meta device."""
         with torch.device("meta"):
             main, behind = (
                 switch_nerf(self.profile, num_images),

@@ -4,6 +4,8 @@ without loading PyTorch."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from model import sizes
 from model.methods.spec import PhaseMemory
 from model.profiles import Profile
@@ -94,3 +96,42 @@ def prop(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
             extra_bytes_per_ray=per_ray,
         )
     }
+
+
+def hash_grid_bytes_per_sample(levels: int, features: int, width: int) -> int:
+    """What backward keeps for one sample through a HashField (model/fields/ngp.py): each level's 8
+    corner rows (int64) and trilinear weights, the gathered features, and the MLPs' inputs and ReLU
+    masks (about eight width-sized tensors with the SH and appearance inputs)."""
+    return levels * 8 * (8 + 4 + 4 * features) + 4 * (8 * width + 100)
+
+
+def on_hash_grids(phases: dict[str, PhaseMemory], profile: Profile, num_images: int) -> dict:
+    """A Switch-NeRF method's memory model with the hash-grid networks (model/methods/ngp.py) in
+    its main phase."""
+    g = profile.ngp
+    switch = sizes.switch_nerf(profile, num_images) + sizes.background(profile, num_images)
+    hashed = sizes.ngp_field(profile, num_images) + sizes.ngp_background(profile, num_images)
+    main = phases["main"]
+    return {
+        **phases,
+        "main": replace(
+            main,
+            trained=main.trained - switch + hashed,
+            bytes_per_sample=hash_grid_bytes_per_sample(g.levels, g.features, g.width),
+            background_bytes_per_sample=hash_grid_bytes_per_sample(
+                g.background_levels, g.features, g.width
+            ),
+        ),
+    }
+
+
+def ngp(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
+    return on_hash_grids(grid(profile, num_images), profile, num_images)
+
+
+def ngp_leco(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
+    return on_hash_grids(leco(profile, num_images), profile, num_images)
+
+
+def ngp_prop(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
+    return on_hash_grids(prop(profile, num_images), profile, num_images)

@@ -23,7 +23,6 @@ from model.methods.base import (
     background,
     count,
     mean_of,
-    switch_nerf,
 )
 from model.occupancy import OccupancyPredictor, OccupancyQuery
 from model.occupancy_phase import occupancy_step, render_hmoe
@@ -67,8 +66,7 @@ class LeCOMethod(Method):
         models = Networks()
         models.hmoe = hmoe(self.profile, num_images)
         models.occupancy_background = background(self.profile, num_images)
-        models.field = switch_nerf(self.profile, num_images)
-        models.background = background(self.profile, num_images)
+        models.field, models.background = self.main_networks(num_images, aabb)
         return models
 
     def components(self, num_images: int) -> dict[str, int]:
@@ -121,6 +119,13 @@ class LeCOMethod(Method):
             return [models.hmoe, models.occupancy_background]
         return super().trained_modules(models, phase)
 
+    def warm_starts(self) -> bool:
+        """Whether the main phase starts from phase 1's experts, heads and embeddings
+        (`guided.warm_start`); a main field phase 1 did not train (a hash grid) starts fresh."""
+        return self.profile.guided.warm_start and self.field_is_phase1s
+
+    field_is_phase1s = True  # the main field is Switch-NeRF, whose experts the HMoE's resemble
+
     def o_learns(self) -> bool:
         """Whether O keeps learning in the main phase: its keep/drop decisions (online) or its
         placement."""
@@ -143,7 +148,7 @@ class LeCOMethod(Method):
         if phase != "main":
             return
         g = self.profile.guided
-        if fresh and g.warm_start:
+        if fresh and self.warm_starts():
             behind = models.occupancy_background if g.warm_start_background else None
             copied = warm_start_main(
                 models.field, models.background, models.hmoe, behind, g.warm_start_density
@@ -166,7 +171,7 @@ class LeCOMethod(Method):
 
     def lr_ramp_steps(self, phase: str) -> int:
         g = self.profile.guided
-        return g.warm_start_ramp if phase == "main" and g.warm_start else 0
+        return g.warm_start_ramp if phase == "main" and self.warm_starts() else 0
 
     def step(
         self,

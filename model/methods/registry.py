@@ -28,6 +28,12 @@ def get_method(name: str) -> MethodSpec:
     return METHODS[name]
 
 
+def family_of(name: str | None) -> list[str]:
+    """The registered methods that train the same main network as `name` (all when None)."""
+    family = METHODS[name].family if name in METHODS else None
+    return [n for n, m in METHODS.items() if family is None or m.family == family]
+
+
 def with_role(role: str) -> str | None:
     """The name of the registered method with this role ("ours", "reference"), if any."""
     return next((name for name, m in METHODS.items() if m.role == role), None)
@@ -76,5 +82,41 @@ register(
         costs.prop,
         has_occupancy=True,
         colour="#8c564b",
+    )
+)
+# The hash-grid family (the paper's Appendix C): Instant-NGP's field under each sampler.
+register(
+    MethodSpec(
+        "ngp",
+        "NGP",
+        "model.methods.ngp:NGPMethod",
+        costs.ngp,
+        has_occupancy=True,
+        colour="#9467bd",
+        family="Instant-NGP",
+    )
+)
+register(
+    MethodSpec(
+        "ngp-leco",
+        "NGP+Ours (LeCO)",
+        "model.methods.ngp:NGPLeCOMethod",
+        costs.ngp_leco,
+        phase_steps=(("occupancy", "occupancy.steps"), ("main", "main_steps")),
+        has_occupancy=True,
+        colour="#e377c2",
+        budget_shares=(("occupancy", "occupancy.budget_share"),),
+        family="Instant-NGP",
+    )
+)
+register(
+    MethodSpec(
+        "ngp-prop",
+        "NGP+Prop",
+        "model.methods.ngp:NGPProposalMethod",
+        costs.ngp_prop,
+        has_occupancy=True,
+        colour="#17becf",
+        family="Instant-NGP",
     )
 )

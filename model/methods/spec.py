@@ -26,6 +26,10 @@ class PhaseMemory:
     render_samples_per_ray: int = 0  # ... in a validation render (no gradient); 0: samples_per_ray
     extra_bytes: int = 0  # state that is neither parameters nor activations (a grid's cells)
     extra_bytes_per_ray: int = 0  # activations of the method's own small networks (proposal MLPs)
+    # what backward keeps per main-network sample, and per background sample (0: the Switch-NeRF
+    # and MLP-background formulas of model/memory_estimate.py)
+    bytes_per_sample: int = 0
+    background_bytes_per_sample: int = 0
 
 
 @dataclass(frozen=True)
@@ -65,6 +69,9 @@ class MethodSpec:
     # The profile setting that stops a phase at a share of a wall-clock budget (phase -> dotted
     # key).
     budget_shares: tuple[tuple[str, str], ...] = ()
+    # The main network the method trains: a benchmark compares the methods of one family (its
+    # default is the family of the method whose role is "ours").
+    family: str = "Switch-NeRF"
 
     @property
     def phases(self) -> tuple[str, ...]:

@@ -1,0 +1,114 @@
+"""The hash-grid family (model/methods/ngp.py) trains wherever the Switch-NeRF methods do: through
+`leco train` under each of its three samplers, through the API and a dispatcher on SQLite and
+PostgreSQL, and from a checkpoint after a kill; its sizes reach the memory check."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from cli.main import main
+from model.memory_estimate import describe, estimate_peak_bytes
+from model.methods import family_of, get_method
+from tests.test_training import read_metrics
+from workers.config import TrainConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+FAMILY = ["ngp", "ngp-leco", "ngp-prop"]
+
+
+def test_the_family_is_three_samplers_of_one_field():
+    assert family_of("ngp-leco") == FAMILY and "ngp" not in family_of("leco")
+    profile = TrainConfig(method="ngp", profile="cpu").resolved_profile()
+    mains = {get_method(m)(profile).main_components(40)["main.hash_tables"] for m in FAMILY}
+    assert len(mains) == 1  # the same field under every sampler
+    # cpu: 8 levels of at most 2^16 entries x 2 features; the coarse levels need fewer
+    assert 500_000 < mains.pop() <= 8 * 2**16 * 2
+
+
+@pytest.mark.parametrize("method", FAMILY)
+def test_each_sampler_trains_the_hash_grid_through_leco_train(method, tiny_scene, tmp_path, capsys):
+    out = tmp_path / "run"
+    args = ["train", "--scene", str(tiny_scene.root), "--method", method, "--profile", "smoke"]
+    args += ["--out", str(out), "--backend", "local", "--set", "main_steps=12"]
+    assert main(args) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["method"] == method and summary["steps"]["phases"]["main"] == 12
+    assert 5 < summary["val"]["psnr"] < 60
+    capsys.readouterr()
+    assert main(["model", "info", "--method", method, "--profile", "smoke", "--json"]) == 0
+    components = json.loads(capsys.readouterr().out)["components"]
+    assert components["main.hash_tables"] > 0 and components["background"] > 0
+
+
+def test_a_table_too_large_for_the_machine_is_named_by_the_memory_check():
+    cfg = TrainConfig(
+        method="ngp", profile="paper", overrides={"ngp.levels": 32, "ngp.log2_table_size": 24}
+    )
+    estimate = estimate_peak_bytes(cfg.method, cfg.resolved_profile(), 100)
+    # 32 levels x 2^24 entries x 2 features x 16 bytes (weights, gradients, Adam) = 16 GiB
+    assert estimate["parts"]["parameters"] > 16 * 2**30
+    assert "ngp.log2_table_size" in describe(estimate)
+
+
+def test_a_killed_ngp_leco_run_resumes_from_its_checkpoint(tiny_scene, tmp_path):
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "cli", "train", "--scene", str(tiny_scene.root)]
+    cmd += ["--method", "ngp-leco", "--profile", "smoke", "--out", str(out), "--backend", "local"]
+    cmd += ["--checkpoint-every", "10", "--set", "main_steps=300"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    main_rows = lambda: [r for r in read_metrics(out / "metrics.jsonl") if r["phase"] == "main"]
+    while not (out / "metrics.jsonl").exists() or not main_rows() or main_rows()[-1]["step"] < 30:
+        assert time.monotonic() < deadline and proc.poll() is None, "the run should still be going"
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert main_rows()[-1]["step"] < 300
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    steps = [r["step"] for r in main_rows()]
+    assert steps == list(range(10, 301, 10))  # nothing missing, nothing twice
+    assert json.loads((out / "summary.json").read_text())["steps"]["phases"]["main"] == 300
+
+
+@pytest.mark.slow
+def test_ngp_leco_trains_through_the_api_and_a_dispatcher(service_settings):
+    from service.api.app import create_app
+    from service.dispatcher import Dispatcher
+
+    settings = service_settings.model_copy(update={"backend": "local"})
+    with TestClient(create_app(settings)) as api:
+        listed = {m["name"]: m for m in api.get("/v1/methods").json()["items"]}
+        assert listed["ngp-leco"]["phases"] == ["occupancy", "main"]
+        scene = api.post("/v1/scenes/synthetic", json={"preset": "tiny", "seed": 0}).json()
+        while scene["state"] == "generating":
+            time.sleep(0.2)
+            scene = api.get(f"/v1/scenes/{scene['id']}").json()
+        body = {"scene": scene["id"], "method": "ngp-leco", "profile": "smoke"}
+        too_big = {**body, "profile": "paper", "overrides": {"ngp.log2_table_size": 24}}
+        refused = api.post("/v1/jobs", json=too_big)
+        assert refused.status_code == 422 and "ngp.log2_table_size" in refused.text
+        job = api.post("/v1/jobs", json={**body, "overrides": {"main_steps": 10}})
+        assert job.status_code == 201, job.text
+        dispatcher = Dispatcher(settings, poll_s=0.2)
+        threading.Thread(target=dispatcher.run_forever, daemon=True).start()
+        try:
+            deadline = time.monotonic() + 180
+            while (state := api.get(f"/v1/jobs/{job.json()['id']}").json())["state"] not in (
+                "succeeded",
+                "failed",
+            ):
+                assert time.monotonic() < deadline, state
+                time.sleep(0.3)
+        finally:
+            dispatcher.stop(wait=True)
+        assert state["state"] == "succeeded", state["error"]
+        assert state["latest_metrics"]["main"]["loss"] > 0
