@@ -17,6 +17,7 @@ from fastapi.testclient import TestClient
 from cli.main import main
 from model.memory_estimate import describe, estimate_peak_bytes
 from model.methods import family_of, get_method
+from model.sizes import level_resolutions
 from tests.test_training import read_metrics
 from workers.config import TrainConfig
 
@@ -53,8 +54,10 @@ def test_a_table_too_large_for_the_machine_is_named_by_the_memory_check():
         method="ngp", profile="paper", overrides={"ngp.levels": 32, "ngp.log2_table_size": 24}
     )
     estimate = estimate_peak_bytes(cfg.method, cfg.resolved_profile(), 100)
-    # 32 levels x 2^24 entries x 2 features x 16 bytes (weights, gradients, Adam) = 16 GiB
-    assert estimate["parts"]["parameters"] > 16 * 2**30
+    # the 14 finest of 32 levels fill 2^24 entries x 2 features, at 16 bytes a parameter (weights,
+    # gradients, Adam's moments): over 7 GiB
+    full = sum((n + 1) ** 3 >= 2**24 for n in level_resolutions(32, 16, 2048))
+    assert full == 14 and estimate["parts"]["parameters"] > full * 2**24 * 2 * 16
     assert "ngp.log2_table_size" in describe(estimate)
 
 
