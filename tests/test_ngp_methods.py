@@ -18,6 +18,7 @@ from cli.main import main
 from model.memory_estimate import describe, estimate_peak_bytes
 from model.methods import family_of, get_method
 from model.sizes import level_resolutions
+from tests.test_service_lifecycle import wait_for
 from tests.test_training import read_metrics
 from workers.config import TrainConfig
 
@@ -105,13 +106,8 @@ def test_ngp_leco_trains_through_the_api_and_a_dispatcher(service_settings):
         dispatcher = Dispatcher(settings, poll_s=0.2)
         threading.Thread(target=dispatcher.run_forever, daemon=True).start()
         try:
-            deadline = time.monotonic() + 180
-            while (state := api.get(f"/v1/jobs/{job.json()['id']}").json())["state"] not in (
-                "succeeded",
-                "failed",
-            ):
-                assert time.monotonic() < deadline, state
-                time.sleep(0.3)
+            done = lambda j: j["state"] in ("succeeded", "failed")
+            state = wait_for(api, job.json()["id"], done, timeout=180)
         finally:
             dispatcher.stop(wait=True)
         assert state["state"] == "succeeded", state["error"]
