@@ -534,8 +534,10 @@ def write_report(results: dict, out: Path) -> None:
                 ),
                 "",
             ]
+        ours = roles(runs)[0]
+        paper_table = METHODS[ours].paper_table if ours in METHODS else "3"
         parts += [
-            "## Quality, time and memory (the paper's Table 3)",
+            f"## Quality, time and memory (the paper's Table {paper_table})",
             "",
             quality_table(runs, main, labels),
             "",
@@ -546,7 +548,8 @@ def write_report(results: dict, out: Path) -> None:
         ]
     speed = results["speedups"]
     if speed:
-        parts += ["## Speed-up of LeCO", ""]
+        ours = roles(runs)[0]
+        parts += [f"## Speed-up of {labels.get(ours, ours)}", ""]
         ratio = lambda value: "n/a" if value is None else cell(value, ".2f") + "x"
         rows = [
             [
@@ -672,11 +675,12 @@ def write_report(results: dict, out: Path) -> None:
 
 
 def summary_line(results: dict) -> str:
-    speed = results["speedups"].get(roles()[1])
+    ours, ref = roles(results["runs"])
+    speed = results["speedups"].get(ref)
     psnr = {n: m for n, (m, _) in per_variant(results["runs"], "val.psnr").items()}
     text = ", ".join(f"{n} {v:.2f} dB" for n, v in psnr.items() if v is not None)
     if speed and speed["rays_per_s"] is not None:
-        text += f"; LeCO vs Switch-NeRF: {speed['rays_per_s']:.2f}x rays/s"
+        text += f"; {ours} vs {ref}: {speed['rays_per_s']:.2f}x rays/s"
         if speed["time_to_equal_psnr"] is not None:
             text += f", {speed['time_to_equal_psnr']:.2f}x to equal PSNR"
         best = speed["time_to_its_best_psnr_per_seed"]
@@ -684,7 +688,7 @@ def summary_line(results: dict) -> str:
             text += (
                 " and "
                 + "/".join("never" if b is None else f"{b:.2f}x" for b in best)
-                + " to vanilla's best"
+                + f" to {ref}'s best"
             )
     return text
 

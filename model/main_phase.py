@@ -18,7 +18,7 @@ from dataclasses import field as dataclass_field
 import torch
 from torch import Tensor
 
-from model.fields.background import BackgroundField
+from model.fields.background import BackgroundField, background_samples
 from model.fields.output import FieldOutput
 from model.fields.switch_nerf import SwitchNeRF
 from model.losses import balance_loss, dispatch_fractions, rendering_loss
@@ -140,16 +140,46 @@ def grid_step_size(grid: GridEstimator, march_steps: int) -> float:
     return float((grid.aabb[1] - grid.aabb[0]).norm()) / march_steps
 
 
+def render_background_cascaded(
+    background: BackgroundField,
+    rays: RayBatch,
+    samples: int,
+    grid: GridEstimator,
+    generator: torch.Generator | None,
+) -> tuple[Tensor, float]:
+    """The background's colour with its samples culled by the grid's outer cascades (Instant-NGP
+    skips empty space beyond the box too): a sample in a free cell is dropped, one beyond the
+    outermost level is kept. A dropped sample had no density, so compositing the kept ones with
+    their own intervals is the same integral. Returns the colour and the kept share."""
+    t, deltas = background_samples(rays.far, samples, generator)
+    xyz = rays.origins[:, None, :] + rays.directions[:, None, :] * t[..., None]
+    flat = xyz.reshape(-1, 3)
+    with torch.no_grad():
+        keep = grid.occupied(flat) | grid.beyond(flat)
+    ray = torch.arange(len(rays), device=t.device).repeat_interleave(samples)[keep]
+    sigma, rgb = background(flat[keep], rays.directions[ray], rays.image_index[ray])
+    t_kept, deltas_kept = t.reshape(-1)[keep], deltas.reshape(-1)[keep]
+    rendered = composite_packed(sigma, rgb, t_kept, deltas_kept, ray, len(rays), sigma.new_zeros(3))
+    return rendered.rgb, float(keep.float().mean()) if len(keep) else 0.0
+
+
 def render_grid(
     field: SwitchNeRF,
     background: BackgroundField,
     rays: RayBatch,
-    profile: Profile,
+    background_samples_per_ray: int,
+    march_steps: int,
     grid: GridEstimator,
     generator: torch.Generator | None,
 ) -> MainRender:
-    behind = render_background(background, rays, profile.background.samples, generator).rgb
-    step = grid_step_size(grid, profile.grid.march_steps)
+    stats: dict[str, float] = {}
+    if grid.levels > 1:
+        behind, stats["background_kept"] = render_background_cascaded(
+            background, rays, background_samples_per_ray, grid, generator
+        )
+    else:
+        behind = render_background(background, rays, background_samples_per_ray, generator).rgb
+    step = grid_step_size(grid, march_steps)
     samples = grid.sample(rays.origins, rays.directions, rays.near, rays.far, step, generator)
     possible = float(((rays.far - rays.near) / step).ceil().clamp(min=0).sum())
     out = field_on_packed(field, rays, samples)
@@ -159,6 +189,7 @@ def render_grid(
         len(samples) / len(rays),
         len(samples) / max(possible, 1.0),
         samples=samples,
+        stats=stats,
     )
 
 

@@ -81,7 +81,8 @@ DRIVERS = {
     "(vanilla.*_samples, guided.coarse_samples x guided.split, grid.march_steps, "
     "occupancy.samples_per_ray) x network.width x network.expert_layers (ngp.levels x "
     "ngp.features, ngp.width for the hash-grid methods)",
-    "estimator": "grid.resolution (the occupancy grid's cells)",
+    "estimator": "grid.resolution (the occupancy grid's cells; ngp.grid.resolution x "
+    "ngp.grid.levels for NGP's cascades)",
 }
 
 

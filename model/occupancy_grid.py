@@ -1,6 +1,8 @@
 """The "S+Grid" baseline: nerfacc's OccGridEstimator semantics re-implemented in plain PyTorch
-(nerfacc's sampling needs CUDA). One level over the foreground box; every cost it has (update
-queries, the culling pass) is explicit so benchmarks can charge it to the grid.
+(nerfacc's sampling needs CUDA). One level over the foreground box by default; with `levels` > 1,
+Instant-NGP's cascades: level l covers the box scaled by 2^l about its centre, and a point belongs
+to the finest level that holds it. Every cost it has (update queries, the culling pass) is explicit
+so benchmarks can charge it to the grid.
 
 Update (every `every` steps): during warm-up every cell is queried; afterwards a random quarter of
 all cells plus up to a quarter as many occupied cells, each at a jittered point inside the cell;
@@ -21,12 +23,13 @@ class GridEstimator:
     """nerfacc's OccGridEstimator in plain PyTorch: a binary grid over the foreground box, kept
     from the density it was last asked (the module's docstring says how)."""
 
-    def __init__(self, aabb: Tensor, resolution: int = 128):
+    def __init__(self, aabb: Tensor, resolution: int = 128, levels: int = 1):
         self.aabb = aabb.float()
         self.resolution = resolution
-        self.values = torch.zeros(resolution**3)
+        self.levels = levels
+        self.values = torch.zeros(levels * resolution**3)
         # everything may be occupied until updated
-        self.binary = torch.ones(resolution**3, dtype=torch.bool)
+        self.binary = torch.ones(levels * resolution**3, dtype=torch.bool)
         self.queries = 0  # density evaluations spent on updates, for honest cost accounting
 
     def to(self, device: torch.device | str) -> "GridEstimator":
@@ -41,19 +44,46 @@ class GridEstimator:
 
     @property
     def num_cells(self) -> int:
-        return self.resolution**3
+        return self.levels * self.resolution**3
+
+    def level_box(self, level: Tensor | int) -> tuple[Tensor, Tensor]:
+        """The corners of a cascade level (level 0 is the box itself, exactly)."""
+        if isinstance(level, int) and level == 0:
+            return self.aabb[0], self.aabb[1]
+        centre, half = self.aabb.mean(0), (self.aabb[1] - self.aabb[0]) / 2
+        scale = 2.0 ** torch.as_tensor(level, device=self.aabb.device, dtype=torch.float32)
+        scale = scale[..., None] if scale.dim() else scale
+        return centre - half * scale, centre + half * scale
 
     def _cell_index(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """Each point's cell (level-major) and whether any level holds it."""
+        r = self.resolution
         unit = (points - self.aabb[0]) / (self.aabb[1] - self.aabb[0])
-        ijk = torch.floor(unit * self.resolution).long()
-        inside = ((ijk >= 0) & (ijk < self.resolution)).all(-1)
-        ijk = ijk.clamp(0, self.resolution - 1)
-        return (ijk[:, 0] * self.resolution + ijk[:, 1]) * self.resolution + ijk[:, 2], inside
+        ijk = torch.floor(unit * r).long()
+        inside = ((ijk >= 0) & (ijk < r)).all(-1)
+        level = torch.zeros(len(points), dtype=torch.long, device=points.device)
+        if self.levels > 1:
+            outer = ~inside
+            centre, half = self.aabb.mean(0), (self.aabb[1] - self.aabb[0]) / 2
+            reach = ((points[outer] - centre) / half).abs().amax(-1)
+            # the finest level 2^l >= reach; at least 1, as level 0 did not hold the point
+            level[outer] = torch.ceil(torch.log2(reach.clamp(min=1.0))).long().clamp(min=1)
+            lo, hi = self.level_box(level[outer])
+            ijk[outer] = torch.floor((points[outer] - lo) / (hi - lo) * r).long()
+            held = ((ijk[outer] >= 0) & (ijk[outer] < r)).all(-1) & (level[outer] < self.levels)
+            inside[outer] = held
+        ijk = ijk.clamp(0, r - 1)
+        level = level.clamp(max=self.levels - 1)
+        return ((level * r + ijk[:, 0]) * r + ijk[:, 1]) * r + ijk[:, 2], inside
 
     def occupied(self, points: Tensor) -> Tensor:
-        """Estimator interface shared with OccupancyPredictor; points outside the box are free."""
+        """Estimator interface shared with OccupancyPredictor; points no level holds are free."""
         index, inside = self._cell_index(points.to(self.aabb.device))
         return self.binary[index] & inside
+
+    def beyond(self, points: Tensor) -> Tensor:
+        """Points outside the outermost level: the grid knows nothing of them."""
+        return ~self._cell_index(points.to(self.aabb.device))[1]
 
     @torch.no_grad()
     def update(
@@ -80,10 +110,11 @@ class GridEstimator:
                 occupied = occupied[torch.randint(0, len(occupied), (n // 4,), generator=generator)]
             cells = torch.cat([uniform, occupied])
         r = self.resolution
-        ijk = torch.stack([cells // (r * r), (cells // r) % r, cells % r], -1).float()
+        ijk = torch.stack([(cells // (r * r)) % r, (cells // r) % r, cells % r], -1).float()
         jitter = torch.rand(len(cells), 3, generator=generator)
         cells, unit = cells.to(device), ((ijk + jitter) / r).to(device)
-        points = self.aabb[0] + unit * (self.aabb[1] - self.aabb[0])
+        lo, hi = self.level_box(0) if self.levels == 1 else self.level_box(cells // r**3)
+        points = lo + unit * (hi - lo)
         value = torch.cat(
             [
                 density_fn(points[s : s + 65536]).float().reshape(-1)

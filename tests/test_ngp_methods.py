@@ -112,3 +112,40 @@ def test_ngp_leco_trains_through_the_api_and_a_dispatcher(service_settings):
             dispatcher.stop(wait=True)
         assert state["state"] == "succeeded", state["error"]
         assert state["latest_metrics"]["main"]["loss"] > 0
+
+
+def test_ngp_grid_cascades_read_the_background_beyond_the_box():
+    import torch
+
+    profile = TrainConfig(method="ngp", profile="smoke").resolved_profile()
+    method = get_method("ngp")(profile)
+    models = method.build(3, torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
+    assert method.grid.levels == profile.ngp.grid.levels == 2
+    r = profile.ngp.grid.resolution
+    assert method.components(3)["grid_cells"] == 2 * r**3 == method.grid.num_cells
+    x = torch.tensor([[0.2, 0.0, 0.0], [1.5, 0.0, 0.0]])
+    zeros = torch.zeros(1, dtype=torch.long)
+    with torch.no_grad():
+        sigma = method.density(models, x)
+        inside = models.field(x[:1], torch.zeros(1, 3), zeros).sigma
+        outside = models.background(x[1:], torch.zeros(1, 3), zeros)[0]
+    assert torch.allclose(sigma, torch.cat([inside, outside]).float())
+    assert get_method("grid")(profile).grid_config.levels == 1  # S+Grid: nerfacc's one level
+
+
+def test_an_ngp_run_renders_a_video_and_exports_its_grid_and_points(tiny_scene, tmp_path, capsys):
+    from workers.video import probe
+
+    run = tmp_path / "run"
+    args = ["train", "--scene", str(tiny_scene.root), "--method", "ngp", "--profile", "smoke"]
+    assert main(args + ["--out", str(run), "--backend", "local", "--set", "main_steps=8"]) == 0
+    video = tmp_path / "orbit.mp4"
+    render = ["render", "--run", str(run), "--frames", "2", "--size", "32x24", "--fps", "4"]
+    assert main(render + ["--out", str(video)]) == 0
+    assert probe(video)["frames"] == 2 and probe(video)["width"] == 32
+    for what, name in (("occupancy", "occupancy.ply"), ("pointcloud", "pointcloud.ply")):
+        out = tmp_path / what
+        export = ["export", what, "--run", str(run), "--out", str(out), "--stride", "4"]
+        assert main(export + ["--min-opacity", "0", "--resolution", "16"]) == 0
+        assert (out / name).stat().st_size > 100
+    capsys.readouterr()

@@ -51,3 +51,79 @@ def test_sampling_keeps_only_occupied_cells_and_culling_drops_hidden_samples():
     )
     # everything behind the opaque front of the ball is dropped
     assert 0 < len(culled) < len(samples)
+
+
+def shell(points):
+    """Density 100 between 2.5 and 3.5 from the centre (max norm), 0 elsewhere: far outside the
+    box."""
+    reach = points.abs().amax(-1)
+    return ((reach > 2.5) & (reach < 3.5)).float() * 100.0
+
+
+def test_one_level_indexes_cells_as_the_single_box_grid_did():
+    grid = GridEstimator(AABB, resolution=16)
+    points = torch.rand(4096, 3, generator=torch.Generator().manual_seed(1)) * 3 - 1.5
+    index, inside = grid._cell_index(points)
+    ijk = torch.floor((points - AABB[0]) / (AABB[1] - AABB[0]) * 16).long()
+    expected_inside = ((ijk >= 0) & (ijk < 16)).all(-1)
+    ijk = ijk.clamp(0, 15)
+    assert torch.equal(inside, expected_inside)
+    assert torch.equal(index, (ijk[:, 0] * 16 + ijk[:, 1]) * 16 + ijk[:, 2])
+
+
+def test_cascades_cover_points_far_outside_the_box():
+    grid = GridEstimator(AABB, resolution=16, levels=3)  # reaches 4x the box's half-extent
+    grid.update(0, shell, step_size=0.01, generator=torch.Generator().manual_seed(0))
+    assert grid.queries == 3 * 16**3  # warm-up: every cell of every level
+    far_in_shell = torch.tensor([[3.0, 0.2, -0.4], [-0.3, -3.1, 1.0]])
+    between = torch.tensor([[1.7, 0.0, 0.0], [0.0, 0.0, -2.0]])
+    beyond = torch.tensor([[5.0, 0.0, 0.0], [0.0, 9.0, 0.0]])
+    assert grid.occupied(far_in_shell).all() and not grid.occupied(between).any()
+    assert not grid.occupied(beyond).any() and grid.beyond(beyond).all()
+    assert not grid.beyond(far_in_shell).any() and not grid.beyond(torch.zeros(1, 3)).any()
+    # the finest level that holds a point decides: level 1's cell at (1.7, 0, 0) is 0.25 wide
+    index, _ = grid._cell_index(torch.tensor([[1.7, 0.0, 0.0], [3.0, 0.0, 0.0]]))
+    assert (index // 16**3).tolist() == [1, 2]
+
+
+def test_cascaded_update_points_reach_the_outer_level():
+    grid = GridEstimator(AABB, resolution=8, levels=4)
+    seen = []
+    grid.update(0, lambda p: seen.append(p) or torch.zeros(len(p)), step_size=0.01)
+    points = torch.cat(seen)
+    reach = points.abs().amax(-1)
+    assert len(points) == 4 * 8**3 and reach.max() > 7.0 and reach.max() <= 8.0
+    # each level's points are spread over its whole box, inner region included
+    assert (reach <= 1.0).sum() >= 8**3
+
+
+def test_cascaded_background_render_drops_only_free_samples():
+    from model.fields.background import BackgroundField
+    from model.main_phase import render_background_cascaded
+    from model.occupancy_phase import render_background
+    from model.scenes.rays import RayBatch
+
+    torch.manual_seed(0)
+    background = BackgroundField(1, width=16, layers=1, appearance_dim=4).eval()
+    n = 64
+    directions = torch.nn.functional.normalize(torch.randn(n, 3), dim=-1)
+    rays = RayBatch(
+        origins=torch.zeros(n, 3),
+        directions=directions,
+        near=torch.zeros(n),
+        far=torch.full((n,), 1.0),
+        image_index=torch.zeros(n, dtype=torch.long),
+        rgb=torch.zeros(n, 3),
+        pixel=torch.arange(n),
+    )
+    grid = GridEstimator(AABB, resolution=8, levels=3)  # unupdated: every cell may be occupied
+    with torch.no_grad():
+        full = render_background(background, rays, 32, None).rgb
+        cascaded, kept = render_background_cascaded(background, rays, 32, grid, None)
+        assert kept == 1.0 and torch.allclose(cascaded, full, atol=1e-6)
+        grid.binary[:] = False  # the cascades say nothing is there: only samples beyond them stay
+        culled, kept = render_background_cascaded(background, rays, 32, grid, None)
+    t = 1.0 / (1.0 - (torch.arange(32) + 0.5) / 32)  # the background's samples from far = 1
+    beyond = grid.beyond((directions[:, None] * t[:, None]).reshape(-1, 3)).float().mean()
+    assert 0 < kept < 1 and abs(kept - float(beyond)) < 1e-6
+    assert not torch.allclose(culled, full)

@@ -8,7 +8,7 @@ from dataclasses import replace
 
 from model import sizes
 from model.methods.spec import PhaseMemory
-from model.profiles import Profile
+from model.profiles import GridConfig, Profile
 
 
 def main_phase(profile: Profile, num_images: int, samples_per_ray: int) -> PhaseMemory:
@@ -44,18 +44,15 @@ def leco(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
     }
 
 
-def grid_cells(profile: Profile) -> int:
-    return profile.grid.resolution**3
-
-
-def grid(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
-    main = main_phase(profile, num_images, profile.grid.march_steps)
+def grid(profile: Profile, num_images: int, g: GridConfig | None = None) -> dict[str, PhaseMemory]:
+    g = g or profile.grid
+    main = main_phase(profile, num_images, g.march_steps)
     return {
         "main": PhaseMemory(
             main.trained,
             samples_per_ray=main.samples_per_ray,
             # float values + occupied bits
-            extra_bytes=5 * grid_cells(profile),
+            extra_bytes=5 * g.levels * g.resolution**3,
         )
     }
 
@@ -126,7 +123,7 @@ def on_hash_grids(phases: dict[str, PhaseMemory], profile: Profile, num_images: 
 
 
 def ngp(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
-    return on_hash_grids(grid(profile, num_images), profile, num_images)
+    return on_hash_grids(grid(profile, num_images, profile.ngp.grid), profile, num_images)
 
 
 def ngp_leco(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:

@@ -10,24 +10,33 @@ from torch import Tensor
 
 from model.main_phase import MainRender, grid_step_size, render_grid
 from model.methods.base import Method, Networks, Occupied, SweepPoint, mean_of
+from model.methods.spec import setting
 from model.occupancy_grid import GridEstimator
+from model.profiles import GridConfig
 from model.scenes.rays import RayBatch
 
 
 class GridMethod(Method):
     grid: GridEstimator  # made by build()
+    grid_section = "grid"  # the profile section of this method's grid
+
+    @property
+    def grid_config(self) -> GridConfig:
+        return setting(self.profile, self.grid_section)
 
     def build(self, num_images: int, aabb: Tensor) -> Networks:
-        self.grid = GridEstimator(aabb.float(), self.profile.grid.resolution)
+        g = self.grid_config
+        self.grid = GridEstimator(aabb.float(), g.resolution, g.levels)
         return super().build(num_images, aabb)
 
     def components(self, num_images: int) -> dict[str, int]:
-        return {**super().components(num_images), "grid_cells": self.profile.grid.resolution**3}
+        g = self.grid_config
+        return {**super().components(num_images), "grid_cells": g.levels * g.resolution**3}
 
     def sweep(self) -> list[SweepPoint]:
-        n = self.profile.grid.march_steps
+        n = self.grid_config.march_steps
         return [
-            SweepPoint(tag, f"{m} march steps", {"grid.march_steps": m})
+            SweepPoint(tag, f"{m} march steps", {f"{self.grid_section}.march_steps": m})
             for tag, m in (("lean", max(n // 2, 8)), ("rich", 2 * n))
         ]
 
@@ -45,15 +54,13 @@ class GridMethod(Method):
         phase_step: int,
         seed: int,
     ) -> tuple[Tensor, dict]:
-        g, field = self.profile.grid, models.field
-        zeros = lambda x: torch.zeros(len(x), dtype=torch.long, device=x.device)
-        density = lambda x: field(x, torch.zeros_like(x), zeros(x)).sigma
+        g, field = self.grid_config, models.field
         was_training = field.training
         field.eval()
         # Same generator on every rank, so the replicated grids stay identical.
         self.grid.update(
             phase_step,
-            density,
+            lambda x: self.density(models, x),
             grid_step_size(self.grid, g.march_steps),
             g.threshold,
             g.decay,
@@ -64,6 +71,23 @@ class GridMethod(Method):
         field.train(was_training)
         return super().step(models, phase, rays, generator, progress, phase_step, seed)
 
+    def density(self, models: Networks, x: Tensor) -> Tensor:
+        """What the grid's update reads: the field's density in the box and, where cascades reach
+        beyond it, the background's."""
+        zeros = lambda x: torch.zeros(len(x), dtype=torch.long, device=x.device)
+        if self.grid.levels == 1:  # every update point is in the box
+            return models.field(x, torch.zeros_like(x), zeros(x)).sigma
+        lo, hi = self.grid.aabb
+        box = ((x >= lo) & (x < hi)).all(-1)
+        sigma = x.new_zeros(len(x))
+        if box.any():
+            y = x[box]
+            sigma[box] = models.field(y, torch.zeros_like(y), zeros(y)).sigma.float()
+        if (~box).any():
+            y = x[~box]
+            sigma[~box] = models.background(y, torch.zeros_like(y), zeros(y))[0].float()
+        return sigma
+
     def render_main(
         self,
         models: Networks,
@@ -72,7 +96,13 @@ class GridMethod(Method):
         phase_step: int | None,
     ) -> MainRender:
         return render_grid(
-            models.field, models.background, rays, self.profile, self.grid, generator
+            models.field,
+            models.background,
+            rays,
+            self.profile.background.samples,
+            self.grid_config.march_steps,
+            self.grid,
+            generator,
         )
 
     def occupancy(self, models: Networks, phase: str) -> Occupied | None:
@@ -99,6 +129,7 @@ class GridMethod(Method):
 
     def summary_occupancy(self, final: Path, main: list[dict], first: list[dict]) -> dict:
         return {
-            "params": self.profile.grid.resolution**3,  # one value per cell
+            # one value per cell
+            "params": self.grid_config.levels * self.grid_config.resolution**3,
             "occupancy_ratio": mean_of(main, "occupancy_ratio"),
         }

@@ -71,7 +71,7 @@ class HashGridNetworks:
 
 
 class NGPMethod(HashGridNetworks, GridMethod):
-    pass
+    grid_section = "ngp.grid"  # Instant-NGP's own grid, cascades reaching into the background
 
 
 class NGPLeCOMethod(HashGridNetworks, LeCOMethod):

@@ -5,8 +5,10 @@ imports PyTorch; a method's code is loaded when a run first asks for it."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 from model.methods import costs
-from model.methods.spec import MethodSpec
+from model.methods.spec import MethodSpec, ReferenceTargets
 
 METHODS: dict[str, MethodSpec] = {}
 
@@ -34,9 +36,13 @@ def family_of(name: str | None) -> list[str]:
     return [n for n, m in METHODS.items() if family is None or m.family == family]
 
 
-def with_role(role: str) -> str | None:
-    """The name of the registered method with this role ("ours", "reference"), if any."""
-    return next((name for name, m in METHODS.items() if m.role == role), None)
+def with_role(role: str, among: Iterable[str] | None = None) -> str | None:
+    """The first registered method with this role ("ours", "reference"), among `among` when given
+    (each family has its own pair), if any."""
+    names = None if among is None else set(among)
+    return next(
+        (n for n, m in METHODS.items() if m.role == role and (names is None or n in names)), None
+    )
 
 
 register(
@@ -84,13 +90,19 @@ register(
         colour="#8c564b",
     )
 )
-# The hash-grid family (the paper's Appendix C): Instant-NGP's field under each sampler.
+# The hash-grid family (the paper's Appendix C, Table 6): Instant-NGP's field under each sampler,
+# with its own pair of "ours" and "reference".
 register(
     MethodSpec(
         "ngp",
         "NGP",
         "model.methods.ngp:NGPMethod",
         costs.ngp,
+        role="reference",
+        # Table 6 asks NGP+Ours for NGP's PSNR sooner; rays/s, samples and memory are reported
+        reference_targets=ReferenceTargets(
+            rays_per_s=None, best_sooner=1.0, samples_fraction=None, memory_fraction=None
+        ),
         has_occupancy=True,
         colour="#9467bd",
         family="Instant-NGP",
@@ -102,6 +114,8 @@ register(
         "NGP+Ours (LeCO)",
         "model.methods.ngp:NGPLeCOMethod",
         costs.ngp_leco,
+        role="ours",
+        paper_table="6",
         phase_steps=(("occupancy", "occupancy.steps"), ("main", "main_steps")),
         has_occupancy=True,
         colour="#e377c2",

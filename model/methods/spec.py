@@ -16,6 +16,17 @@ if TYPE_CHECKING:
 
 
 @dataclass(frozen=True)
+class ReferenceTargets:
+    """What the benchmark asks of a family's "ours" against its "reference" (None: no target, the
+    ratio is still reported). The defaults are the paper's against vanilla Switch-NeRF."""
+
+    rays_per_s: float | None = 2.5  # at least this many times the reference's rays/s
+    best_sooner: float = 2.0  # reaches the reference's best PSNR this many times sooner
+    samples_fraction: float | None = 0.25  # main-network samples per ray, at most this share
+    memory_fraction: float | None = 0.5  # peak training memory, at most this share
+
+
+@dataclass(frozen=True)
 class PhaseMemory:
     """What one phase of a method keeps per rank, for the memory estimate
     (model/memory_estimate.py)."""
@@ -58,6 +69,10 @@ class MethodSpec:
     # "ours": the method the benchmark reports speed-ups for; "reference": the unguided method its
     # equal-PSNR target and time ratios are measured against; "baseline": every other method.
     role: str = "baseline"
+    # what "ours" must show against this method when it is the reference
+    reference_targets: ReferenceTargets = ReferenceTargets()
+    # the paper's table of quality and time for the family this method is "ours" of
+    paper_table: str = "3"
     # Each phase and the profile setting that holds its step count, in training order.
     phase_steps: tuple[tuple[str, str], ...] = (("main", "main_steps"),)
     # an occupancy to score (the paper's Table 1) and to filter a point cloud with

@@ -699,7 +699,8 @@ async function showCompare(sceneId) {
   const target = runs.length ? Math.min(...runs.map(r => Math.max(...r.points.map(p => p.value)))) : null;
   const reach = r => (r.points.find(p => p.value >= target) || {}).wall_time_s ?? null;
   const registry = await methodRegistry();
-  const ours = Object.values(registry).find(m => m.role === "ours");
+  // each family has its own "ours" (LeCO on Switch-NeRF, on hash grids): the first one compared here
+  const ours = Object.values(registry).find(m => m.role === "ours" && runs.some(r => r.job.method === m.name));
   const leco = ours && runs.find(r => r.job.method === ours.name);
   const rows = runs.map(r => {
     const t = reach(r), speedup = leco && t && reach(leco) ? t / reach(leco) : null;
