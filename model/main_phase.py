@@ -155,7 +155,7 @@ def render_background_cascaded(
     xyz = rays.origins[:, None, :] + rays.directions[:, None, :] * t[..., None]
     flat = xyz.reshape(-1, 3)
     with torch.no_grad():
-        keep = grid.occupied(flat) | grid.beyond(flat)
+        keep = grid.not_free(flat)
     ray = torch.arange(len(rays), device=t.device).repeat_interleave(samples)[keep]
     sigma, rgb = background(flat[keep], rays.directions[ray], rays.image_index[ray])
     t_kept, deltas_kept = t.reshape(-1)[keep], deltas.reshape(-1)[keep]

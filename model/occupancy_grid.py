@@ -85,6 +85,11 @@ class GridEstimator:
         """Points outside the outermost level: the grid knows nothing of them."""
         return ~self._cell_index(points.to(self.aabb.device))[1]
 
+    def not_free(self, points: Tensor) -> Tensor:
+        """occupied | beyond, from one cell lookup: what a cascaded render must keep."""
+        index, inside = self._cell_index(points.to(self.aabb.device))
+        return self.binary[index] | ~inside
+
     @torch.no_grad()
     def update(
         self,

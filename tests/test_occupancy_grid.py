@@ -81,6 +81,10 @@ def test_cascades_cover_points_far_outside_the_box():
     assert grid.occupied(far_in_shell).all() and not grid.occupied(between).any()
     assert not grid.occupied(beyond).any() and grid.beyond(beyond).all()
     assert not grid.beyond(far_in_shell).any() and not grid.beyond(torch.zeros(1, 3)).any()
+    everywhere = torch.cat([far_in_shell, between, beyond])
+    assert torch.equal(
+        grid.not_free(everywhere), grid.occupied(everywhere) | grid.beyond(everywhere)
+    )
     # the finest level that holds a point decides: level 1's cell at (1.7, 0, 0) is 0.25 wide
     index, _ = grid._cell_index(torch.tensor([[1.7, 0.0, 0.0], [3.0, 0.0, 0.0]]))
     assert (index // 16**3).tolist() == [1, 2]
