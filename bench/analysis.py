@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 import statistics
 
-from model.methods import METHODS, with_role
+from model.methods import METHODS, family_of, with_role
 
 
 def roles(runs: list[dict] | None = None) -> tuple[str | None, str | None]:
@@ -16,6 +16,23 @@ def roles(runs: list[dict] | None = None) -> tuple[str | None, str | None]:
     names = {r["variant"] for r in runs or [] if not r["ablation"]}
     ours, ref = with_role("ours", names), with_role("reference", names)
     return ours or with_role("ours"), ref or with_role("reference")
+
+
+def families(runs: list[dict]) -> list[tuple[str, str | None]]:
+    """(ours, reference) of every family whose "ours" the runs compare, in registry order. A
+    benchmark of two families judges each "ours" against its own family only: S+Ours against
+    NGP+Ours is a comparison of main networks, not of samplers."""
+    names = {r["variant"] for r in runs if not r["ablation"]}
+    out = []
+    for ours in [n for n, m in METHODS.items() if m.role == "ours" and n in names]:
+        out.append((ours, with_role("reference", names & set(family_of(ours)))))
+    return out
+
+
+def in_family(runs: list[dict], ours: str) -> list[dict]:
+    """The runs of `ours`'s family (its ablations and rungs included)."""
+    family = set(family_of(ours))
+    return [r for r in runs if r["method"] in family]
 
 
 def main_curve(run: dict) -> list[tuple[float, float]]:

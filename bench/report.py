@@ -11,6 +11,7 @@ from pathlib import Path
 import torch
 
 from bench.analysis import (
+    families,
     get,
     layer_recalls,
     main_curve,
@@ -480,6 +481,88 @@ def scale_text(plan: dict) -> str:
     return f"images at 1/{factor} scale for training and validation alike ({where})"
 
 
+def paper_tables(numbers: list[str]) -> str:
+    """ "Table 3", "Tables 3 and 6"."""
+    if len(numbers) == 1:
+        return f"Table {numbers[0]}"
+    return f"Tables {', '.join(numbers[:-1])} and {numbers[-1]}"
+
+
+def family_sections(block: dict, labels: dict, plan: dict, several: bool) -> list[str]:
+    """A family's "ours" against the other methods of its family: speed-ups, equal PSNR, targets.
+    With several families each section names the family it judges."""
+    parts: list[str] = []
+    ours = block.get("ours")
+    of = f" ({METHODS[ours].family} family)" if several and ours in METHODS else ""
+    speed = block["speedups"]
+    if speed:
+        parts += [f"## Speed-up of {labels.get(ours, ours)}{of}", ""]
+        ratio = lambda value: "n/a" if value is None else cell(value, ".2f") + "x"
+        rows = [
+            [
+                labels.get(base, base),
+                ratio(v["rays_per_s"]),
+                ratio(v["time_to_equal_psnr"]),
+                ratio(v["time_to_its_best_psnr"]),
+                cell(v["samples_per_ray_fraction"], ".1%"),
+                cell(v["activation_memory_fraction"], ".1%"),
+                cell(v["peak_memory_fraction"], ".1%"),
+            ]
+            for base, v in speed.items()
+        ]
+        parts += [
+            table(
+                [
+                    "over",
+                    "rays/s",
+                    "time to equal PSNR",
+                    "time to its best PSNR",
+                    "samples per ray (LeCO / it)",
+                    "activations (LeCO / it)",
+                    "peak memory (LeCO / it)",
+                ],
+                rows,
+            ),
+            "",
+        ]
+        for e in block["equal_psnr"]:
+            times = ", ".join(
+                f"{labels.get(k, k)} {'n/a' if v is None else f'{v / 60:.2f} min'}"
+                for k, v in e["time_s"].items()
+            )
+            parts.append(
+                f"- seed {e['seed']}: equal PSNR {e['target_psnr']:.2f} dB (the best every method "
+                f"{'of the family ' if of else ''}reached, on the first {plan['eval_views']} "
+                f"validation views) reached after {times}"
+            )
+        parts.append("")
+    if block["targets"]:
+        parts += [
+            f"## Targets{of}",
+            "",
+            table(
+                ["target", "measured", "met"],
+                [
+                    [
+                        t["target"],
+                        t["measured"],
+                        {True: "yes", False: "**no**", None: "n/a"}[t["met"]],
+                    ]
+                    for t in block["targets"]
+                ],
+            ),
+            "",
+        ]
+        missed = [t for t in block["targets"] if t["met"] is False]
+        if missed:
+            parts += [
+                f"{len(missed)} target(s) missed; docs/BENCHMARKS.md explains why and what would "
+                "fix it.",
+                "",
+            ]
+    return parts
+
+
 def write_report(results: dict, out: Path) -> None:
     runs = results["runs"]
     labels = {r["variant"]: r["label"] for r in runs}
@@ -534,10 +617,9 @@ def write_report(results: dict, out: Path) -> None:
                 ),
                 "",
             ]
-        ours = roles(runs)[0]
-        paper_table = METHODS[ours].paper_table if ours in METHODS else "3"
+        tables = [METHODS[ours].paper_table for ours, _ in families(runs)] or ["3"]
         parts += [
-            f"## Quality, time and memory (the paper's Table {paper_table})",
+            f"## Quality, time and memory (the paper's {paper_tables(tables)})",
             "",
             quality_table(runs, main, labels),
             "",
@@ -546,73 +628,8 @@ def write_report(results: dict, out: Path) -> None:
             "keeps for one main-network step (workers/memory.py).",
             "",
         ]
-    speed = results["speedups"]
-    if speed:
-        ours = roles(runs)[0]
-        parts += [f"## Speed-up of {labels.get(ours, ours)}", ""]
-        ratio = lambda value: "n/a" if value is None else cell(value, ".2f") + "x"
-        rows = [
-            [
-                labels.get(base, base),
-                ratio(v["rays_per_s"]),
-                ratio(v["time_to_equal_psnr"]),
-                ratio(v["time_to_its_best_psnr"]),
-                cell(v["samples_per_ray_fraction"], ".1%"),
-                cell(v["activation_memory_fraction"], ".1%"),
-                cell(v["peak_memory_fraction"], ".1%"),
-            ]
-            for base, v in speed.items()
-        ]
-        parts += [
-            table(
-                [
-                    "over",
-                    "rays/s",
-                    "time to equal PSNR",
-                    "time to its best PSNR",
-                    "samples per ray (LeCO / it)",
-                    "activations (LeCO / it)",
-                    "peak memory (LeCO / it)",
-                ],
-                rows,
-            ),
-            "",
-        ]
-        for e in results["equal_psnr"]:
-            times = ", ".join(
-                f"{labels.get(k, k)} {'n/a' if v is None else f'{v / 60:.2f} min'}"
-                for k, v in e["time_s"].items()
-            )
-            parts.append(
-                f"- seed {e['seed']}: equal PSNR {e['target_psnr']:.2f} dB (the best every method "
-                f"reached, on the first {plan['eval_views']} validation views) reached after "
-                f"{times}"
-            )
-        parts.append("")
-    if results["targets"]:
-        parts += [
-            "## Targets",
-            "",
-            table(
-                ["target", "measured", "met"],
-                [
-                    [
-                        t["target"],
-                        t["measured"],
-                        {True: "yes", False: "**no**", None: "n/a"}[t["met"]],
-                    ]
-                    for t in results["targets"]
-                ],
-            ),
-            "",
-        ]
-        missed = [t for t in results["targets"] if t["met"] is False]
-        if missed:
-            parts += [
-                f"{len(missed)} target(s) missed; docs/BENCHMARKS.md explains why and what would "
-                "fix it.",
-                "",
-            ]
+    for block in results.get("families") or [results]:
+        parts += family_sections(block, labels, plan, several=len(results.get("families", [])) > 1)
     if any(r.get("ladder") for r in runs):
         parts += [
             "## Ablation ladder",

@@ -9,7 +9,9 @@ import pytest
 import torch
 from PIL import Image
 
-from bench.analysis import equal_psnr, roles, speedups, targets, time_to_psnr
+from bench.analysis import equal_psnr, families, roles, speedups, targets, time_to_psnr
+from bench.cli import family_block
+from bench.report import family_sections, paper_tables
 from bench.variants import RUNGS
 from cli.main import main
 from model.occupancy_eval import evaluate_occupancy_exact
@@ -125,6 +127,28 @@ def test_the_hash_grid_family_is_judged_against_its_own_reference():
         "occupancy F1 above NGP's": True,
         "LeCO occupancy ratio <= 20%": True,
     }
+
+
+def test_two_families_in_one_bench_are_each_judged_within_their_own_family(tmp_path):
+    occupancy = {"f1": 0.5, "params": 1000, "occupancy_ratio": 0.1}
+    runs = [
+        fake_run("leco", 0, [(60, 18.0), (120, 22.0)], val={"psnr": 22.0}, occupancy=occupancy),
+        fake_run("switch", 0, [(60, 16.0), (240, 20.0)], val={"psnr": 20.0}),
+        fake_run("ngp-leco", 0, [(60, 20.0), (120, 25.0)], val={"psnr": 25.0}, occupancy=occupancy),
+        fake_run("ngp", 0, [(60, 15.0), (240, 23.0)], val={"psnr": 23.0}, occupancy=occupancy),
+    ]
+    assert families(runs) == [("leco", "switch"), ("ngp-leco", "ngp")]
+    leco, ngp = (family_block(runs, ours) for ours, _ in families(runs))
+    # S+Ours is not judged against NGP+Ours or NGP (another main network), nor the reverse
+    assert list(leco["speedups"]) == ["switch"] and list(ngp["speedups"]) == ["ngp"]
+    assert not any("NGP" in t["target"] for t in leco["targets"])
+    assert not any("S-NeRF" in t["target"] for t in ngp["targets"])
+    # equal PSNR within a family: vanilla's 20 dB for the first, NGP's 23 dB for the second
+    assert [b["equal_psnr"][0]["target_psnr"] for b in (leco, ngp)] == [20.0, 23.0]
+    assert paper_tables(["3", "6"]) == "Tables 3 and 6" and paper_tables(["6"]) == "Table 6"
+    sections = "\n".join(family_sections(ngp, {}, {"eval_views": 4}, several=True))
+    assert "## Speed-up of ngp-leco (Instant-NGP family)" in sections
+    assert "## Targets (Instant-NGP family)" in sections
 
 
 def test_ladder_climbs_from_the_papers_formulation_to_the_cpu_defaults():
