@@ -617,9 +617,9 @@ def write_report(results: dict, out: Path) -> None:
                 ),
                 "",
             ]
-        tables = [METHODS[ours].paper_table for ours, _ in families(runs)] or ["3"]
+        numbers = [METHODS[ours].paper_table for ours, _ in families(runs)] or ["3"]
         parts += [
-            f"## Quality, time and memory (the paper's {paper_tables(tables)})",
+            f"## Quality, time and memory (the paper's {paper_tables(numbers)})",
             "",
             quality_table(runs, main, labels),
             "",
