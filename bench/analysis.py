@@ -35,6 +35,22 @@ def in_family(runs: list[dict], ours: str) -> list[dict]:
     return [r for r in runs if r["method"] in family]
 
 
+def family_block(runs: list[dict], ours: str | None) -> dict:
+    """`ours` against the other methods of its family (all the runs when None): equal PSNR,
+    speed-ups and targets."""
+    group = runs if ours is None else in_family(runs, ours)
+    equal = equal_psnr(group)
+    speed = speedups(group, equal)
+    ours, ref = roles(group)
+    return {
+        "ours": ours,
+        "reference": ref,
+        "equal_psnr": equal,
+        "speedups": speed,
+        "targets": targets(group, speed),
+    }
+
+
 def main_curve(run: dict) -> list[tuple[float, float]]:
     """(training seconds, validation PSNR) of the main network; LeCO's times include its occupancy
     phase."""

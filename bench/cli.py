@@ -110,8 +110,8 @@ def bench_command(args: argparse.Namespace) -> int:
                     "depth maps of the validation views rendered by the trained vanilla Switch-NeRF"
                 )
 
-    families = [family_block(runs, ours) for ours, _ in analysis.families(runs)]
-    first = families[0] if families else family_block(runs, None)
+    families = [analysis.family_block(runs, ours) for ours, _ in analysis.families(runs)]
+    first = families[0] if families else analysis.family_block(runs, None)
     results = {
         "plan": {
             "scene": str(scene_dir),
@@ -148,24 +148,6 @@ def bench_command(args: argparse.Namespace) -> int:
     log(f"[bench] {report.summary_line(results)}")
     print(f"{out / 'report.md'}\n{out / 'results.json'}")
     return 0
-
-
-def family_block(runs: list[dict], ours: str | None) -> dict:
-    """`ours` against the other methods of its family (all the runs when None): equal PSNR,
-    speed-ups and targets."""
-    from bench import analysis
-
-    group = runs if ours is None else analysis.in_family(runs, ours)
-    equal = analysis.equal_psnr(group)
-    speed = analysis.speedups(group, equal)
-    ours, ref = analysis.roles(group)
-    return {
-        "ours": ours,
-        "reference": ref,
-        "equal_psnr": equal,
-        "speedups": speed,
-        "targets": analysis.targets(group, speed),
-    }
 
 
 def parse_seeds(text: str) -> list[int]:

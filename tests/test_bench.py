@@ -9,8 +9,15 @@ import pytest
 import torch
 from PIL import Image
 
-from bench.analysis import equal_psnr, families, roles, speedups, targets, time_to_psnr
-from bench.cli import family_block
+from bench.analysis import (
+    equal_psnr,
+    families,
+    family_block,
+    roles,
+    speedups,
+    targets,
+    time_to_psnr,
+)
 from bench.report import family_sections, paper_tables
 from bench.variants import RUNGS
 from cli.main import main
