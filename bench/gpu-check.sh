@@ -3,19 +3,23 @@
 # dependencies installed, or at least pydantic on PYTHONPATH: the training stack needs nothing else).
 #   bench/gpu-check.sh [OUT]     (default OUT: gpu-check/)
 # 1. tests/test_cuda.py: every method trains on the GPU and its model scores the same on the CPU.
-# 2. LeCO against proposal networks on the synthetic city at the `cpu` profile, equal wall-clock budgets on
-#    the GPU (GPU_PAIR_MIN minutes each, default 2).
-# 3. Every method at the `paper` profile for GPU_PAPER_MIN minutes (default 0.25): rays/s and peak memory
-#    at the paper's sizes (too short to compare quality).
-# Each step has its own time limit and leaves its logs and reports in OUT as soon as it ends, so a step that
+# 2. GPU_PAIR_METHODS (default leco,prop: LeCO against proposal networks) on the synthetic city at the `cpu`
+#    profile, equal wall-clock budgets on the GPU (GPU_PAIR_MIN minutes each, default 2).
+# 3. GPU_PAPER_METHODS (default: every method) at the `paper` profile for GPU_PAPER_MIN minutes (default
+#    0.25): rays/s and peak memory at the paper's sizes (too short to compare quality).
+# Each step has its own time limit (GPU_PAIR_TIMEOUT, GPU_PAPER_TIMEOUT seconds) and leaves its logs and reports in OUT as soon as it ends, so a step that
 # runs out of time still leaves the ones before it. About 8.5 minutes in all on an H200. docs/BENCHMARKS.md "GPU" has the results.
 set -u
 OUT=${1:-gpu-check}
 PY=${PYTHON:-python3}
 PAIR_MIN=${GPU_PAIR_MIN:-2}
 PAPER_MIN=${GPU_PAPER_MIN:-0.25}
+PAIR_METHODS=${GPU_PAIR_METHODS:-leco,prop}
+PAPER_METHODS=()
+[ -n "${GPU_PAPER_METHODS:-}" ] && PAPER_METHODS=(--methods "$GPU_PAPER_METHODS")
 export PYTHONUNBUFFERED=1
 mkdir -p "$OUT"
+OUT=$(cd "$OUT" && pwd)
 
 # `leco bench` without the service's command line (whose imports need the database libraries)
 BENCH=("$PY" -c 'import argparse, sys
@@ -37,15 +41,17 @@ echo "test_cuda rc=$?" >>"$OUT/env.txt"
 
 [ -d scenes/city-0 ] || "$PY" -c 'from model.scenes.synthetic import generate; generate("city", 0, "scenes/city-0")'
 
-timeout 330 "${BENCH[@]}" --scene scenes/city-0 --profile cpu --gpu --budget-min "$PAIR_MIN" --methods leco,prop \
+timeout "${GPU_PAIR_TIMEOUT:-330}" "${BENCH[@]}" --scene scenes/city-0 --profile cpu --gpu --budget-min "$PAIR_MIN" --methods "$PAIR_METHODS" \
     --seeds 0 --out gpu-bench/city-pair >"$OUT/pair.log" 2>&1
 echo "pair rc=$?" >>"$OUT/env.txt"
 cp gpu-bench/city-pair/report.md "$OUT/pair-report.md" 2>/dev/null
-cp gpu-bench/city-pair/results.json "$OUT/pair-results.json" 2>/dev/null
 
-timeout 240 "${BENCH[@]}" --scene scenes/city-0 --profile paper --gpu --budget-min "$PAPER_MIN" --seeds 0 \
+timeout "${GPU_PAPER_TIMEOUT:-240}" "${BENCH[@]}" --scene scenes/city-0 --profile paper --gpu --budget-min "$PAPER_MIN" --seeds 0 \
+    "${PAPER_METHODS[@]}" \
     --eval-views 1 --out gpu-bench/city-paper >"$OUT/paper.log" 2>&1
 echo "paper rc=$?" >>"$OUT/env.txt"
 cp gpu-bench/city-paper/report.md "$OUT/paper-report.md" 2>/dev/null
-cp gpu-bench/city-paper/results.json "$OUT/paper-results.json" 2>/dev/null
+# every run's summary and metrics, also of a step cut by its time limit (no checkpoints: paper-size ones are large)
+(cd gpu-bench && find . \( -name '*.json' -o -name '*.jsonl' -o -name '*.md' \) -print0 |
+    tar -czf "$OUT/gpu-bench.tgz" --null -T -) 2>>"$OUT/env.txt"
 cat "$OUT/env.txt"
