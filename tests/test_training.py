@@ -109,6 +109,11 @@ def test_smoke_run_writes_a_valid_summary(method, tiny_scene, tmp_path):
     rows = read_metrics(tmp_path / "run" / "metrics.jsonl")
     assert [r["step"] for r in rows] == list(range(5, steps + 1, 5))
     assert all(r["rays_per_s"] > 0 and r["peak_memory_mb"] > 0 for r in rows)
+    # the main phase's rays over its training time, not a mean of the logged windows' rates
+    main_rays = cfg.global_batch * summary["steps"]["phases"]["main"]
+    assert summary["rays_per_s"] == pytest.approx(
+        main_rays / summary["wall_time_s"]["phases"]["main"]
+    )
     assert 5 < summary["val"]["psnr"] < 60 and 0 < summary["val"]["ssim"] <= 1
     assert (tmp_path / "run" / "occupancy.ply").read_bytes().startswith(b"ply\n")
     assert list((tmp_path / "run" / "renders").glob("step*.png")) and list(

@@ -217,7 +217,13 @@ def summarise(cfg: TrainConfig, run_dir: Path, evaluation: dict, attempt_s: floa
             "this_attempt": attempt_s,
         },
         "steps": {"total": progress["step"], "phases": progress["steps"]},
-        "rays_per_s": mean(main, "rays_per_s"),
+        # all the main phase's rays over all its training time: a mean of the logged windows'
+        # rates would weigh a window of grid updates as lightly as a fast one
+        "rays_per_s": (
+            cfg.global_batch * progress["steps"].get("main", 0) / elapsed["main"]
+            if elapsed.get("main")
+            else None
+        ),
         "samples_per_ray": mean(main, "samples_per_ray"),
         # What reached the main network while training, counted alike for every method
         # (model/sample_accounting.py)
