@@ -21,6 +21,7 @@ from torch import Tensor
 from model.fields.background import BackgroundField, background_samples
 from model.fields.output import FieldOutput
 from model.fields.switch_nerf import SwitchNeRF
+from model.front_to_back import front_to_back
 from model.losses import balance_loss, dispatch_fractions, rendering_loss
 from model.occupancy_grid import GridEstimator
 from model.occupancy_phase import field_on_edges, render_background
@@ -61,6 +62,18 @@ def field_on_packed(
     i = samples.ray_index
     xyz = rays.origins[i] + rays.directions[i] * samples.mids[:, None]
     return field(xyz, rays.directions[i], rays.image_index[i])
+
+
+def field_on_packed_at(
+    field: SwitchNeRF, rays: RayBatch, samples: PackedSamples, index: Tensor
+) -> FieldOutput:
+    """The field at the packed samples `index` picks."""
+    i, mids = samples.ray_index[index], samples.mids[index]
+    return field(
+        rays.origins[i] + rays.directions[i] * mids[:, None],
+        rays.directions[i],
+        rays.image_index[i],
+    )
 
 
 def composite_field(
@@ -171,7 +184,10 @@ def render_grid(
     march_steps: int,
     grid: GridEstimator,
     generator: torch.Generator | None,
+    early_stop_eps: float = 0.0,
 ) -> MainRender:
+    """`early_stop_eps` > 0: rays stop at that transmittance (model/front_to_back.py), for image
+    renders; the samples reported are then the ones that ran."""
     stats: dict[str, float] = {}
     if grid.levels > 1:
         behind, stats["background_kept"] = render_background_cascaded(
@@ -182,7 +198,9 @@ def render_grid(
     step = grid_step_size(grid, march_steps)
     samples = grid.sample(rays.origins, rays.directions, rays.near, rays.far, step, generator)
     possible = float(((rays.far - rays.near) / step).ceil().clamp(min=0).sum())
-    out = field_on_packed(field, rays, samples)
+    out, samples = front_to_back(
+        lambda i: field_on_packed_at(field, rays, samples, i), samples, len(rays), early_stop_eps
+    )
     return MainRender(
         composite_field(out, rays, samples, behind),
         out,

@@ -369,6 +369,14 @@ class GridConfig(Frozen):
         description="cascades: level l covers the box scaled by 2^l about its centre at the same "
         "resolution and culls the background's samples there (Instant-NGP's; 1: the box only)",
     )
+    early_stop_eps: float = Field(
+        1e-4,
+        ge=0,
+        lt=1,
+        description="image renders (validation, renders, exports) stop a ray once its "
+        "transmittance falls below this (Instant-NGP's and nerfacc's 1e-4; 0: every sample); "
+        "training keeps every sample",
+    )
 
 
 class ProposalConfig(Frozen):

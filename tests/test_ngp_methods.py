@@ -149,3 +149,49 @@ def test_an_ngp_run_renders_a_video_and_exports_its_grid_and_points(tiny_scene, 
         assert main(export + ["--min-opacity", "0", "--resolution", "16"]) == 0
         assert (out / name).stat().st_size > 100
     capsys.readouterr()
+
+
+def test_ngp_images_stop_each_ray_once_it_is_opaque():
+    """Validation and renders march a ray only until its transmittance is below the grid's
+    early_stop_eps (Instant-NGP's renders); training's render_main keeps every sample."""
+    import torch
+    from torch import nn
+
+    from model.fields.output import FieldOutput
+    from model.scenes.rays import RayBatch
+
+    class Dense(nn.Module):  # the real field, made opaque: every ray stops early
+        def __init__(self, field):
+            super().__init__()
+            self.field = field
+
+        def forward(self, xyz, dirs, image):
+            out = self.field(xyz, dirs, image)
+            return FieldOutput(out.sigma + 50.0, out.rgb, out.gate_probs, out.expert, out.kept)
+
+    torch.manual_seed(0)
+    profile = TrainConfig(method="ngp", profile="smoke").resolved_profile()
+    assert profile.ngp.grid.early_stop_eps == 1e-4
+    method = get_method("ngp")(profile)
+    models = method.build(3, torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
+    models.field = Dense(models.field)
+    n = 32
+    origins = torch.tensor([[0.0, 0.0, -3.0]]).expand(n, 3)
+    directions = nn.functional.normalize(
+        torch.randn(n, 3) * 0.1 + torch.tensor([0, 0, 1.0]), dim=-1
+    )
+    rays = RayBatch(
+        origins,
+        directions,
+        torch.full((n,), 2.0),
+        torch.full((n,), 4.0),
+        torch.zeros(n, dtype=torch.long),
+        torch.zeros(n, 3),
+        torch.arange(n),
+    )
+    with torch.no_grad():
+        every = method.render_main(models, rays, None, None)
+        image = method.render(models, "main", rays)
+    # one block of 16 samples a ray instead of all ~37 the smoke grid marches
+    assert len(image.weights) <= 16 * n < 0.5 * len(every.rendered.weights)
+    assert (image.rgb - every.rendered.rgb).abs().max() < 1e-3

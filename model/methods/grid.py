@@ -13,6 +13,7 @@ from model.methods.base import Method, Networks, Occupied, SweepPoint, mean_of
 from model.methods.spec import setting
 from model.occupancy_grid import GridEstimator
 from model.profiles import GridConfig
+from model.rendering import Rendered
 from model.scenes.rays import RayBatch
 
 
@@ -104,6 +105,19 @@ class GridMethod(Method):
             self.grid,
             generator,
         )
+
+    def render(self, models: Networks, phase: str, rays: RayBatch) -> Rendered:
+        """Images march each ray only until it is opaque, as Instant-NGP's renders do."""
+        return render_grid(
+            models.field,
+            models.background,
+            rays,
+            self.profile.background.samples,
+            self.grid_config.march_steps,
+            self.grid,
+            None,
+            self.grid_config.early_stop_eps,
+        ).rendered
 
     def occupancy(self, models: Networks, phase: str) -> Occupied | None:
         return self.grid.occupied
