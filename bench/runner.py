@@ -7,11 +7,15 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 from bench.variants import Variant
 from model.errors import Failed
@@ -78,6 +82,38 @@ def finished(run_dir: Path, cfg: TrainConfig, scene: Path) -> dict | None:
     return json.loads(summary.read_text()) if summary.exists() else None
 
 
+@contextmanager
+def stop_on_sigterm() -> Iterator[None]:
+    """SIGTERM (`kill`) ends the benchmark as Ctrl-C does, so the run it is waiting on is stopped
+    too rather than left training alone (and slowing whatever runs next)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def wait_or_stop(child: subprocess.Popen) -> int:
+    """The child's exit code; if the wait is interrupted the child is stopped first."""
+    try:
+        return child.wait()
+    except BaseException:
+        child.terminate()
+        try:
+            child.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.wait()
+        raise
+
+
 def run_variant(variant: Variant, plan: Plan, seed: int, log=print) -> dict:
     cfg = config_for(variant, plan, seed)
     run_dir = run_dir_for(plan, variant, seed)
@@ -97,13 +133,14 @@ def run_variant(variant: Variant, plan: Plan, seed: int, log=print) -> dict:
             f"-> {run_dir}"
         )
         started = time.perf_counter()
-        with (run_dir / "bench.log").open("w") as out:
-            code = subprocess.run(
+        with (run_dir / "bench.log").open("w") as out, stop_on_sigterm():
+            child = subprocess.Popen(
                 [sys.executable, "-m", "bench.run_one", json.dumps(spec)],
                 stdout=out,
                 stderr=subprocess.STDOUT,
                 env={**os.environ, "PYTHONUNBUFFERED": "1"},
-            ).returncode
+            )
+            code = wait_or_stop(child)
         if code != 0:
             tail = (run_dir / "bench.log").read_text().strip().splitlines()[-5:]
             raise BenchError(

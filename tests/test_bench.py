@@ -3,7 +3,13 @@ reference, the activation-memory meter, and the whole command end to end on the 
 lego subset."""
 
 import json
+import os
 import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 import torch
@@ -23,6 +29,8 @@ from bench.variants import RUNGS
 from cli.main import main
 from model.occupancy_eval import evaluate_occupancy_exact
 from workers.memory import SavedTensorBytes
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_time_to_psnr_interpolates_between_evaluations():
@@ -395,6 +403,46 @@ def test_bench_refuses_bad_arguments_before_training(tiny_scene, tmp_path):
     ):
         main(["bench", "--scene", scene, "--out", str(tmp_path / "e"), "--profile", "nope"])
     assert not any((tmp_path / d).exists() for d in "abcde")
+
+
+def run_one_processes(out) -> list[int]:
+    """The pids of `bench.run_one` processes training into `out`."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except (OSError, ValueError):
+            continue
+        if "bench.run_one" in cmdline and str(out) in cmdline:
+            found.append(int(entry.name))
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="needs /proc to find the run")
+def test_a_killed_bench_stops_the_run_it_was_waiting_on(tiny_scene, tmp_path):
+    out = tmp_path / "bench"
+    args = ["--profile", "smoke", "--budget-min", "5", "--methods", "switch", "--seeds", "0"]
+    parent = subprocess.Popen(
+        [sys.executable, "-m", "cli.main", "bench", "--scene", str(tiny_scene.root)]
+        + ["--out", str(out), *args],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 60
+        while not run_one_processes(out) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        children = run_one_processes(out)
+        assert children, "the bench never started its run"
+        parent.send_signal(signal.SIGTERM)
+        assert parent.wait(timeout=60) != 0
+        # the run it was waiting on is stopped with it, not left training alone
+        assert not run_one_processes(out)
+    finally:
+        parent.kill()
+        for pid in run_one_processes(out):
+            os.kill(pid, signal.SIGKILL)
 
 
 # On PostgreSQL only, to keep the suite within its 25 minutes: the harness is the same on both
