@@ -28,16 +28,15 @@ def wall_scene(num_rays: int = 64, per_ray: int = 200, seed: int = 0):
         t = samples.mids[index]
         sigma = torch.where(t >= 1.0, torch.full_like(t, 30.0), torch.full_like(t, 0.05))
         rgb = torch.stack([t / 2, 1 - t / 2, (t * 7).sin().abs()], -1)
-        n = len(index)
-        return FieldOutput(
-            sigma,
-            rgb,
-            torch.ones(n, 1),
-            torch.zeros(n, dtype=torch.long),
-            torch.ones(n, dtype=torch.bool),
-        )
+        return one_expert(sigma, rgb)
 
     return samples, field_on, calls
+
+
+def one_expert(sigma: torch.Tensor, rgb: torch.Tensor) -> FieldOutput:
+    n = len(sigma)
+    ones = torch.ones(n, dtype=torch.bool)
+    return FieldOutput(sigma, rgb, torch.ones(n, 1), torch.zeros(n, dtype=torch.long), ones)
 
 
 def image(out: FieldOutput | None, samples: PackedSamples, num_rays: int) -> torch.Tensor:
@@ -79,14 +78,8 @@ def test_early_stop_keeps_gradients_for_appearance_fitting():
 
     def field_on(index: torch.Tensor) -> FieldOutput:
         t = samples.mids[index]
-        n = len(index)
-        return FieldOutput(
-            torch.where(t >= 1.0, 30.0, 0.05) * torch.ones_like(t),
-            torch.sigmoid(tint).expand(n, 3),
-            torch.ones(n, 1),
-            torch.zeros(n, dtype=torch.long),
-            torch.ones(n, dtype=torch.bool),
-        )
+        sigma = torch.where(t >= 1.0, 30.0, 0.05) * torch.ones_like(t)
+        return one_expert(sigma, torch.sigmoid(tint).expand(len(index), 3))
 
     out, kept = front_to_back(field_on, samples, 8, eps=1e-4, block=4)
     image(out, kept, 8).sum().backward()

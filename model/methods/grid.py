@@ -96,28 +96,30 @@ class GridMethod(Method):
         generator: torch.Generator | None,
         phase_step: int | None,
     ) -> MainRender:
-        return render_grid(
-            models.field,
-            models.background,
-            rays,
-            self.profile.background.samples,
-            self.grid_config.march_steps,
-            self.grid,
-            generator,
-        )
+        return self.march(models, rays, generator)
 
     def render(self, models: Networks, phase: str, rays: RayBatch) -> Rendered:
         """Images march each ray only until it is opaque, as Instant-NGP's renders do."""
+        return self.march(models, rays, None, self.grid_config.early_stop_eps).rendered
+
+    def march(
+        self,
+        models: Networks,
+        rays: RayBatch,
+        generator: torch.Generator | None,
+        early_stop_eps: float = 0.0,
+    ) -> MainRender:
+        g = self.grid_config
         return render_grid(
             models.field,
             models.background,
             rays,
             self.profile.background.samples,
-            self.grid_config.march_steps,
+            g.march_steps,
             self.grid,
-            None,
-            self.grid_config.early_stop_eps,
-        ).rendered
+            generator,
+            early_stop_eps,
+        )
 
     def occupancy(self, models: Networks, phase: str) -> Occupied | None:
         return self.grid.occupied
