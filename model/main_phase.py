@@ -198,9 +198,15 @@ def render_grid(
     step = grid_step_size(grid, march_steps)
     samples = grid.sample(rays.origins, rays.directions, rays.near, rays.far, step, generator)
     possible = float(((rays.far - rays.near) / step).ceil().clamp(min=0).sum())
-    out, samples = front_to_back(
-        lambda i: field_on_packed_at(field, rays, samples, i), samples, len(rays), early_stop_eps
-    )
+    if early_stop_eps > 0:
+        out, samples = front_to_back(
+            lambda i: field_on_packed_at(field, rays, samples, i),
+            samples,
+            len(rays),
+            early_stop_eps,
+        )
+    else:  # training: every sample in one pass, no index gathers
+        out = field_on_packed(field, rays, samples)
     return MainRender(
         composite_field(out, rays, samples, behind),
         out,

@@ -109,13 +109,12 @@ class GridMethod(Method):
         generator: torch.Generator | None,
         early_stop_eps: float = 0.0,
     ) -> MainRender:
-        g = self.grid_config
         return render_grid(
             models.field,
             models.background,
             rays,
             self.profile.background.samples,
-            g.march_steps,
+            self.grid_config.march_steps,
             self.grid,
             generator,
             early_stop_eps,
