@@ -54,6 +54,19 @@ def tiny_scene(tmp_path_factory):
     return load_scene(out)
 
 
+@pytest.fixture(scope="session")
+def city_scene(tmp_path_factory) -> tuple[Path, dict, float]:
+    """The default synthetic city (seed 0) as `leco scene synth --preset city` makes it, generated
+    once per session (tens of seconds): its folder, the generator's summary and the seconds it
+    took."""
+    from model.scenes.synthetic import generate
+
+    out = tmp_path_factory.mktemp("city-scene") / "city-0"
+    started = time.perf_counter()
+    summary = generate("city", 0, out)
+    return out, summary, time.perf_counter() - started
+
+
 def free_port() -> int:
     """A free TCP port on the loopback interface, for a server a test starts."""
     import socket

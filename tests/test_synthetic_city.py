@@ -4,7 +4,6 @@ images."""
 import hashlib
 import json
 import math
-import time
 
 import numpy as np
 import pytest
@@ -407,10 +406,8 @@ def test_failure_midway_leaves_nothing(tmp_path, monkeypatch, saver):
 
 
 @pytest.mark.slow
-def test_city_preset_size_and_sparsity(tmp_path):
-    started = time.perf_counter()
-    summary = generate("city", 0, tmp_path / "city")
-    seconds = time.perf_counter() - started
+def test_city_preset_size_and_sparsity(city_scene):
+    _, summary, seconds = city_scene
     print(
         f"city: {summary['views']} views {summary['image_size']}, grid {summary['grid_shape']}, "
         f"occupied {summary['occupied_fraction']:.4f}, {seconds:.1f} s"
