@@ -223,7 +223,7 @@ def bench(*args):
     return main(["bench", "--profile", "smoke", "--eval-every-s", "0.3", *args])
 
 
-# The smoke test's ladder: the paper's formulation, one change, the defaults. The whole ladder (18
+# The smoke test's ladder: the paper's formulation, one change, the defaults. The whole ladder (16
 # trained rungs) costs minutes of the suite; that its rungs add up to the `cpu` defaults is checked
 # above without training.
 SHORT_LADDER = [RUNGS[0], RUNGS[1], RUNGS[-1]]
@@ -231,10 +231,10 @@ SHORT_LADDER = [RUNGS[0], RUNGS[1], RUNGS[-1]]
 
 @pytest.mark.slow
 def test_bench_smoke_on_the_tiny_city(tiny_scene, tmp_path, capsys, monkeypatch):
-    import bench.report
-    import bench.variants
+    from bench import report as report_module
+    from bench import variants as variants_module
 
-    for module in (bench.variants, bench.report):
+    for module in (variants_module, report_module):
         monkeypatch.setattr(module, "RUNGS", SHORT_LADDER)
     out = tmp_path / "bench"
     assert bench("--scene", str(tiny_scene.root), "--out", str(out), "--ablation") == 0
