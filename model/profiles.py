@@ -474,6 +474,14 @@ class NGPConfig(Frozen):
     lr_final: float = Field(
         1e-3, gt=0, le=LR_MAX, description="the main phase's lr decays to this by its end"
     )
+    # A hash entry sees few samples a step, so its gradients are weak: an eps of PyTorch's 1e-8
+    # would shrink its Adam steps wherever |g| is below it (Instant-NGP trains with 1e-15)
+    adam_eps: float = Field(
+        1e-15, gt=0, le=1e-3, description="the main phase's Adam epsilon (Instant-NGP's)"
+    )
+    adam_beta2: float = Field(
+        0.99, gt=0, lt=1, description="the main phase's Adam beta2 (Instant-NGP's)"
+    )
 
     @model_validator(mode="after")
     def finest_not_below_coarsest(self) -> "NGPConfig":

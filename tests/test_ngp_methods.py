@@ -21,6 +21,7 @@ from model.sizes import level_resolutions
 from tests.test_service_lifecycle import wait_for
 from tests.test_training import read_metrics
 from workers.config import TrainConfig
+from workers.models import build_models, build_optimizer
 
 ROOT = Path(__file__).resolve().parents[1]
 FAMILY = ["ngp", "ngp-leco", "ngp-prop"]
@@ -33,6 +34,23 @@ def test_the_family_is_three_samplers_of_one_field():
     assert len(mains) == 1  # the same field under every sampler
     # cpu: 8 levels of at most 2^16 entries x 2 features; the coarse levels need fewer
     assert 500_000 < mains.pop() <= 8 * 2**16 * 2
+
+
+def test_the_hash_grid_trains_with_instant_ngps_adam_and_only_it(tiny_scene):
+    def adam(method: str, phase: str, **overrides) -> dict:
+        profile = TrainConfig(method=method, profile="smoke", overrides=overrides).resolved_profile()
+        built = get_method(method)(profile)
+        models = build_models(built, tiny_scene.num_images, tiny_scene.bounds.aabb, 0)
+        group = build_optimizer(built, models, phase).optimizer.param_groups[0]
+        return {"betas": tuple(group["betas"]), "eps": group["eps"]}
+
+    instant_ngp = {"betas": (0.9, 0.99), "eps": 1e-15}
+    pytorch = {"betas": (0.9, 0.999), "eps": 1e-8}
+    assert adam("ngp", "main") == adam("ngp-prop", "main") == instant_ngp
+    assert adam("ngp-leco", "main") == instant_ngp
+    # LeCO's phase 1 trains its occupancy network, an MLP, and the Switch-NeRF rows keep theirs
+    assert adam("ngp-leco", "occupancy") == adam("leco", "main") == adam("prop", "main") == pytorch
+    assert adam("ngp", "main", **{"ngp.adam_eps": 1e-8, "ngp.adam_beta2": 0.999}) == pytorch
 
 
 @pytest.mark.parametrize("method", FAMILY)

@@ -146,6 +146,10 @@ class Method:
         them."""
         return self.profile.lr, self.profile.lr_final
 
+    def adam_options(self, phase: str) -> dict:
+        """Adam's betas and eps for the phase, where the method wants other than PyTorch's."""
+        return {}
+
     def trained_modules(self, models: Networks, phase: str) -> list[nn.Module]:
         """The networks the phase trains and renders with (their appearance embeddings are the ones
         the validation protocol fits)."""

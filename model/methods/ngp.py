@@ -69,6 +69,12 @@ class HashGridNetworks:
             return self.profile.ngp.lr, self.profile.ngp.lr_final
         return super().phase_lr(phase)  # type: ignore[misc]
 
+    def adam_options(self, phase: str) -> dict:
+        if phase == "main":
+            g = self.profile.ngp
+            return {"betas": (0.9, g.adam_beta2), "eps": g.adam_eps}
+        return super().adam_options(phase)  # type: ignore[misc]
+
 
 class NGPMethod(HashGridNetworks, GridMethod):
     grid_section = "ngp.grid"  # Instant-NGP's own grid, cascades reaching into the background
