@@ -38,8 +38,8 @@ def test_the_family_is_three_samplers_of_one_field():
 
 def test_the_hash_grid_trains_with_instant_ngps_adam_and_only_it(tiny_scene):
     def adam(method: str, phase: str, **overrides) -> dict:
-        profile = TrainConfig(method=method, profile="smoke", overrides=overrides).resolved_profile()
-        built = get_method(method)(profile)
+        config = TrainConfig(method=method, profile="smoke", overrides=overrides)
+        built = get_method(method)(config.resolved_profile())
         models = build_models(built, tiny_scene.num_images, tiny_scene.bounds.aabb, 0)
         group = build_optimizer(built, models, phase).optimizer.param_groups[0]
         return {"betas": tuple(group["betas"]), "eps": group["eps"]}
