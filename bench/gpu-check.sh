@@ -7,6 +7,8 @@
 #    profile, equal wall-clock budgets on the GPU (GPU_PAIR_MIN minutes each, default 2).
 # 3. GPU_PAPER_METHODS (default: every method) at the `paper` profile for GPU_PAPER_MIN minutes (default
 #    0.25): rays/s and peak memory at the paper's sizes (too short to compare quality).
+# GPU_TESTS=0 skips step 1, GPU_PAPER=0 skips step 3; GPU_PAIR_SET="key=value ..." passes each as --set to step 2,
+# whose runs go to gpu-bench/GPU_PAIR_NAME (default city-pair; give another name for another setting).
 # Each step has its own time limit (GPU_PAIR_TIMEOUT, GPU_PAPER_TIMEOUT seconds) and leaves its logs and reports in OUT as soon as it ends, so a step that
 # runs out of time still leaves the ones before it. About 8.5 minutes in all on an H200. docs/BENCHMARKS.md "GPU" has the results.
 set -u
@@ -15,6 +17,9 @@ PY=${PYTHON:-python3}
 PAIR_MIN=${GPU_PAIR_MIN:-2}
 PAPER_MIN=${GPU_PAPER_MIN:-0.25}
 PAIR_METHODS=${GPU_PAIR_METHODS:-leco,prop}
+PAIR_NAME=${GPU_PAIR_NAME:-city-pair}
+PAIR_SET=()
+for kv in ${GPU_PAIR_SET:-}; do PAIR_SET+=(--set "$kv"); done
 PAPER_METHODS=()
 [ -n "${GPU_PAPER_METHODS:-}" ] && PAPER_METHODS=(--methods "$GPU_PAPER_METHODS")
 export PYTHONUNBUFFERED=1
@@ -36,21 +41,24 @@ sys.exit(args.func(args))' bench)
     nproc
 } >"$OUT/env.txt" 2>&1
 
-timeout 150 "$PY" -m pytest -q -s -p no:cacheprovider tests/test_cuda.py >"$OUT/test_cuda.log" 2>&1
-echo "test_cuda rc=$?" >>"$OUT/env.txt"
+if [ "${GPU_TESTS:-1}" != 0 ]; then
+    timeout 150 "$PY" -m pytest -q -s -p no:cacheprovider tests/test_cuda.py >"$OUT/test_cuda.log" 2>&1
+    echo "test_cuda rc=$?" >>"$OUT/env.txt"
+fi
 
 [ -d scenes/city-0 ] || "$PY" -c 'from model.scenes.synthetic import generate; generate("city", 0, "scenes/city-0")'
 
 timeout "${GPU_PAIR_TIMEOUT:-330}" "${BENCH[@]}" --scene scenes/city-0 --profile cpu --gpu --budget-min "$PAIR_MIN" --methods "$PAIR_METHODS" \
-    --seeds 0 --out gpu-bench/city-pair >"$OUT/pair.log" 2>&1
-echo "pair rc=$?" >>"$OUT/env.txt"
-cp gpu-bench/city-pair/report.md "$OUT/pair-report.md" 2>/dev/null
+    --seeds 0 "${PAIR_SET[@]}" --out "gpu-bench/$PAIR_NAME" >"$OUT/$PAIR_NAME.log" 2>&1
+echo "$PAIR_NAME rc=$?" >>"$OUT/env.txt"
+cp "gpu-bench/$PAIR_NAME/report.md" "$OUT/$PAIR_NAME-report.md" 2>/dev/null
 
-timeout "${GPU_PAPER_TIMEOUT:-240}" "${BENCH[@]}" --scene scenes/city-0 --profile paper --gpu --budget-min "$PAPER_MIN" --seeds 0 \
-    "${PAPER_METHODS[@]}" \
-    --eval-views 1 --out gpu-bench/city-paper >"$OUT/paper.log" 2>&1
-echo "paper rc=$?" >>"$OUT/env.txt"
-cp gpu-bench/city-paper/report.md "$OUT/paper-report.md" 2>/dev/null
+if [ "${GPU_PAPER:-1}" != 0 ]; then
+    timeout "${GPU_PAPER_TIMEOUT:-240}" "${BENCH[@]}" --scene scenes/city-0 --profile paper --gpu --budget-min "$PAPER_MIN" \
+        --seeds 0 "${PAPER_METHODS[@]}" --eval-views 1 --out gpu-bench/city-paper >"$OUT/paper.log" 2>&1
+    echo "paper rc=$?" >>"$OUT/env.txt"
+    cp gpu-bench/city-paper/report.md "$OUT/paper-report.md" 2>/dev/null
+fi
 # every run's summary and metrics, also of a step cut by its time limit (no checkpoints: paper-size ones are large)
 (cd gpu-bench && find . \( -name '*.json' -o -name '*.jsonl' -o -name '*.md' \) -print0 |
     tar -czf "$OUT/gpu-bench.tgz" --null -T -) 2>>"$OUT/env.txt"
