@@ -25,11 +25,11 @@ def bench_command(args: argparse.Namespace) -> int:
     try:
         seeds = parse_seeds(args.seeds)
         overrides = parse_overrides(args.set or [])
-        # The sweep's points are relative to the profile the runs train, --set included.
+        # The sweep's points are relative to the profile each method's run trains, --set included.
         swept = None
         if args.sweep:
-            swept = TrainConfig(
-                method=with_role("reference"), profile=args.profile, overrides=overrides
+            swept = lambda method: TrainConfig(
+                method=method, profile=args.profile, overrides=overrides
             ).resolved_profile()
         variants = select(
             [m.strip() for m in args.methods.split(",") if m.strip()],

@@ -6,6 +6,7 @@ background, batch, optimiser and schedule are the profile's for all of them and 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 from model.methods import METHODS as REGISTRY
 from model.methods import get_method, with_role
@@ -168,10 +169,10 @@ def ladder() -> list[Variant]:
     ]
 
 
-def sweep(methods: list[str], profile: Profile) -> list[Variant]:
+def sweep(methods: list[str], profile_of: Callable[[str], Profile]) -> list[Variant]:
     """`--sweep` (item 6): each method at the sampling budgets its own file names (Method.sweep),
-    around the profile's, whose own run is the middle point, so PSNR can be read against samples per
-    ray and rays/s."""
+    around its resolved profile's (`profile_of(method)`), whose own run is the middle point, so PSNR
+    can be read against samples per ray and rays/s."""
     return [
         Variant(
             f"{m}-sweep-{p.tag}",
@@ -182,7 +183,7 @@ def sweep(methods: list[str], profile: Profile) -> list[Variant]:
             sweep=True,
         )
         for m in methods
-        for p in get_method(m)(profile).sweep()
+        for p in get_method(m)(profile_of(m)).sweep()
     ]
 
 
@@ -199,7 +200,7 @@ def select(
     methods: list[str],
     ablation: bool,
     with_ladder: bool = False,
-    sweep_profile: Profile | None = None,
+    sweep_profile: Callable[[str], Profile] | None = None,
 ) -> list[Variant]:
     known = method_variants()
     unknown = [m for m in methods if m not in known]

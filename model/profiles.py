@@ -463,6 +463,16 @@ class NGPConfig(Frozen):
     background_max_resolution: int = Field(
         2048, ge=2, le=65536, description="cells per side of the background's finest level"
     )
+    # The hash field resolves finer surfaces than an MLP: it takes its own count from the learned
+    # samplers (docs/BENCHMARKS.md, "Lego: 42 main samples a ray for the hash field")
+    main_samples: int | None = Field(
+        None,
+        ge=1,
+        le=4096,
+        description="main samples a hit ray that ngp-leco's O and ngp-prop's proposals place for "
+        "the hash field, unless guided.main_samples / prop.main_samples is set for the job; None: "
+        "those settings' own values",
+    )
     grid: GridConfig = Field(
         GridConfig(levels=4),
         description="`ngp`'s own occupancy grid: Instant-NGP's 128^3 cells per cascade; 4 "

@@ -353,19 +353,20 @@ def test_sweep_points_are_leaner_and_richer_than_the_profile():
     from bench.variants import sweep
     from model.profiles import get_profile
 
-    cpu = {v.name: v.overrides for v in sweep(["leco", "switch", "grid"], get_profile("cpu"))}
+    same = lambda name: lambda method: get_profile(name)
+    cpu = {v.name: v.overrides for v in sweep(["leco", "switch", "grid"], same("cpu"))}
     # LeCO places a fixed budget per hit ray at cpu: the sweep halves and doubles it
     assert cpu["leco-sweep-lean"] == {"guided.main_samples": 10}
     assert cpu["leco-sweep-rich"] == {"guided.main_samples": 42}
     assert cpu["leco-sweep-cull"] == {"guided.cull_transmittance": 1e-3}
     assert cpu["switch-sweep-lean"] == {"vanilla.coarse_samples": 16, "vanilla.fine_samples": 32}
     assert cpu["grid-sweep-rich"] == {"grid.march_steps": 512}
-    cpu = {v.name: v.overrides for v in sweep(["prop"], get_profile("cpu"))}
+    cpu = {v.name: v.overrides for v in sweep(["prop"], same("cpu"))}
     assert cpu == {
         "prop-sweep-lean": {"prop.main_samples": 10},
         "prop-sweep-rich": {"prop.main_samples": 42},
     }
-    paper = {v.name: v.overrides for v in sweep(["leco"], get_profile("paper"))}
+    paper = {v.name: v.overrides for v in sweep(["leco"], same("paper"))}
     # no dilation to take away at the paper's sampler
     assert paper["leco-sweep-lean"] == {"guided.split": 4}
 

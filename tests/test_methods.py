@@ -65,6 +65,29 @@ def test_registry_lists_every_method_once_and_refuses_a_second_owner_of_a_name()
         TrainConfig(method="nope")
 
 
+def test_a_method_takes_a_shared_setting_from_its_own_unless_the_job_sets_it():
+    # a toy that reads the vanilla fine count from the background's sample count
+    spec = MethodSpec(
+        "toy-linked",
+        "S+Linked (toy)",
+        UniformSamples,
+        uniform_memory,
+        settings_from=(("vanilla.fine_samples", "background.samples"),),
+    )
+    register(spec)
+    try:
+        resolve = lambda method, **o: TrainConfig(method=method, profile="cpu", overrides=o)
+        assert resolve("toy-linked").resolved_profile().vanilla.fine_samples == 16
+        linked = resolve("toy-linked", **{"background.samples": 24}).resolved_profile()
+        assert linked.vanilla.fine_samples == linked.background.samples == 24
+        own = resolve("toy-linked", **{"vanilla.fine_samples": 40}).resolved_profile()
+        assert own.vanilla.fine_samples == 40  # the job's own value wins
+        # every other method keeps the profile's value
+        assert resolve("switch").resolved_profile().vanilla.fine_samples == 64
+    finally:
+        METHODS.pop(spec.name)
+
+
 def test_checkpoints_from_before_the_registry_keep_their_grid_state():
     old = {
         "models": {},

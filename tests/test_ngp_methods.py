@@ -36,6 +36,34 @@ def test_the_family_is_three_samplers_of_one_field():
     assert 500_000 < mains.pop() <= 8 * 2**16 * 2
 
 
+def test_the_hash_fields_learned_samplers_place_ngp_main_samples():
+    def count(method: str, **overrides) -> tuple[int, int]:
+        p = TrainConfig(method=method, profile="cpu", overrides=overrides).resolved_profile()
+        return p.guided.main_samples, p.prop.main_samples
+
+    assert count("ngp-leco", **{"ngp.main_samples": 30})[0] == 30
+    assert count("ngp-prop", **{"ngp.main_samples": 30})[1] == 30
+    # the Switch-NeRF samplers keep theirs, and a job's own count wins
+    assert count("leco", **{"ngp.main_samples": 30}) == (21, 21)
+    assert count("prop", **{"ngp.main_samples": 30}) == (21, 21)
+    own = {"ngp.main_samples": 30, "guided.main_samples": 12}
+    assert count("ngp-leco", **own)[0] == 12
+    # None: the hash field takes the Switch-NeRF samplers' count
+    assert count("ngp-leco", **{"ngp.main_samples": None}) == (21, 21)
+    # the bench sweep halves and doubles the method's own count, and the memory check sees it
+    from bench.variants import sweep
+
+    def resolved(method: str, n: int = 30):
+        overrides = {"ngp.main_samples": n}
+        return TrainConfig(method=method, profile="cpu", overrides=overrides).resolved_profile()
+
+    points = {v.name: v.overrides for v in sweep(["ngp-leco", "leco"], resolved)}
+    assert points["ngp-leco-sweep-rich"] == {"guided.main_samples": 60}
+    assert points["leco-sweep-rich"] == {"guided.main_samples": 42}
+    main_phase = lambda n: get_method("ngp-leco").memory(resolved("ngp-leco", n), 40)["main"]
+    assert main_phase(60).samples_per_ray == 60 and main_phase(30).samples_per_ray == 30
+
+
 def test_the_hash_grid_trains_with_instant_ngps_adam_and_only_it(tiny_scene):
     def adam(method: str, phase: str, **overrides) -> dict:
         config = TrainConfig(method=method, profile="smoke", overrides=overrides)

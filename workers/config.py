@@ -128,14 +128,14 @@ class TrainConfig(BaseModel):
     def resolved_profile(self) -> Profile:
         data = PROFILES[self.profile].model_dump()
         for key, value in self.overrides.items():
-            node, parts = data, key.split(".")
-            for part in parts[:-1]:
-                if not isinstance(node.get(part), dict):
-                    raise ValueError(f"override {key!r}: {part!r} is not a section of the profile")
-                node = node[part]
-            if parts[-1] not in node or isinstance(node[parts[-1]], dict):
-                raise ValueError(f"override {key!r}: no such setting in the profile{near(key)}")
-            node[parts[-1]] = value
+            node, name = setting_node(data, key)
+            node[name] = value
+        # the method's own defaults for settings it shares with others (MethodSpec.settings_from)
+        for key, source in get_method(self.method).settings_from:
+            node, name = setting_node(data, source)
+            if key not in self.overrides and node[name] is not None:
+                target, target_name = setting_node(data, key)
+                target[target_name] = node[name]
         try:
             return Profile.model_validate(data)
         except ValidationError as error:
@@ -158,6 +158,18 @@ class TrainConfig(BaseModel):
 
     def phase_steps(self, phase: str) -> int:
         return get_method(self.method).steps(self.resolved_profile(), phase)
+
+
+def setting_node(data: dict, key: str) -> tuple[dict, str]:
+    """The section of a dumped profile that holds the dotted key, and the key's last part."""
+    node, parts = data, key.split(".")
+    for part in parts[:-1]:
+        if not isinstance(node.get(part), dict):
+            raise ValueError(f"override {key!r}: {part!r} is not a section of the profile")
+        node = node[part]
+    if parts[-1] not in node or isinstance(node[parts[-1]], dict):
+        raise ValueError(f"override {key!r}: no such setting in the profile{near(key)}")
+    return node, parts[-1]
 
 
 def near(key: str) -> str:

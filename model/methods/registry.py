@@ -121,6 +121,7 @@ register(
         colour="#e377c2",
         budget_shares=(("occupancy", "occupancy.budget_share"),),
         family="Instant-NGP",
+        settings_from=(("guided.main_samples", "ngp.main_samples"),),
     )
 )
 register(
@@ -132,5 +133,7 @@ register(
         has_occupancy=True,
         colour="#17becf",
         family="Instant-NGP",
+        # the two learned samplers of the family are compared at one count
+        settings_from=(("prop.main_samples", "ngp.main_samples"),),
     )
 )

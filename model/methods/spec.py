@@ -87,6 +87,9 @@ class MethodSpec:
     # The main network the method trains: a benchmark compares the methods of one family (its
     # default is the family of the method whose role is "ours").
     family: str = "Switch-NeRF"
+    # Settings the method takes from another of the profile's unless a job sets them itself
+    # (setting, source); a source of None leaves the setting as it is.
+    settings_from: tuple[tuple[str, str], ...] = ()
 
     @property
     def phases(self) -> tuple[str, ...]:
