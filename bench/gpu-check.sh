@@ -7,7 +7,8 @@
 #    profile, equal wall-clock budgets on the GPU (GPU_PAIR_MIN minutes each, default 2).
 # 3. GPU_PAPER_METHODS (default: every method) at the `paper` profile for GPU_PAPER_MIN minutes (default
 #    0.25): rays/s and peak memory at the paper's sizes (too short to compare quality).
-# GPU_TESTS=0 skips step 1, GPU_PAPER=0 skips step 3; GPU_PAIR_SET="key=value ..." passes each as --set to step 2,
+# GPU_TESTS=0 skips step 1, GPU_PAPER=0 skips step 3; GPU_PAIR_SET="key=value ..." passes each as --set to step 2
+# (GPU_PAIR_SEEDS, default 0, its seeds),
 # whose runs go to gpu-bench/GPU_PAIR_NAME (default city-pair; give another name for another setting).
 # Each step has its own time limit (GPU_PAIR_TIMEOUT, GPU_PAPER_TIMEOUT seconds) and leaves its logs and reports in OUT as soon as it ends, so a step that
 # runs out of time still leaves the ones before it. About 8.5 minutes in all on an H200. docs/BENCHMARKS.md "GPU" has the results.
@@ -49,7 +50,7 @@ fi
 [ -d scenes/city-0 ] || "$PY" -c 'from model.scenes.synthetic import generate; generate("city", 0, "scenes/city-0")'
 
 timeout "${GPU_PAIR_TIMEOUT:-330}" "${BENCH[@]}" --scene scenes/city-0 --profile cpu --gpu --budget-min "$PAIR_MIN" --methods "$PAIR_METHODS" \
-    --seeds 0 "${PAIR_SET[@]}" --out "gpu-bench/$PAIR_NAME" >"$OUT/$PAIR_NAME.log" 2>&1
+    --seeds "${GPU_PAIR_SEEDS:-0}" "${PAIR_SET[@]}" --out "gpu-bench/$PAIR_NAME" >"$OUT/$PAIR_NAME.log" 2>&1
 echo "$PAIR_NAME rc=$?" >>"$OUT/env.txt"
 cp "gpu-bench/$PAIR_NAME/report.md" "$OUT/$PAIR_NAME-report.md" 2>/dev/null
 
