@@ -463,15 +463,14 @@ class NGPConfig(Frozen):
     background_max_resolution: int = Field(
         2048, ge=2, le=65536, description="cells per side of the background's finest level"
     )
-    # The hash field resolves finer surfaces than an MLP: it takes its own count from the learned
-    # samplers (docs/BENCHMARKS.md, "Lego: 42 main samples a ray for the hash field")
+    # The hash field resolves finer surfaces than the MLP LeCO's count reaches (docs/BENCHMARKS.md,
+    # "42 main samples for the hash field"); ngp-prop keeps prop.main_samples, its better count
     main_samples: int | None = Field(
         None,
         ge=1,
         le=4096,
-        description="main samples a hit ray that ngp-leco's O and ngp-prop's proposals place for "
-        "the hash field, unless guided.main_samples / prop.main_samples is set for the job; None: "
-        "those settings' own values",
+        description="main samples a hit ray that ngp-leco's O places for the hash field, unless "
+        "guided.main_samples is set for the job; None: guided.main_samples",
     )
     grid: GridConfig = Field(
         GridConfig(levels=4),
@@ -586,6 +585,9 @@ PROFILES: dict[str, Profile] = {
             # 64^3 a cascade: the update then costs about a quarter of a step, as on a GPU,
             # where 128^3 at 2 cores costs three times the training (docs/PROFILES.md)
             grid=GridConfig(resolution=64, march_steps=256, levels=2),
+            # twice the MLP LeCO's 21: +0.94 dB on lego, +0.45 / +0.54 on city-0 seeds 0 / 1, level
+            # on fern (docs/BENCHMARKS.md, "42 main samples for the hash field")
+            main_samples=42,
         ),
         rays_per_device=256,
         main_steps=1500,

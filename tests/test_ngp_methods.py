@@ -36,19 +36,22 @@ def test_the_family_is_three_samplers_of_one_field():
     assert 500_000 < mains.pop() <= 8 * 2**16 * 2
 
 
-def test_the_hash_fields_learned_samplers_place_ngp_main_samples():
+def test_ngp_leco_places_ngp_main_samples_for_the_hash_field():
     def count(method: str, **overrides) -> tuple[int, int]:
         p = TrainConfig(method=method, profile="cpu", overrides=overrides).resolved_profile()
         return p.guided.main_samples, p.prop.main_samples
 
+    # cpu: O places 42 for the hash field; the proposals and the Switch-NeRF samplers keep 21
+    assert count("ngp-leco") == (42, 21)
+    assert count("ngp-prop") == count("leco") == count("prop") == (21, 21)
     assert count("ngp-leco", **{"ngp.main_samples": 30})[0] == 30
-    assert count("ngp-prop", **{"ngp.main_samples": 30})[1] == 30
-    # the Switch-NeRF samplers keep theirs, and a job's own count wins
+    # every other method keeps its own, and a job's own count wins
+    assert count("ngp-prop", **{"ngp.main_samples": 30}) == (21, 21)
     assert count("leco", **{"ngp.main_samples": 30}) == (21, 21)
     assert count("prop", **{"ngp.main_samples": 30}) == (21, 21)
     own = {"ngp.main_samples": 30, "guided.main_samples": 12}
     assert count("ngp-leco", **own)[0] == 12
-    # None: the hash field takes the Switch-NeRF samplers' count
+    # None: O places guided.main_samples, as in `leco`
     assert count("ngp-leco", **{"ngp.main_samples": None}) == (21, 21)
     # the bench sweep halves and doubles the method's own count, and the memory check sees it
     from bench.variants import sweep

@@ -5,10 +5,11 @@ baseline.
 Sizes: the proposal levels together have as many parameters as LeCO's occupancy network O at the
 same profile (13,888 against O's 13,962 at `cpu`, 153,760 against 153,865 at `paper`), and the main
 network takes `prop.main_samples` per hit ray, LeCO's own count, so the two learned samplers are
-compared at equal size and equal main-network work. Every proposal forward and backward runs inside
-the training step, so it is charged to training time. Its occupancy, for the paper's Table 1, is the
-last proposal level's density thresholded by the occupancy grid's own rule (one full update of a
-grid at `grid.resolution`)."""
+compared at equal size and equal main-network work (for the hash field O places `ngp.main_samples`,
+twice that at `cpu`, which measured better for it and worse for the proposals). Every proposal
+forward and backward runs inside the training step, so it is charged to training time. Its
+occupancy, for the paper's Table 1, is the last proposal level's density thresholded by the
+occupancy grid's own rule (one full update of a grid at `grid.resolution`)."""
 
 from __future__ import annotations
 

@@ -133,7 +133,5 @@ register(
         has_occupancy=True,
         colour="#17becf",
         family="Instant-NGP",
-        # the two learned samplers of the family are compared at one count
-        settings_from=(("prop.main_samples", "ngp.main_samples"),),
     )
 )
