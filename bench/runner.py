@@ -77,7 +77,7 @@ def finished(run_dir: Path, cfg: TrainConfig, scene: Path) -> dict | None:
     if not record.exists():
         return None
     old = json.loads(record.read_text())
-    if old != {"config": cfg.model_dump(mode="json"), "scene": str(scene.resolve())}:
+    if (old.get("config"), old.get("scene")) != (cfg.model_dump(mode="json"), str(scene.resolve())):
         raise BenchError(f"{run_dir} holds a run with another config or scene: choose a new --out")
     return json.loads(summary.read_text()) if summary.exists() else None
 

@@ -8,7 +8,15 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from model.methods import METHODS, get_method
 from model.profiles import MAX_STEPS, PROFILES, Profile
@@ -106,6 +114,8 @@ class TrainConfig(BaseModel):
         le=10_000,
         description="consecutive skipped (non-finite) steps before the run fails",
     )
+    # The profile a run trained with, once it has one (`pinned`): not part of the job's config.
+    _pinned: Profile | None = PrivateAttr(None)
 
     @field_validator("method")
     @classmethod
@@ -125,7 +135,25 @@ class TrainConfig(BaseModel):
         self.resolved_profile()  # raises with the offending key named
         return self
 
+    def pinned(self, profile: Profile | dict) -> "TrainConfig":
+        """This job resolved to the profile its run trained with (saved in run.json, checkpoints
+        and final/models.pt), so a later change of a profile's defaults does not reach a run made
+        before it, when it resumes or is loaded to render."""
+        try:
+            fixed = Profile.model_validate(profile)
+        except ValidationError as error:
+            raise ValueError(
+                "the run was trained with settings this version cannot read "
+                f"({error.error_count()} problems, first: {error.errors()[0]['msg']} at "
+                f"{'.'.join(map(str, error.errors()[0]['loc']))}); train it again"
+            ) from None
+        copy = self.model_copy()
+        copy._pinned = fixed
+        return copy
+
     def resolved_profile(self) -> Profile:
+        if self._pinned is not None:
+            return self._pinned
         data = PROFILES[self.profile].model_dump()
         for key, value in self.overrides.items():
             node, name = setting_node(data, key)

@@ -146,6 +146,7 @@ class RankRun:
             "generators": generator_states,
             "torch_rng": torch.get_rng_state(),
             "config": self.cfg.model_dump(),
+            "resolved_profile": self.profile.model_dump(mode="json"),
         }
         with tempfile.TemporaryDirectory() as tmp:
             torch.save(state, Path(tmp) / "state.pt")
@@ -407,6 +408,7 @@ class RankRun:
                 "method": self.method.state_dict(),
                 "progress": self.progress,
                 "config": self.cfg.model_dump(),
+                "resolved_profile": self.profile.model_dump(mode="json"),
             },
             final / "models.pt",
         )

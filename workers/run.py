@@ -51,26 +51,45 @@ def write_json(path: Path, data: dict) -> None:
     tmp.replace(path)
 
 
-def prepare_run_dir(cfg: TrainConfig, scene_dir: Path, run_dir: Path) -> bool:
+def prepare_run_dir(
+    cfg: TrainConfig, scene_dir: Path, run_dir: Path, resume_from: Path | None = None
+) -> TrainConfig:
     """Creates RUN_DIR/run.json, or checks that an existing one is this same run (then it resumes).
-    Returns True when resuming."""
+    Returns the job pinned to the profile the run trains with: the one it started with when it
+    resumes (run.json, or the checkpoint it resumes from), so a changed profile default never
+    switches a run's settings midway."""
     run_dir.mkdir(parents=True, exist_ok=True)
     record = {"config": cfg.model_dump(mode="json"), "scene": str(Path(scene_dir).resolve())}
     existing = run_dir / "run.json"
+    profile = saved_profile(resume_from / "state.pt") if resume_from else None
     if existing.exists():
         if (run_dir / SUMMARY).exists():
             raise RunError(
                 f"{run_dir} holds a finished run (summary.json exists): choose a new --out"
             )
         old = json.loads(existing.read_text())
-        if old != record:
+        if {k: old.get(k) for k in record} != record:
             raise RunError(
                 f"{run_dir} holds a different run (its run.json has another config or scene); "
                 "resume it with the same arguments or choose a new --out"
             )
-        return True
+        profile = old.get("resolved_profile", profile)
+    try:
+        pinned = cfg.pinned(profile if profile is not None else cfg.resolved_profile())
+    except ValueError as error:
+        raise RunError(f"{run_dir}: cannot resume: {error}") from None
+    record["resolved_profile"] = pinned.resolved_profile().model_dump(mode="json")
     write_json(existing, record)
-    return False
+    return pinned
+
+
+def saved_profile(state: Path) -> dict | None:
+    """The resolved profile a checkpoint or final/models.pt was trained with (None from versions
+    that did not save it). Memory-mapped: the tensors are not read."""
+    if not state.is_file():
+        return None
+    saved = torch.load(state, map_location="cpu", weights_only=False, mmap=True)
+    return saved.get("resolved_profile")
 
 
 def device_for(use_gpu: bool) -> torch.device:
@@ -83,7 +102,7 @@ def device_for(use_gpu: bool) -> torch.device:
 
 def train_loop_per_worker(config: dict) -> None:
     """Ray Train entry point: every worker runs this."""
-    cfg = TrainConfig.model_validate(config["train"])
+    cfg = TrainConfig.model_validate(config["train"]).pinned(config["profile"])
     session = RaySession(Path(config["resume_from"]) if config.get("resume_from") else None)
     run_dir = Path(config["run_dir"])
     write_pid(run_dir, session.rank)
@@ -125,6 +144,7 @@ def fit_with_ray(
         train_loop_per_worker,
         train_loop_config={
             "train": cfg.model_dump(mode="json"),
+            "profile": cfg.resolved_profile().model_dump(mode="json"),
             "scene": str(scene_dir),
             "run_dir": str(run_dir),
             "threads": threads,
@@ -266,7 +286,7 @@ def run_training(
 
     # a broken scene fails here, before any worker starts
     load_scene(scene_dir, downscale=cfg.downscale)
-    prepare_run_dir(cfg, scene_dir, run_dir)
+    cfg = prepare_run_dir(cfg, scene_dir, run_dir, resume_from)
     (run_dir / "failure.json").unlink(missing_ok=True)
     (run_dir / "stopped.json").unlink(missing_ok=True)
     fit = fit_with_ray if backend == "ray" else fit_locally

@@ -42,6 +42,10 @@ def load_trained(
         )
     saved = torch.load(final / "models.pt", map_location=device, weights_only=False)
     cfg = TrainConfig.model_validate(saved["config"])
+    # the settings it trained with, not today's defaults for its profile
+    profile = saved.get("resolved_profile") or summary_profile(final.parent)
+    if profile is not None:
+        cfg = cfg.pinned(profile)
     scene = load_scene(scene_path, downscale=cfg.downscale)
     method = cfg.method_for_run()
     models = build_models(method, scene.num_images, scene.bounds.aabb, cfg.seed).to(device)
@@ -51,6 +55,14 @@ def load_trained(
     method.load_final(models, final, device)
     models.eval()
     return Trained(cfg, scene, method, models, device)
+
+
+def summary_profile(run_dir: Path) -> dict | None:
+    """A run's resolved profile from its summary.json: what runs saved before models.pt held it."""
+    summary = run_dir / "summary.json"
+    if not summary.is_file():
+        return None
+    return json.loads(summary.read_text()).get("resolved_profile")
 
 
 def load_run(run_dir: str | Path, device: torch.device | str = "cpu") -> Trained:
