@@ -61,7 +61,7 @@ def prepare_run_dir(
     run_dir.mkdir(parents=True, exist_ok=True)
     record = {"config": cfg.model_dump(mode="json"), "scene": str(Path(scene_dir).resolve())}
     existing = run_dir / "run.json"
-    profile = saved_profile(resume_from / "state.pt") if resume_from else None
+    profile = None
     if existing.exists():
         if (run_dir / SUMMARY).exists():
             raise RunError(
@@ -73,7 +73,9 @@ def prepare_run_dir(
                 f"{run_dir} holds a different run (its run.json has another config or scene); "
                 "resume it with the same arguments or choose a new --out"
             )
-        profile = old.get("resolved_profile", profile)
+        profile = old.get("resolved_profile")
+    if profile is None and resume_from is not None:  # a service attempt starting from a checkpoint
+        profile = saved_profile(resume_from / "state.pt")
     try:
         pinned = cfg.pinned(profile if profile is not None else cfg.resolved_profile())
     except ValueError as error:
