@@ -472,6 +472,27 @@ class NGPConfig(Frozen):
         description="main samples a hit ray that ngp-leco's O places for the hash field, unless "
         "guided.main_samples is set for the job; None: guided.main_samples",
     )
+    # ngp-leco's own values of LeCO's sampler settings (MethodSpec.settings_from): the hash field
+    # wants a different sampler from the MLP's (docs/BENCHMARKS.md, "NGP+LeCO's own sampler")
+    coarse_samples: int | None = Field(
+        None, ge=1, le=4096, description="ngp-leco's guided.coarse_samples; None: guided's"
+    )
+    split: int | None = Field(
+        None, ge=1, le=64, description="ngp-leco's guided.split; None: guided's"
+    )
+    dilate: int | None = Field(
+        None, ge=0, le=64, description="ngp-leco's guided.dilate; None: guided's"
+    )
+    placement: bool | None = Field(None, description="ngp-leco's guided.placement; None: guided's")
+    placement_in_phase1: bool | None = Field(
+        None, description="ngp-leco's guided.placement_in_phase1; None: guided's"
+    )
+    online_warmup: int | None = Field(
+        None, ge=0, le=10**7, description="ngp-leco's guided.online_warmup; None: guided's"
+    )
+    occupancy_budget_share: float | None = Field(
+        None, gt=0, lt=1, description="ngp-leco's occupancy.budget_share; None: occupancy's"
+    )
     grid: GridConfig = Field(
         GridConfig(levels=4),
         description="`ngp`'s own occupancy grid: Instant-NGP's 128^3 cells per cascade; 4 "
@@ -588,6 +609,17 @@ PROFILES: dict[str, Profile] = {
             # twice the MLP LeCO's 21: +0.94 dB on lego, +0.45 / +0.54 on city-0 seeds 0 / 1, level
             # on fern (docs/BENCHMARKS.md, "42 main samples for the hash field")
             main_samples=42,
+            # O keeps or drops 64 bins a ray and the hash field gets 2 even samples in each kept bin
+            # and its neighbours; O learns online from main step 250 and phase 1 takes 8% of the
+            # budget: lego and the city level with or above NGP where O's placement fell 1.7 dB
+            # short on lego (docs/BENCHMARKS.md, "NGP+LeCO's own sampler")
+            coarse_samples=64,
+            split=2,
+            dilate=1,
+            placement=False,
+            placement_in_phase1=False,
+            online_warmup=250,
+            occupancy_budget_share=0.08,
         ),
         rays_per_device=256,
         main_steps=1500,
