@@ -91,6 +91,9 @@ def test_ngp_leco_has_its_own_sampler_and_leco_keeps_the_mlps():
     assert sampler(resolved("ngp-leco", "paper")) == sampler(resolved("leco", "paper"))
     with pytest.raises(ValueError, match="ngp.split"):
         resolved("ngp-leco", **{"ngp.split": 0})
+    # a setting the job never set is traced to where ngp-leco took it from
+    with pytest.raises(ValueError, match="guided.placement comes from ngp.placement=false"):
+        resolved("ngp-leco", **{"guided.placement_fine": 2})
 
 
 def test_the_hash_grid_trains_with_instant_ngps_adam_and_only_it(tiny_scene):

@@ -6,6 +6,8 @@ trains."""
 
 from __future__ import annotations
 
+import json
+import re
 from typing import TYPE_CHECKING, Any
 
 from pydantic import (
@@ -159,17 +161,23 @@ class TrainConfig(BaseModel):
             node, name = setting_node(data, key)
             node[name] = value
         # the method's own defaults for settings it shares with others (MethodSpec.settings_from)
+        taken: dict[str, str] = {}
         for key, source in get_method(self.method).settings_from:
             node, name = setting_node(data, source)
             if key not in self.overrides and node[name] is not None:
                 target, target_name = setting_node(data, key)
                 target[target_name] = node[name]
+                taken[key] = f"{key} comes from {source}={json.dumps(node[name])}"
         try:
             return Profile.model_validate(data)
         except ValidationError as error:
             problems = "; ".join(
                 f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in error.errors()
             )
+            # a problem may name a setting the job never set: say where the method took it from
+            hints = [why for key, why in taken.items() if re.search(rf"{key}\b(?!_)", problems)]
+            if hints:
+                problems += f" ({self.method}: {', '.join(hints)})"
             raise ValueError(f"overrides make an invalid profile: {problems}") from None
 
     @property
@@ -213,7 +221,6 @@ def near(key: str) -> str:
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:
     """`key=value` strings (CLI --set) -> overrides; values are parsed as JSON where they can be."""
-    import json
 
     out: dict[str, Any] = {}
     for item in items:
