@@ -11,11 +11,11 @@ from typing import Any
 
 import torch
 
-from model.occupancy_eval import evaluate_occupancy
+from model.evaluation.occupancy import evaluate_occupancy
 from model.scenes.rays import PixelTable
 from model.scenes.scene import Scene, Views
-from workers.evaluate import load_final, ray_accounting
 from workers.renderer import SURFACE_OPACITY, render_rays
+from workers.train.evaluate import load_final, ray_accounting
 
 RESOLUTION = 64
 
@@ -42,9 +42,9 @@ def against_vanilla(
     switch_run: Path, occupancy_runs: list[Path], ray_runs: list[Path]
 ) -> dict[str, dict]:
     """One rendering of the vanilla run's depth maps, then `occupancy`: the occupancy metrics of
-    each of `occupancy_runs` against them, and `rays`: the `rays` block (workers/evaluate.py) of
-    each of `ray_runs` (every method, vanilla included) with its surfaces from them; both keyed by
-    run folder."""
+    each of `occupancy_runs` against them, and `rays`: the `rays` block (workers/train/evaluate.py)
+    of each of `ray_runs` (every method, vanilla included) with its surfaces from them; both keyed
+    by run folder."""
     maps, (scene, views) = vanilla_depth_maps(switch_run)
     results: dict[str, dict] = {"occupancy": {}, "rays": {}}
     for run_dir in occupancy_runs:

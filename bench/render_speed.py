@@ -22,9 +22,9 @@ def time_run(
     every: int,
     previews: list[tuple[int, int]],
 ) -> dict:
-    from workers.frames import appearance_row, render_frame
-    from workers.render_config import RenderConfig
-    from workers.render_job import build_path
+    from workers.render.frames import appearance_row, render_frame
+    from workers.render.job import build_path
+    from workers.render.schemas import RenderConfig
     from workers.trained import load_run
 
     trained = load_run(run)

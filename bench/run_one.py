@@ -7,7 +7,7 @@ import json
 import sys
 
 from workers.config import TrainConfig
-from workers.run import run_training
+from workers.train.run import run_training
 
 
 def main() -> int:

@@ -21,7 +21,7 @@ from bench.variants import Variant
 from model.errors import Failed
 from model.profiles import MAX_STEPS
 from workers.config import TrainConfig
-from workers.sinks import read_metrics
+from workers.train.sinks import read_metrics
 
 UNBOUNDED_STEPS = MAX_STEPS  # with a budget, the clock ends the run, not a step count
 CHECKPOINT_EVERY = 1000  # checkpoints are not training time, but they are wall time: keep them rare

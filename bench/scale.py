@@ -28,8 +28,8 @@ def one_start(
 
     from model.scenes import load_scene
     from workers.config import TrainConfig
-    from workers.run import ensure_ray, fit_with_ray, prepare_run_dir
-    from workers.sinks import read_metrics
+    from workers.train.run import ensure_ray, fit_with_ray, prepare_run_dir
+    from workers.train.sinks import read_metrics
 
     started = time.time()
     scene, run_dir = scene.resolve(), run_dir.resolve()  # Ray's workers run in folders of their own

@@ -8,7 +8,7 @@ import json
 import sys
 from pathlib import Path
 
-from workers.camera_paths.registry import PATH_KINDS, generated
+from workers.render.camera_paths.registry import PATH_KINDS, generated
 
 
 def path_spec(args: argparse.Namespace) -> dict:
@@ -48,8 +48,8 @@ def path_spec(args: argparse.Namespace) -> dict:
 
 
 def render_command(args: argparse.Namespace) -> int:
-    from workers.render_config import RenderConfig
-    from workers.render_job import render_video
+    from workers.render.job import render_video
+    from workers.render.schemas import RenderConfig
     from workers.trained import load_run
 
     width, _, height = args.size.partition("x")
@@ -76,8 +76,8 @@ def render_command(args: argparse.Namespace) -> int:
 
 
 def export_command(args: argparse.Namespace) -> int:
-    from workers.export import export
-    from workers.render_config import ExportConfig
+    from workers.render.export import export
+    from workers.render.schemas import ExportConfig
     from workers.trained import load_run
 
     cfg = ExportConfig(

@@ -82,7 +82,7 @@ def db_gc(args: argparse.Namespace) -> int:
 def start_ray(settings: Settings) -> None:
     if settings.ray_address or settings.backend != "ray":
         return
-    from workers.run import ensure_ray
+    from workers.train.run import ensure_ray
 
     ensure_ray(settings.local_cpus)  # here, in the main thread: Ray installs signal handlers
 

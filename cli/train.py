@@ -65,7 +65,7 @@ class ProgressPrinter:
 
 def train_command(args: argparse.Namespace) -> int:
     from workers.config import TrainConfig, parse_overrides
-    from workers.run import run_training
+    from workers.train.run import run_training
 
     cfg = TrainConfig(
         method=args.method,
@@ -109,7 +109,7 @@ def train_command(args: argparse.Namespace) -> int:
 
 
 def eval_command(args: argparse.Namespace) -> int:
-    from workers.evaluate import evaluate_run
+    from workers.train.evaluate import evaluate_run
 
     print(json.dumps(evaluate_run(args.run), indent=2))
     return 0

@@ -18,7 +18,9 @@ BYTES_PER_PARAMETER = 16  # fp32 weights, gradients and Adam's two moments
 FROZEN_BYTES_PER_PARAMETER = 4  # LeCO's frozen occupancy network in the main phase
 # the process itself (Python, torch, rays tables of a `cpu`-size scene): measured
 RUNTIME_BYTES = 700 * 2**20
-EVAL_CHUNK = 4096  # rays per forward pass of a validation render (workers/validation.py CHUNK)
+EVAL_CHUNK = (
+    4096  # rays per forward pass of a validation render (workers/train/validation.py CHUNK)
+)
 
 
 def saved_bytes_per_sample(width: int, layers: int) -> int:

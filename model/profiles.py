@@ -173,7 +173,7 @@ class GuidedConfig(Frozen):
     online: bool = Field(
         False,
         description="O keeps learning in the main phase from the main network's detached weights "
-        "(model/online_occupancy.py)",
+        "(model/estimators/online.py)",
     )
     online_surface: float = Field(
         0.05,
@@ -223,8 +223,9 @@ class GuidedConfig(Frozen):
     )
     placement: bool = Field(
         False,
-        description="O places the samples (model/placement.py): a density head on O trained by the "
-        "interlevel loss, `main_samples` per hit ray by inverse CDF over the kept bins",
+        description="O places the samples (model/estimators/placement.py): a density head on O "
+        "trained by the interlevel loss, `main_samples` per hit ray by inverse CDF over the kept "
+        "bins",
     )
     main_samples: int = Field(21, ge=1, le=4096, description="placement: main samples per hit ray")
     placement_loss_weight: float = Field(
@@ -258,8 +259,8 @@ class GuidedConfig(Frozen):
         0,
         ge=0,
         le=1024,
-        description="placement in two passes (model/fine_placement.py): this many intermediate "
-        "intervals asked of O again (0: one pass)",
+        description="placement in two passes (model/estimators/fine_placement.py): this many "
+        "intermediate intervals asked of O again (0: one pass)",
     )
     placement_every: int = Field(
         1,

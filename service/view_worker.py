@@ -1,7 +1,7 @@
 """The process side of `POST /v1/jobs/{id}/view`: one camera of a finished training job rendered to
-PNG (workers/view.py) in a process of the view pool, never in the API process. Each process keeps
-the networks of the last few jobs it rendered loaded, so the viewer's next frame costs a render, not
-a load."""
+PNG (workers/render/view.py) in a process of the view pool, never in the API process. Each process
+keeps the networks of the last few jobs it rendered loaded, so the viewer's next frame costs a
+render, not a load."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from service.db import reading
 from service.jobs.parent import load_parent
 from service.settings import Settings
 from service.tables import Job, Scene
-from workers.render_config import ViewRequest
+from workers.render.schemas import ViewRequest
 
 if TYPE_CHECKING:
     from workers.trained import Trained
@@ -46,7 +46,7 @@ def trained_job(settings: Settings, job_id: int) -> Trained:
 
 def render_view(settings: Settings, job_id: int, body: dict) -> tuple[bytes, float]:
     """(PNG bytes, seconds the render took) of the camera in `body` (a
-    workers.render_config.ViewRequest)."""
-    from workers.view import render_view_png  # PyTorch: loaded in the view pool's process
+    workers.render.schemas.ViewRequest)."""
+    from workers.render.view import render_view_png  # PyTorch: loaded in the view pool's process
 
     return render_view_png(trained_job(settings, job_id), ViewRequest.model_validate(body))

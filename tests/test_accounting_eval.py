@@ -1,6 +1,6 @@
 """The `rays` block of eval.json: what reaches the main network on validation rays, counted alike
-for every method, and whether the bin of each ray's visible surface is among it (workers/evaluate.py
-ray_accounting)."""
+for every method, and whether the bin of each ray's visible surface is among it
+(workers/train/evaluate.py ray_accounting)."""
 
 import json
 
@@ -8,13 +8,13 @@ import pytest
 import torch
 from torch import nn
 
-from model.main_phase import MainRender
 from model.methods import get_method
-from model.rendering import Rendered
-from model.samplers import PackedSamples
+from model.methods.main_phase import MainRender
+from model.render.samples import PackedSamples
+from model.render.volume import Rendered
 from model.scenes.rays import PixelTable
 from workers.config import TrainConfig
-from workers.evaluate import accounting_pixels, ray_accounting
+from workers.train.evaluate import accounting_pixels, ray_accounting
 
 BINS = 8
 CPU = torch.device("cpu")
@@ -160,7 +160,7 @@ def test_eval_json_has_the_rays_block_and_scores_the_decision_rules(tiny_scene, 
     """A few steps of a LeCO smoke run sampling with a threshold (as the cpu profile does), then the
     final evaluation `leco train` writes: O's top-1 rule is scored beside the threshold, and the
     rays are counted."""
-    from workers.run import run_training
+    from workers.train.run import run_training
 
     overrides = {"occupancy.steps": 3, "main_steps": 3, "guided.empty_threshold": 0.9}
     cfg = TrainConfig(method="leco", profile="smoke", overrides=overrides, val_appearance_steps=0)

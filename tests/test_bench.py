@@ -27,7 +27,7 @@ from bench.analysis import (
 from bench.report import family_sections, paper_tables
 from bench.variants import RUNGS
 from cli.main import main
-from model.occupancy_eval import evaluate_occupancy_exact
+from model.evaluation.occupancy import evaluate_occupancy_exact
 from workers.memory import SavedTensorBytes
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -13,13 +13,13 @@ from fastapi.testclient import TestClient
 from pydantic import Field, ValidationError
 
 from cli.render import path_spec
-from model.camera_paths import CameraPath, box_centre_and_radius, intrinsics_for_fov, look_at
+from model.scenes.camera_paths import CameraPath, box_centre_and_radius, intrinsics_for_fov, look_at
 from model.scenes.cameras import rotation_error
 from service.api.app import create_app
-from workers.camera_paths.base import PathKind
-from workers.camera_paths.registry import PATH_KINDS, register_path, unregister_path
-from workers.render_config import RenderConfig
-from workers.render_job import build_path
+from workers.render.camera_paths.base import PathKind
+from workers.render.camera_paths.registry import PATH_KINDS, register_path, unregister_path
+from workers.render.job import build_path
+from workers.render.schemas import RenderConfig
 
 
 class DollyPath(PathKind):

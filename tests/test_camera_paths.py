@@ -9,7 +9,7 @@ import pytest
 import torch
 from pydantic import ValidationError
 
-from model.camera_paths import (
+from model.scenes.camera_paths import (
     PathError,
     fitting_distance,
     flyover,
@@ -23,7 +23,7 @@ from model.camera_paths import (
 )
 from model.scenes.cameras import pixel_rays, rotation_error
 from model.scenes.scene import Normalization
-from workers.render_config import MAX_VIDEO_PIXELS, RenderConfig, ViewRequest
+from workers.render.schemas import MAX_VIDEO_PIXELS, RenderConfig, ViewRequest
 
 AABB = torch.tensor([[-1.0, -0.8, -0.3], [1.0, 0.8, 0.3]])
 

@@ -4,9 +4,9 @@ settings` and the `--set` help."""
 from pydantic import BaseModel
 
 from model.profiles import Profile
-from workers.camera_paths.registry import PATH_KINDS
 from workers.config import TrainConfig
-from workers.render_config import ExportConfig, RenderConfig, ViewRequest
+from workers.render.camera_paths.registry import PATH_KINDS
+from workers.render.schemas import ExportConfig, RenderConfig, ViewRequest
 
 
 def undescribed(model: type[BaseModel], prefix: str = "") -> list[str]:

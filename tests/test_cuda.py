@@ -11,9 +11,9 @@ import torch
 
 from model.methods import METHODS
 from workers.config import TrainConfig
-from workers.evaluate import evaluate_run
-from workers.run import run_training
-from workers.sinks import read_metrics
+from workers.train.evaluate import evaluate_run
+from workers.train.run import run_training
+from workers.train.sinks import read_metrics
 
 pytestmark = pytest.mark.skipif(
     not torch.cuda.is_available(), reason="no CUDA device on this machine"

@@ -10,9 +10,9 @@ import torch
 
 from model.scenes import load_scene
 from workers.config import TrainConfig
-from workers.export import cameras_json, export, read_ply_points, transform
 from workers.models import build_models
-from workers.render_config import ExportConfig
+from workers.render.export import cameras_json, export, read_ply_points, transform
+from workers.render.schemas import ExportConfig
 from workers.trained import Trained
 
 
@@ -82,7 +82,7 @@ def test_the_point_cloud_of_the_synthetic_city_lies_on_its_true_surfaces(tmp_pat
     surface, in metres. About 2 minutes (one local process); measured 2.37 m against the 2.89 m
     cell. 400 + 600 steps gave 3.07 m."""
     from model.scenes.synthetic.surfaces import distance_to_surfaces, truth
-    from workers.run import run_training
+    from workers.train.run import run_training
     from workers.trained import load_run
 
     scene_dir = city_scene[0]

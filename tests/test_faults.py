@@ -23,7 +23,7 @@ from service.store import ArtifactStore
 from service.tables import Artifact
 from tests.conftest import PG_ADMIN, drop_postgres_database, fresh_postgres_database
 from tests.test_service_lifecycle import ready_scene, steps_of, wait_for
-from workers.run import ensure_ray
+from workers.train.run import ensure_ray
 
 pytestmark = pytest.mark.slow
 

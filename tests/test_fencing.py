@@ -127,7 +127,7 @@ def test_an_outage_longer_than_the_lease_leaves_one_writer_and_no_gap(tmp_path):
     from tests.conftest import drop_postgres_database, fresh_postgres_database
     from tests.test_faults import block_connections, submit_switch
     from tests.test_service_lifecycle import steps_of, wait_for
-    from workers.run import ensure_ray
+    from workers.train.run import ensure_ray
 
     ensure_ray(2)
     url = fresh_postgres_database()

@@ -5,7 +5,7 @@ import torch
 
 from model.fields import FrequencyEncoding, HMoE, OccupancyNetwork, SwitchNeRF
 from model.fields.experts import Expert, capacity_keep, dispatch, top1
-from model.losses import balance_loss, density_loss, gate_statistics, imbalanced_gate_loss
+from model.render.losses import balance_loss, density_loss, gate_statistics, imbalanced_gate_loss
 
 
 def points(n=400, seed=0, images=10):

@@ -1,12 +1,12 @@
-"""O's second placement pass (model/fine_placement.py): exactly n samples per ray, sorted, inside
-the kept bins, drawn where O's density at sub-bin resolution says the weight is; its interlevel loss
-trains O only."""
+"""O's second placement pass (model/estimators/fine_placement.py): exactly n samples per ray,
+sorted, inside the kept bins, drawn where O's density at sub-bin resolution says the weight is; its
+interlevel loss trains O only."""
 
 import pytest
 import torch
 
-from model.fine_placement import fine_placement_loss, fine_samples, kept_axis, to_t
-from model.samplers import stratified_edges
+from model.estimators.fine_placement import fine_placement_loss, fine_samples, kept_axis, to_t
+from model.render.samples import stratified_edges
 
 
 def rows(r=4, bins=8):

@@ -4,9 +4,9 @@ the image moves by less than eps, and on opaque rays it runs far fewer samples."
 import torch
 
 from model.fields.output import FieldOutput
-from model.front_to_back import front_to_back, rank_along_ray
-from model.rendering import composite_packed
-from model.samplers import PackedSamples
+from model.render.front_to_back import front_to_back, rank_along_ray
+from model.render.samples import PackedSamples
+from model.render.volume import composite_packed
 
 
 def wall_scene(num_rays: int = 64, per_ray: int = 200, seed: int = 0):

@@ -5,9 +5,9 @@ kept. Every option must keep the packed invariants: samples grouped by ray in in
 import pytest
 import torch
 
+from model.estimators.occupancy import OccupancyQuery
 from model.fields.hmoe import OccupancyNetwork
-from model.occupancy import OccupancyQuery
-from model.samplers import dilate_bins, guided_samples
+from model.render.samples import dilate_bins, guided_samples
 
 # a thin wall at x in [2, 2.2]: between the mid-points 1.5 and 2.5 of unit coarse bins
 SLAB = (2.0, 2.2)
@@ -164,8 +164,8 @@ def test_a_ray_with_nothing_kept_still_renders_its_foreground_with_the_fallback(
 
 
 def test_empty_threshold_keeps_a_superset_of_the_top1_decision():
+    from model.estimators.occupancy import OccupancyPredictor
     from model.fields.hmoe import OccupancyNetwork
-    from model.occupancy import OccupancyPredictor
 
     torch.manual_seed(0)
     network = OccupancyNetwork(num_scene_experts=4, width=16, xyz_frequencies=4)
@@ -216,7 +216,7 @@ def straight_rays(n=16):
 
 
 def test_transmittance_culling_drops_only_samples_behind_an_opaque_wall():
-    from model.main_phase import composite_field, cull_occluded, field_on_packed
+    from model.methods.main_phase import composite_field, cull_occluded, field_on_packed
 
     rays, field = straight_rays(), WallField()
     samples, _ = guided_samples(
@@ -247,7 +247,7 @@ def test_transmittance_culling_drops_only_samples_behind_an_opaque_wall():
 def test_transmittance_culling_in_the_guided_render_counts_both_passes():
     from model.fields.background import BackgroundField
     from model.fields.switch_nerf import SwitchNeRF
-    from model.guided_render import render_guided
+    from model.methods.leco.guided_render import render_guided
     from model.profiles import get_profile
 
     torch.manual_seed(0)

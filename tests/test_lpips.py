@@ -14,8 +14,8 @@ import json
 import pytest
 import torch
 
-from model import lpips
-from model.lpips import BACKBONES, LPIPS, PINNED_SHA256, LPIPSScores, load_lpips
+from model.evaluation import lpips
+from model.evaluation.lpips import BACKBONES, LPIPS, PINNED_SHA256, LPIPSScores, load_lpips
 
 # Where torchvision's alexnet() and vgg16() keep their convolutions inside `features` (and their
 # widths).
@@ -246,7 +246,7 @@ def test_a_finished_run_reports_lpips_per_backbone(monkeypatch, tmp_path, tiny_s
     stand-ins), lpips_alex (null: its files are absent) and the per-backbone notes; no unlabelled
     `lpips` is left."""
     from workers.config import TrainConfig
-    from workers.run import run_training
+    from workers.train.run import run_training
 
     weights = tmp_path / "weights"
     weights.mkdir()

@@ -4,8 +4,8 @@ import time
 
 import torch
 
-from model.main_phase import main_loss, render_vanilla
 from model.memory_estimate import estimate_peak_bytes
+from model.methods.main_phase import main_loss, render_vanilla
 from model.model_info import background, switch_nerf
 from model.scenes.rays import RayBatch
 from workers.config import TrainConfig

@@ -13,12 +13,12 @@ import torch
 from fastapi.testclient import TestClient
 
 from cli.main import main
-from model.main_phase import MainRender, render_batched
 from model.methods import METHODS, Method, MethodSpec, PhaseMemory, get_method, register
 from model.methods.base import method_state
 from model.methods.costs import main_phase
-from model.occupancy_phase import render_background
-from model.samplers import stratified_edges
+from model.methods.leco.phase1 import render_background
+from model.methods.main_phase import MainRender, render_batched
+from model.render.samples import stratified_edges
 from workers.config import TrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -182,11 +182,11 @@ def test_a_registered_toy_method_trains_through_the_api(toy, service_settings):
 
 # Modules that run, evaluate, serve and report every method: none may compare a method's name.
 GENERIC = [
-    "workers/loop.py",
-    "workers/run.py",
-    "workers/evaluate.py",
-    "workers/validation.py",
-    "workers/periodic_eval.py",
+    "workers/train/loop.py",
+    "workers/train/run.py",
+    "workers/train/evaluate.py",
+    "workers/train/validation.py",
+    "workers/train/periodic_eval.py",
     "workers/appearance.py",
     "workers/models.py",
     "workers/config.py",

@@ -5,9 +5,9 @@ import math
 import pytest
 import torch
 
+from model.estimators.occupancy import OccupancyPredictor
+from model.evaluation.metrics import occupancy_metrics, psnr, ssim
 from model.fields import HMoE
-from model.metrics import occupancy_metrics, psnr, ssim
-from model.occupancy import OccupancyPredictor
 
 
 def test_psnr_and_ssim_known_values():

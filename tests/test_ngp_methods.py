@@ -212,7 +212,7 @@ def test_ngp_grid_cascades_read_the_background_beyond_the_box():
 
 
 def test_an_ngp_run_renders_a_video_and_exports_its_grid_and_points(tiny_scene, tmp_path, capsys):
-    from workers.video import probe
+    from workers.render.video import probe
 
     run = tmp_path / "run"
     args = ["train", "--scene", str(tiny_scene.root), "--method", "ngp", "--profile", "smoke"]

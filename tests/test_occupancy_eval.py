@@ -4,7 +4,7 @@ grid."""
 import pytest
 import torch
 
-from model.occupancy_eval import (
+from model.evaluation.occupancy import (
     cell_index,
     evaluate_occupancy,
     predicted_grid,

@@ -4,8 +4,8 @@ reference."""
 import pytest
 import torch
 
-import model.occupancy_eval as occupancy_eval
-from model.occupancy_eval import (
+import model.evaluation.occupancy as occupancy_eval
+from model.evaluation.occupancy import (
     evaluate_occupancy,
     evaluate_occupancy_exact,
     ground_cells,

@@ -2,7 +2,7 @@
 
 import torch
 
-from model.occupancy_grid import GridEstimator, cull_by_transmittance
+from model.estimators.grid import GridEstimator, cull_by_transmittance
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
@@ -103,8 +103,8 @@ def test_cascaded_update_points_reach_the_outer_level():
 
 def test_cascaded_background_render_drops_only_free_samples():
     from model.fields.background import BackgroundField
-    from model.main_phase import render_background_cascaded
-    from model.occupancy_phase import render_background
+    from model.methods.leco.phase1 import render_background
+    from model.methods.main_phase import render_background_cascaded
     from model.scenes.rays import RayBatch
 
     torch.manual_seed(0)

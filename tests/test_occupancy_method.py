@@ -6,13 +6,13 @@ all, and finds most occupied cells by the paper's protocol."""
 import pytest
 import torch
 
+from model.estimators.occupancy import OccupancyPredictor
+from model.evaluation.occupancy import evaluate_occupancy
 from model.fields import HMoE
 from model.fields.background import BackgroundField
-from model.occupancy import OccupancyPredictor
-from model.occupancy_eval import evaluate_occupancy
-from model.occupancy_phase import occupancy_step
+from model.methods.leco.phase1 import occupancy_step
 from model.profiles import OccupancyPhaseConfig
-from model.samplers import stratified_edges
+from model.render.samples import stratified_edges
 from model.scenes import RaySampler, load_scene
 from model.scenes.rays import PixelTable
 from model.scenes.synthetic import generate

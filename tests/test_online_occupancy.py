@@ -7,15 +7,15 @@ import json
 import pytest
 import torch
 
+from model.estimators.occupancy import OccupancyPredictor
+from model.estimators.online import OnlineOccupancy
 from model.fields.hmoe import OccupancyNetwork
-from model.occupancy import OccupancyPredictor
-from model.online_occupancy import OnlineOccupancy
-from model.rendering import packed_weights
-from model.samplers import PackedSamples, guided_samples
+from model.render.samples import PackedSamples, guided_samples
+from model.render.volume import packed_weights
 from model.scenes.rays import RayBatch
 from workers.config import TrainConfig
-from workers.run import run_training
-from workers.sinks import read_metrics
+from workers.train.run import run_training
+from workers.train.sinks import read_metrics
 
 # along x; coarse bins of [0, 8] are 1 wide, so the wall lies inside bin 4, around its mid-point
 WALL = (4.2, 4.8)
@@ -169,7 +169,7 @@ def test_a_leco_run_with_online_o_trains_it_saves_it_and_reports_its_loss(tiny_s
     assert moved[False, 1] == 0 and 0 < moved[True, 3] < moved[True, 1]
 
 
-@pytest.mark.parametrize("fine", [0, 12])  # one pass; two (model/fine_placement.py)
+@pytest.mark.parametrize("fine", [0, 12])  # one pass; two (model/estimators/fine_placement.py)
 def test_a_leco_run_where_o_places_the_samples_learns_the_placement_in_both_phases(
     tiny_scene, tmp_path, fine
 ):

@@ -8,7 +8,7 @@ import torch
 
 from model.profiles import PROFILES
 from workers.config import TrainConfig
-from workers.run import RunError, prepare_run_dir, run_training
+from workers.train.run import RunError, prepare_run_dir, run_training
 from workers.trained import load_run
 
 

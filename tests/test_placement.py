@@ -1,14 +1,20 @@
-"""O places the main network's samples (model/placement.py) and what reaches the main network is
-counted alike for every method (model/sample_accounting.py)."""
+"""O places the main network's samples (model/estimators/placement.py) and what reaches the main
+network is counted alike for every method (model/render/accounting.py)."""
 
 import pytest
 import torch
 
+from model.estimators.placement import (
+    bin_mass,
+    confident_bins,
+    explored,
+    placed_samples,
+    placement_loss,
+)
 from model.fields.hmoe import OccupancyNetwork
-from model.placement import bin_mass, confident_bins, explored, placed_samples, placement_loss
-from model.rendering import batched_weights, packed_weights
-from model.sample_accounting import step_accounting, surface_accounting
-from model.samplers import PackedSamples, guided_samples, stratified_edges
+from model.render.accounting import step_accounting, surface_accounting
+from model.render.samples import PackedSamples, guided_samples, stratified_edges
+from model.render.volume import batched_weights, packed_weights
 
 
 def coarse(r=5, bins=8, seed=0):
@@ -234,7 +240,7 @@ def test_a_guided_option_without_its_switch_is_refused_naming_both():
 
 
 def test_within_bin_shares_keep_each_bins_mass_and_take_the_shape_asked():
-    from model.placement import within_bin_shares
+    from model.estimators.placement import within_bin_shares
 
     edges = torch.tensor([[0.0, 1.0, 2.0, 3.0, 4.0]])
     mass = torch.tensor([[0.1, 1.0, 4.0, 0.0]])  # the last bin dropped (no mass)
@@ -261,7 +267,7 @@ def test_within_bin_shares_keep_each_bins_mass_and_take_the_shape_asked():
 
 @pytest.mark.parametrize("kind", ["linear", "volume"])
 def test_a_shaped_draw_is_still_exactly_n_per_ray_sorted_inside_the_kept_bins(kind):
-    from model.placement import subdivided, within_bin_shares
+    from model.estimators.placement import subdivided, within_bin_shares
 
     near, far, edges = coarse()
     keep = torch.zeros(5, 8, dtype=torch.bool)

@@ -6,8 +6,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from model.losses import density_loss, imbalanced_gate_loss
-from model.rendering import composite_batched, composite_packed
+from model.render.losses import density_loss, imbalanced_gate_loss
+from model.render.volume import composite_batched, composite_packed
 
 SETTINGS = settings(max_examples=60, deadline=None, derandomize=True)
 sigmas = st.one_of(st.sampled_from([0.0, 1e-8, 1e6]), st.floats(0, 1e6, allow_nan=False, width=32))

@@ -5,18 +5,18 @@ import pytest
 import torch
 
 from model import sizes
-from model.fields.proposal import ProposalDensity
-from model.methods import get_method
-from model.methods.costs import proposal_width
-from model.model_info import model_info
-from model.profiles import get_profile
-from model.proposal_sampling import (
+from model.estimators.proposal import (
     UpdateSchedule,
     anneal_power,
     interlevel_loss,
     outer_weights,
     pdf_edges,
 )
+from model.fields.proposal import ProposalDensity
+from model.methods import get_method
+from model.methods.costs import proposal_width
+from model.model_info import model_info
+from model.profiles import get_profile
 from model.scenes.rays import RayBatch
 
 

@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from workers.config import TrainConfig
-from workers.run import ensure_ray, run_training
-from workers.sinks import read_metrics
+from workers.train.run import ensure_ray, run_training
+from workers.train.sinks import read_metrics
 
 pytestmark = pytest.mark.slow
 

@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 
 from cli.main import main
-from workers.video import probe
+from workers.render.video import probe
 
 pytestmark = pytest.mark.slow
 
@@ -18,7 +18,7 @@ pytestmark = pytest.mark.slow
 def run_dir(tmp_path_factory):
     from model.scenes.synthetic import generate
     from workers.config import TrainConfig
-    from workers.run import run_training
+    from workers.train.run import run_training
 
     root = tmp_path_factory.mktemp("render-cli")
     generate("tiny", 0, root / "tiny-0")

@@ -17,8 +17,8 @@ from service.settings import Settings
 from service.tables import Artifact
 from service.workpool import WorkPool
 from tests.test_service_lifecycle import wait_for
-from workers.export import read_ply_points
-from workers.video import probe
+from workers.render.export import read_ply_points
+from workers.render.video import probe
 
 pytestmark = pytest.mark.slow
 # looking down -z from 3 units above the box centre

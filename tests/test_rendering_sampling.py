@@ -3,14 +3,14 @@
 import pytest
 import torch
 
-from model.rendering import composite_batched, composite_packed, packed_weights
-from model.samplers import (
+from model.render.samples import (
     guided_samples,
     inverse_cdf_edges,
     merge_edges,
     pack_edges,
     stratified_edges,
 )
+from model.render.volume import composite_batched, composite_packed, packed_weights
 
 HARD_SIGMAS = [0.0, 1e-8, 1.0, 1e6]
 
@@ -145,7 +145,7 @@ def test_guided_sampler_drops_empty_bins_and_splits_kept_ones():
 
 def test_background_samples_and_compositing():
     from model.fields.background import BackgroundField, background_samples
-    from model.rendering import composite_batched
+    from model.render.volume import composite_batched
 
     far = torch.tensor([2.0, 0.0, 5.0])  # the middle ray misses the foreground box
     t, deltas = background_samples(far, 16, torch.Generator().manual_seed(0))

@@ -575,7 +575,7 @@ def test_a_render_body_of_the_documented_maximum_of_cameras_passes_the_body_cap(
     import math
 
     from service.api.gate import MAX_PATH_BODY, PATH_CAMERAS
-    from workers.render_config import MAX_FRAMES
+    from workers.render.schemas import MAX_FRAMES
 
     assert PATH_CAMERAS == MAX_FRAMES
     cameras = []

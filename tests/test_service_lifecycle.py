@@ -20,7 +20,7 @@ from service.api.app import create_app
 from service.db import reading
 from service.dispatcher import Dispatcher
 from service.tables import Artifact
-from workers.run import ensure_ray
+from workers.train.run import ensure_ray
 
 pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[1]

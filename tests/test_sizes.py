@@ -9,7 +9,7 @@ from model import sizes
 from model.fields.proposal import ProposalDensity
 from model.methods.base import background, count, switch_nerf
 from model.methods.costs import proposal_width
-from model.methods.leco import hmoe
+from model.methods.leco.method import hmoe
 from model.methods.ngp import ngp_networks
 from workers.config import TrainConfig
 

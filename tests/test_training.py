@@ -14,9 +14,9 @@ import torch
 
 from model.model_info import model_info
 from workers.config import TrainConfig, parse_overrides
-from workers.distributed import grads_finite
-from workers.run import RunError, run_training
-from workers.sinks import JsonlSink, read_metrics
+from workers.train.distributed import grads_finite
+from workers.train.run import RunError, run_training
+from workers.train.sinks import JsonlSink, read_metrics
 
 SUMMARY_KEYS = {
     "method",
@@ -157,7 +157,7 @@ def test_finished_or_different_run_dir_is_refused(tiny_scene, tmp_path):
 def test_repeated_non_finite_steps_fail_with_a_reason_and_keep_the_checkpoint(
     tiny_scene, tmp_path, monkeypatch
 ):
-    import model.main_phase as main_phase
+    import model.methods.main_phase as main_phase
 
     real = main_phase.rendering_loss
     calls = {"n": 0}
@@ -286,7 +286,7 @@ def test_downscale_trains_and_scores_at_the_same_reduced_scale(tiny_scene, tmp_p
     from PIL import Image
 
     from model.scenes import load_scene
-    from workers.evaluate import evaluate_run
+    from workers.train.evaluate import evaluate_run
 
     cfg = TrainConfig(method="switch", profile="smoke", downscale=2, overrides={"main_steps": 3})
     summary = run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")

@@ -15,9 +15,9 @@ from workers.appearance import (
     right_columns,
 )
 from workers.config import TrainConfig
-from workers.evaluate import evaluate_run
 from workers.models import build_models
-from workers.run import run_training
+from workers.train.evaluate import evaluate_run
+from workers.train.run import run_training
 
 
 def models_for(scene, method="switch"):

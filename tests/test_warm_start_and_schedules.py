@@ -5,12 +5,12 @@ import pytest
 import torch
 
 from model.methods import get_method
-from model.schedules import log_linear, phase_progress
-from model.warm_start import warm_start_main
+from model.methods.leco.warm_start import warm_start_main
+from model.methods.schedules import log_linear, phase_progress
 from workers.config import TrainConfig
 from workers.models import build_models, build_optimizer
-from workers.run import run_training
-from workers.sinks import read_metrics
+from workers.train.run import run_training
+from workers.train.sinks import read_metrics
 
 
 def test_schedules_reach_their_final_value_at_the_end_of_steps_or_time():
@@ -117,7 +117,7 @@ def test_a_warm_start_without_phase_one_s_density_copies_the_colours_only(tiny_s
 def test_a_wider_occupancy_network_saves_loads_and_warm_starts_what_still_fits(
     tiny_scene, tmp_path
 ):
-    from model.occupancy import OccupancyPredictor
+    from model.estimators.occupancy import OccupancyPredictor
 
     profile = TrainConfig(
         method="leco", profile="smoke", overrides={"occupancy.gate_width": 32}
@@ -177,7 +177,7 @@ def test_warm_started_leco_run_starts_its_main_phase_where_phase_one_ended(tiny_
 def test_relu_on_every_layer_of_o_is_a_different_function_that_saves_and_loads(
     tiny_scene, tmp_path
 ):
-    from model.occupancy import OccupancyPredictor
+    from model.estimators.occupancy import OccupancyPredictor
 
     overrides = {"occupancy.gate_relu_every_layer": True}
     profile = TrainConfig(method="leco", profile="smoke", overrides=overrides).resolved_profile()

@@ -8,7 +8,7 @@ from typing import Callable, NamedTuple
 import torch
 
 from model.methods import Method, Networks
-from model.schedules import log_linear
+from model.methods.schedules import log_linear
 
 
 def build_models(method: Method, num_images: int, aabb: torch.Tensor, seed: int) -> Networks:
@@ -30,8 +30,8 @@ class PhaseObjects(NamedTuple):
 def build_optimizer(method: Method, models: Networks, phase: str) -> PhaseObjects:
     """Adam over what the phase trains, and its learning rate as a function of the phase's progress
     in [0, 1] (log-linear from the method's start to its final lr, constant without one). Progress
-    counts steps or, under a wall-clock budget, training time (model/schedules.py), so a budgeted
-    run ends at its final lr too."""
+    counts steps or, under a wall-clock budget, training time (model/methods/schedules.py), so a
+    budgeted run ends at its final lr too."""
     params = phase_parameters(method, models, phase)
     start, final = method.phase_lr(phase)
     # Fused: one kernel over every tensor instead of a loop over ~90 (4.0 -> 0.8 ms a step on 2 CPU

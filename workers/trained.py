@@ -26,7 +26,7 @@ class Trained:
     method: Method
     models: Networks
     device: torch.device
-    # the appended mean appearance row, once a render asked for it (workers/frames.py)
+    # the appended mean appearance row, once a render asked for it (workers/render/frames.py)
     mean_row: int | None = None
 
 

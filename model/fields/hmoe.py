@@ -34,7 +34,7 @@ class OccupancyNetwork(nn.Module):
         the first inner layer compose to one linear map, so O has a single hidden nonlinearity. The
         experts' input is unchanged. placement_head: one more output unit, a density that says where
         along a ray the main network's weight lies (trained by the interlevel loss while O guides
-        the main phase; model/placement.py)."""
+        the main phase; model/estimators/placement.py)."""
         super().__init__()
         inner = inner_width or width
         self.relu_every_layer = relu_every_layer
@@ -48,7 +48,7 @@ class OccupancyNetwork(nn.Module):
 
     @property
     def config(self) -> dict:
-        """The constructor's arguments, to rebuild O alone (model/occupancy.py)."""
+        """The constructor's arguments, to rebuild O alone (model/estimators/occupancy.py)."""
         return {
             "num_scene_experts": self.num_scene_experts,
             "width": self.input_layer.out_features,

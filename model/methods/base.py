@@ -18,10 +18,10 @@ from torch import Tensor, nn
 
 from model.fields.background import BackgroundField
 from model.fields.switch_nerf import SwitchNeRF
-from model.main_phase import MainRender, main_loss
+from model.methods.main_phase import MainRender, main_loss
 from model.methods.spec import MethodSpec, PhaseMemory, SweepPoint
 from model.profiles import Profile
-from model.rendering import Rendered
+from model.render.volume import Rendered
 from model.scenes.rays import RayBatch
 
 # The estimator interface: world points (N, 3) on any device -> bool (N,) on the estimator's own

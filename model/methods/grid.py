@@ -1,4 +1,4 @@
-"""S+Grid: nerfacc's occupancy grid (model/occupancy_grid.py) marched through by the main network,
+"""S+Grid: nerfacc's occupancy grid (model/estimators/grid.py) marched through by the main network,
 updated from the main network's own density as it trains."""
 
 from __future__ import annotations
@@ -8,12 +8,12 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from model.main_phase import MainRender, grid_step_size, render_grid
+from model.estimators.grid import GridEstimator
 from model.methods.base import Method, Networks, Occupied, SweepPoint, mean_of
+from model.methods.main_phase import MainRender, grid_step_size, render_grid
 from model.methods.spec import setting
-from model.occupancy_grid import GridEstimator
 from model.profiles import GridConfig
-from model.rendering import Rendered
+from model.render.volume import Rendered
 from model.scenes.rays import RayBatch
 
 

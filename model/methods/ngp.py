@@ -13,7 +13,7 @@ from torch import Tensor, nn
 from model.fields.ngp import NGPBackground, NGPField
 from model.methods.base import count
 from model.methods.grid import GridMethod
-from model.methods.leco import LeCOMethod
+from model.methods.leco.method import LeCOMethod
 from model.methods.prop import ProposalMethod
 from model.profiles import Profile
 

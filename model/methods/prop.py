@@ -18,16 +18,16 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
+from model.estimators.grid import GridEstimator
+from model.estimators.proposal import UpdateSchedule, anneal_power, interlevel_loss, pdf_edges
 from model.fields.proposal import ProposalDensity
-from model.main_phase import MainRender, grid_step_size, main_loss, render_batched
 from model.methods.base import Method, Networks, Occupied, SweepPoint, mean_of
 from model.methods.costs import proposal_parameters, proposal_width
-from model.occupancy_grid import GridEstimator
-from model.occupancy_phase import render_background
+from model.methods.leco.phase1 import render_background
+from model.methods.main_phase import MainRender, grid_step_size, main_loss, render_batched
 from model.profiles import Profile
-from model.proposal_sampling import UpdateSchedule, anneal_power, interlevel_loss, pdf_edges
-from model.rendering import Rendered, batched_weights
-from model.samplers import PackedSamples, pack_edges, stratified_edges
+from model.render.samples import PackedSamples, pack_edges, stratified_edges
+from model.render.volume import Rendered, batched_weights
 from model.scenes.rays import RayBatch
 
 

@@ -49,7 +49,7 @@ register(
     MethodSpec(
         "leco",
         "S+Ours (LeCO)",
-        "model.methods.leco:LeCOMethod",
+        "model.methods.leco.method:LeCOMethod",
         costs.leco,
         role="ours",
         phase_steps=(("occupancy", "occupancy.steps"), ("main", "main_steps")),

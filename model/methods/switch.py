@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import torch
 
-from model.main_phase import MainRender, render_vanilla
 from model.methods.base import Method, Networks, SweepPoint
+from model.methods.main_phase import MainRender, render_vanilla
 from model.scenes.rays import RayBatch
 
 

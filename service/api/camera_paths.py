@@ -9,7 +9,7 @@ import sys
 from fastapi import APIRouter
 from pydantic import BaseModel, Field
 
-from workers.camera_paths.registry import PATH_KINDS
+from workers.render.camera_paths.registry import PATH_KINDS
 
 router = APIRouter(prefix="/camera-paths", tags=["renders"])
 

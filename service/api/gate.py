@@ -15,7 +15,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service.workpool import RETRY_AFTER_S
 
 MAX_JSON_BODY = 64 * 1024  # a job request with every override is a few KiB
-# A render's body may carry a camera path of up to workers/render_config.py's MAX_FRAMES (1,200)
+# A render's body may carry a camera path of up to workers/render/schemas.py's MAX_FRAMES (1,200)
 # cameras, each a 4x4 matrix and intrinsics at full float precision (about 600 bytes in JSON, 1 KiB
 # with room for a nerfstudio frame's extra keys). Not imported from there: that module loads torch,
 # the API does not.

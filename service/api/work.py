@@ -27,7 +27,7 @@ from service.settings import Settings
 from service.tables import Job, Scene
 from service.view_worker import render_view
 from service.workpool import Busy
-from workers.render_config import ViewRequest
+from workers.render.schemas import ViewRequest
 
 VIEW_CACHE = 64  # PNGs kept per API process, by (job, request)
 VIEW_RETRY_AFTER_S = 1

@@ -1,13 +1,14 @@
 """An export job's work: geometry of its finished training job in the dataset's own frame
-(workers/export.py), its files stored by name at the end, so a retried attempt replaces them."""
+(workers/render/export.py), its files stored by name at the end, so a retried attempt replaces
+them."""
 
 from __future__ import annotations
 
 from service.jobs.attempt import Attempt
 from service.jobs.parent import parent_of
-from workers.export import FILES, TRANSFORM
-from workers.export import export as export_geometry
-from workers.render_config import EXPORT_PHASE, ExportConfig
+from workers.render.export import FILES, TRANSFORM
+from workers.render.export import export as export_geometry
+from workers.render.schemas import EXPORT_PHASE, ExportConfig
 
 
 def export(attempt: Attempt) -> None:

@@ -15,7 +15,7 @@ from pydantic import BaseModel
 from model.errors import InvalidInput
 from model.methods import get_method
 from workers.config import TrainConfig
-from workers.render_config import EXPORT_PHASE, RENDER_PHASE, ExportConfig, RenderConfig
+from workers.render.schemas import EXPORT_PHASE, RENDER_PHASE, ExportConfig, RenderConfig
 
 if TYPE_CHECKING:
     from service.jobs.attempt import Attempt

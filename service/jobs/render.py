@@ -1,5 +1,5 @@
 """A render job's work: a video of its finished training job along a camera path
-(workers/render_job.py), its files stored by name at the end, so a retried attempt replaces them."""
+(workers/render/job.py), its files stored by name at the end, so a retried attempt replaces them."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import logging
 
 from service.jobs.attempt import Attempt
 from service.jobs.parent import parent_of
-from workers.render_config import RENDER_PHASE, RenderConfig
-from workers.render_job import outputs, render_video
+from workers.render.job import outputs, render_video
+from workers.render.schemas import RENDER_PHASE, RenderConfig
 
 log = logging.getLogger("leco.render")
 

@@ -1,6 +1,6 @@
-"""A training job's work: train (or resume from the job's last stored checkpoint) with workers.run,
-then store the final artifacts. The attempt runner (attempt.py) turns how it ends into the job's
-state."""
+"""A training job's work: train (or resume from the job's last stored checkpoint) with
+workers.train.run, then store the final artifacts. The attempt runner (attempt.py) turns how it ends
+into the job's state."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from service.settings import Settings
 from service.store import ArtifactStore, describe
 from service.tables import Artifact, Metric
 from workers.config import TrainConfig
-from workers.run import SUMMARY, RunInterrupted, run_training
+from workers.train.run import SUMMARY, RunInterrupted, run_training
 
 FINAL_FILES = (  # (kind, path in the run directory)
     ("checkpoint", "final/models.pt"),

@@ -1,0 +1,218 @@
+"""Geometry of a finished run in the dataset's own frame and units: `leco export` and the service's
+export jobs. Each export writes its file and `transform.json` beside it, which says how the
+normalised world the networks live in maps to that frame (world = (axes @ source - origin) / scale).
+
+- pointcloud.ply: for every `stride`-th pixel of the training and validation views, the point at the
+  ray's expected depth (over the foreground's opacity), kept when the ray is at least `min_opacity`
+  opaque, coloured by the render (a training view with its own appearance embedding, a validation
+  view with the mean);
+- cameras.json: every camera (name, split, camera-to-world with OpenGL axes, intrinsics, size);
+- occupancy.ply: the centres of the cells of a grid over the foreground box that the method's
+  occupancy keeps.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from model.scenes.camera_paths import world_to_source_pose
+from model.scenes.cameras import Cameras
+from model.scenes.scene import Scene, Views
+from workers.render.frames import appearance_row, render_frame
+from workers.render.schemas import EXPORT_PHASE, ExportConfig
+from workers.store import RunStore, check_stop
+from workers.trained import Trained
+
+FILES = {"pointcloud": "pointcloud.ply", "cameras": "cameras.json", "occupancy": "occupancy.ply"}
+TRANSFORM = "transform.json"
+
+
+def transform(scene: Scene) -> dict:
+    n = scene.normalization
+    world_from_source = torch.eye(4, dtype=torch.float64)
+    world_from_source[:3, :3] = n.axes.double() / n.scale
+    world_from_source[:3, 3] = -n.origin.double() / n.scale
+    return {
+        "frame": f"the dataset's own ({scene.format}, {scene.root.name})",
+        "units": n.units,
+        "world_from_source": world_from_source.tolist(),
+        "source_from_world": torch.linalg.inv(world_from_source).tolist(),
+        "source_units_per_world_unit": n.scale,
+        "foreground_box_world": scene.bounds.aabb.tolist(),
+        "note": "exported files are in the source frame; the networks and the API's camera routes "
+        "use the world",
+    }
+
+
+def write_ply(path: Path, points: np.ndarray, colours: np.ndarray | None = None) -> None:
+    """Binary PLY, float64 positions (source coordinates can be large: UTM metres), optional uint8
+    colours."""
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        f"element vertex {len(points)}",
+        "property double x",
+        "property double y",
+        "property double z",
+    ]
+    if colours is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+        header += ["property uchar red", "property uchar green", "property uchar blue"]
+    data = np.empty(len(points), dtype=np.dtype(fields))
+    for k, axis in enumerate("xyz"):
+        data[axis] = points[:, k]
+    if colours is not None:
+        for k, channel in enumerate(("red", "green", "blue")):
+            data[channel] = colours[:, k]
+    tmp = path.with_suffix(".partial")
+    with tmp.open("wb") as f:
+        f.write(("\n".join(header) + "\nend_header\n").encode())
+        f.write(data.tobytes())
+    tmp.replace(path)
+
+
+def read_ply_points(path: Path) -> np.ndarray:
+    """(N, 3) positions of a PLY written by `write_ply`."""
+    raw = Path(path).read_bytes()
+    end = raw.index(b"end_header\n") + len(b"end_header\n")
+    header = raw[:end].decode().splitlines()
+    count = int(next(line.split()[2] for line in header if line.startswith("element vertex")))
+    fields = [
+        (line.split()[2], "<f8" if line.split()[1] == "double" else "u1")
+        for line in header
+        if line.startswith("property")
+    ]
+    data = np.frombuffer(raw[end:], dtype=np.dtype(fields), count=count)
+    return np.stack([data["x"], data["y"], data["z"]], axis=1)
+
+
+def stride_cameras(views: Views, stride: int) -> Cameras:
+    """The views' cameras over every `stride`-th pixel: the same rays through those pixels'
+    centres."""
+    cameras = views.cameras
+    if stride == 1:
+        return cameras
+    fx, fy, cx, cy = cameras.intrinsics.unbind(-1)
+    # The strided image's pixel u' covers original pixels s u' .. s u' + s - 1; its centre is their
+    # centre.
+    intrinsics = torch.stack([fx / stride, fy / stride, cx / stride, cy / stride], dim=-1)
+    width, height = cameras.width // stride, cameras.height // stride
+    return replace(cameras, intrinsics=intrinsics, width=width, height=height)
+
+
+def point_cloud(
+    trained: Trained, cfg: ExportConfig, store: RunStore | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(points in the source frame (N, 3) float64, colours (N, 3) uint8)."""
+    scene, points, colours = trained.scene, [], []
+    mean = appearance_row(trained, "mean")
+    views_list = [(name, scene.splits[name]) for name in ("train", "val") if name in scene.splits]
+    total, done = sum(len(v) for _, v in views_list), 0
+    for split, views in views_list:
+        cameras = stride_cameras(views, cfg.stride)
+        for i in range(len(views)):
+            row = int(views.appearance[i]) if split == "train" else mean
+            check_stop(store)
+            frame = render_frame(trained, cameras, i, row)
+            world, keep = frame.surface_points(cfg.min_opacity)
+            points.append(scene.normalization.to_source(world).numpy())
+            colours.append((frame.rgb[keep] * 255).round().clamp(0, 255).byte().numpy())
+            done += 1
+            if store is not None:
+                store.write(
+                    done,
+                    {"phase": EXPORT_PHASE, "phase_step": done, "views_done": done, "views": total},
+                )
+    all_points = np.concatenate(points) if points else np.zeros((0, 3))
+    all_colours = np.concatenate(colours) if colours else np.zeros((0, 3), np.uint8)
+    if len(all_points) > cfg.max_points:
+        pick = np.sort(
+            np.random.default_rng(0).choice(len(all_points), cfg.max_points, replace=False)
+        )
+        all_points, all_colours = all_points[pick], all_colours[pick]
+    return all_points, all_colours
+
+
+def cameras_json(scene: Scene) -> dict:
+    cameras = []
+    for split, views in scene.splits.items():
+        for i, name in enumerate(views.names):
+            c = views.cameras
+            cameras.append(
+                {
+                    "name": name,
+                    "split": split,
+                    "c2w": world_to_source_pose(c.c2w[i], scene.normalization).tolist(),
+                    "intrinsics": c.intrinsics[i].tolist(),
+                    "width": int(c.width[i]),
+                    "height": int(c.height[i]),
+                    "distortion": c.distortion[i].tolist(),
+                }
+            )
+    return {
+        "frame": "source",
+        "units": scene.normalization.units,
+        "downscale": scene.downscale,
+        "convention": "c2w: OpenGL camera axes (right, up, back) and centre; intrinsics fx, fy, "
+        "cx, cy in pixels of the image size given; distortion: OpenCV k1, k2, p1, p2",
+        "cameras": cameras,
+    }
+
+
+def occupancy_cells(trained: Trained, resolution: int) -> tuple[np.ndarray, float]:
+    """Centres (source frame) of the grid cells over the foreground box the method's occupancy
+    keeps, and the cell's side in source units."""
+    occupied = trained.method.final_occupancy(trained.models)
+    if occupied is None:
+        raise ValueError(
+            f"method {trained.cfg.method!r} learns no occupancy: there is none to export"
+        )
+    aabb = trained.scene.bounds.aabb.double()
+    axes = [torch.linspace(0, 1, resolution + 1, dtype=torch.float64)[:-1] + 0.5 / resolution] * 3
+    grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+    centres = aabb[0] + grid * (aabb[1] - aabb[0])
+    kept = []
+    with torch.no_grad():
+        for s in range(0, len(centres), 1 << 18):
+            chunk = centres[s : s + (1 << 18)]
+            kept.append(chunk[occupied(chunk.float().to(trained.device)).cpu()])
+    world = torch.cat(kept)
+    side = float((aabb[1] - aabb[0]).max()) / resolution * trained.scene.normalization.scale
+    return trained.scene.normalization.to_source(world).numpy(), side
+
+
+def export(
+    trained: Trained, cfg: ExportConfig, out_dir: Path, store: RunStore | None = None
+) -> dict:
+    """Writes the asked-for file and transform.json into `out_dir`; returns what was written."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    target = out_dir / FILES[cfg.what]
+    info: dict = {
+        "what": cfg.what,
+        "file": target.name,
+        "transform": TRANSFORM,
+        "units": trained.scene.normalization.units,
+    }
+    if cfg.what == "pointcloud":
+        points, colours = point_cloud(trained, cfg, store)
+        write_ply(target, points, colours)
+        info.update(points=len(points), stride=cfg.stride, min_opacity=cfg.min_opacity)
+    elif cfg.what == "cameras":
+        tmp = target.with_suffix(".partial")
+        tmp.write_text(json.dumps(cameras_json(trained.scene), indent=1))
+        tmp.replace(target)
+        info.update(cameras=trained.scene.num_images)
+    else:
+        cells, side = occupancy_cells(trained, cfg.resolution)
+        write_ply(target, cells)
+        info.update(cells=len(cells), resolution=cfg.resolution, cell_side=side)
+    (out_dir / TRANSFORM).write_text(json.dumps(transform(trained.scene), indent=1))
+    (out_dir / "export.json").write_text(json.dumps(info, indent=1))
+    return info
