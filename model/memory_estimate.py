@@ -11,7 +11,7 @@ the grid 2,393 vs 1,133 (its bound keeps every march step)."""
 from __future__ import annotations
 
 from model.methods import get_method
-from model.methods.spec import PhaseMemory
+from model.methods.costs import PhaseMemory
 from model.profiles import Profile
 
 BYTES_PER_PARAMETER = 16  # fp32 weights, gradients and Adam's two moments

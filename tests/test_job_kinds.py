@@ -16,7 +16,7 @@ from sqlalchemy import select
 from service.api.app import create_app
 from service.db import reading, transaction
 from service.dispatcher import Dispatcher
-from service.jobs.attempt import Attempt
+from service.jobs.context import Attempt
 from service.jobs.kinds import KINDS, TRAIN, JobKind, Parent, Refused, register
 from service.jobs.paths import run_dir_for
 from service.jobs.submit import submit

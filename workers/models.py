@@ -3,12 +3,24 @@ builds the networks from the same seed, so data-parallel replicas start identica
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
 import torch
 
 from model.methods import Method, Networks
 from model.methods.schedules import log_linear
+
+
+@dataclass(frozen=True)
+class LiveNetworks:
+    """A method's networks as they are now, on the device they train on, with the scene box they
+    render in: what validation and periodic evaluation read of a run."""
+
+    method: Method
+    models: Networks
+    aabb: torch.Tensor
+    device: torch.device
 
 
 def build_models(method: Method, num_images: int, aabb: torch.Tensor, seed: int) -> Networks:

@@ -4,8 +4,9 @@ and load on first use."""
 
 from typing import Any
 
+from model.methods.costs import PhaseMemory, SweepPoint
 from model.methods.registry import METHODS, family_of, get_method, register, with_role
-from model.methods.spec import MethodSpec, PhaseMemory, SweepPoint
+from model.methods.spec import MethodSpec
 
 __all__ = [
     "METHODS",

@@ -11,15 +11,15 @@ occupancy grid, a frozen predictor), which it checkpoints through `state_dict` /
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
 import torch
 from torch import Tensor, nn
 
 from model.fields.background import BackgroundField
 from model.fields.switch_nerf import SwitchNeRF
+from model.methods.costs import PhaseMemory, SweepPoint
 from model.methods.main_phase import MainRender, main_loss
-from model.methods.spec import MethodSpec, PhaseMemory, SweepPoint
 from model.profiles import Profile
 from model.render.volume import Rendered
 from model.scenes.rays import RayBatch
@@ -27,6 +27,24 @@ from model.scenes.rays import RayBatch
 # The estimator interface: world points (N, 3) on any device -> bool (N,) on the estimator's own
 # device.
 Occupied = Callable[[Tensor], Tensor]
+
+
+class Entry(Protocol):
+    """What a method reads off its registry entry (MethodSpec, model/methods/spec.py, which imports
+    this module's Method: a Protocol here keeps the two modules out of a cycle)."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def phases(self) -> tuple[str, ...]: ...
+
+    def steps(self, profile: Profile, phase: str) -> int: ...
+
+    def budget_share(self, profile: Profile, phase: str) -> float | None: ...
+
+    @property
+    def memory(self) -> Callable[[Profile, int], dict[str, PhaseMemory]]: ...
 
 
 def count(*modules: nn.Module) -> int:
@@ -74,7 +92,7 @@ class Method:
     """A method's training code. Its name, labels, phases and memory model are its registry entry's
     (model/methods/spec.py), set as `spec` when the registry makes the object."""
 
-    spec: MethodSpec
+    spec: Entry
 
     def __init__(self, profile: Profile):
         self.profile = profile

@@ -1,14 +1,40 @@
-"""Each registered method's memory model (PhaseMemory per phase) and the sizes it derives from,
-computed from the profile alone (model/sizes.py), so the API can refuse a job that cannot fit
-without loading PyTorch."""
+"""What a method costs: each registered method's memory model (PhaseMemory per phase) and the sizes
+it derives from, computed from the profile alone (model/sizes.py), so the API can refuse a job that
+cannot fit without loading PyTorch; and the sampling budgets `leco bench --sweep` tries
+(SweepPoint)."""
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 
 from model import sizes
-from model.methods.spec import PhaseMemory
 from model.profiles import GridConfig, Profile
+
+
+@dataclass(frozen=True)
+class PhaseMemory:
+    """What one phase of a method keeps per rank, for the memory estimate
+    (model/memory_estimate.py)."""
+
+    trained: int  # parameters with gradients and Adam state
+    frozen: int = 0  # parameters only read
+    samples_per_ray: int = 0  # the most main-size network samples with gradient one ray can have
+    render_samples_per_ray: int = 0  # ... in a validation render (no gradient); 0: samples_per_ray
+    extra_bytes: int = 0  # state that is neither parameters nor activations (a grid's cells)
+    extra_bytes_per_ray: int = 0  # activations of the method's own small networks (proposal MLPs)
+    # what backward keeps per main-network sample, and per background sample (0: the Switch-NeRF
+    # and MLP-background formulas of model/memory_estimate.py)
+    bytes_per_sample: int = 0
+    background_bytes_per_sample: int = 0
+
+
+@dataclass(frozen=True)
+class SweepPoint:
+    """One sampling budget of a method for `leco bench --sweep` (speed against error)."""
+
+    tag: str
+    text: str
+    overrides: dict = field(default_factory=dict)
 
 
 def main_phase(profile: Profile, num_images: int, samples_per_ray: int) -> PhaseMemory:

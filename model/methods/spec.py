@@ -6,9 +6,10 @@ benchmark first asks for it."""
 from __future__ import annotations
 
 import importlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
+from model.methods.costs import PhaseMemory
 from model.profiles import Profile
 
 if TYPE_CHECKING:
@@ -24,32 +25,6 @@ class ReferenceTargets:
     best_sooner: float = 2.0  # reaches the reference's best PSNR this many times sooner
     samples_fraction: float | None = 0.25  # main-network samples per ray, at most this share
     memory_fraction: float | None = 0.5  # peak training memory, at most this share
-
-
-@dataclass(frozen=True)
-class PhaseMemory:
-    """What one phase of a method keeps per rank, for the memory estimate
-    (model/memory_estimate.py)."""
-
-    trained: int  # parameters with gradients and Adam state
-    frozen: int = 0  # parameters only read
-    samples_per_ray: int = 0  # the most main-size network samples with gradient one ray can have
-    render_samples_per_ray: int = 0  # ... in a validation render (no gradient); 0: samples_per_ray
-    extra_bytes: int = 0  # state that is neither parameters nor activations (a grid's cells)
-    extra_bytes_per_ray: int = 0  # activations of the method's own small networks (proposal MLPs)
-    # what backward keeps per main-network sample, and per background sample (0: the Switch-NeRF
-    # and MLP-background formulas of model/memory_estimate.py)
-    bytes_per_sample: int = 0
-    background_bytes_per_sample: int = 0
-
-
-@dataclass(frozen=True)
-class SweepPoint:
-    """One sampling budget of a method for `leco bench --sweep` (speed against error)."""
-
-    tag: str
-    text: str
-    overrides: dict = field(default_factory=dict)
 
 
 # (profile, number of training images) -> each phase's memory needs

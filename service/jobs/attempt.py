@@ -13,12 +13,12 @@ service.execute`, which calls the same."""
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 
 from sqlalchemy import select
 
 from service import queue
 from service.db import DatabaseUnavailable, reading, retrying
+from service.jobs.context import Attempt, job_cancelled
 from service.jobs.kinds import get_kind
 from service.queue import StaleAttempt
 from service.runstore import DatabaseRunStore
@@ -29,21 +29,6 @@ from workers.store import RunError, RunGaveUp, StopRequested
 log = logging.getLogger("leco.execute")
 
 
-@dataclass
-class Attempt:
-    """What a kind's work gets: the job as claimed, its scene's folder, and the store its writes go
-    through (fenced by the attempt)."""
-
-    settings: Settings
-    job: Job
-    number: int
-    scene_path: str
-    store: DatabaseRunStore
-
-    def cancelled(self) -> bool:
-        return job_cancelled(self.settings, self.job.id)
-
-
 def finish(settings: Settings, job_id: int, attempt: int, state: str, error: str | None) -> bool:
     # A job's end must not be lost to a database restart: wait for it (the lease covers the wait).
     return retrying(
@@ -51,14 +36,6 @@ def finish(settings: Settings, job_id: int, attempt: int, state: str, error: str
         lambda: queue.finish(settings.db_url, job_id, attempt, state, error),
         settings.retry_s,
     )
-
-
-def job_cancelled(settings: Settings, job_id: int) -> bool:
-    def read() -> bool:
-        with reading(settings.db_url) as session:
-            return bool(session.scalar(select(Job.cancel_requested).where(Job.id == job_id)))
-
-    return retrying(f"reading job {job_id}", read, settings.retry_s)
 
 
 def reason_of(error: Exception) -> str:

@@ -4,7 +4,7 @@ them."""
 
 from __future__ import annotations
 
-from service.jobs.attempt import Attempt
+from service.jobs.context import Attempt
 from service.jobs.parent import parent_of
 from workers.render.export import FILES, TRANSFORM
 from workers.render.export import export as export_geometry

@@ -18,7 +18,7 @@ from workers.config import TrainConfig
 from workers.render.schemas import EXPORT_PHASE, RENDER_PHASE, ExportConfig, RenderConfig
 
 if TYPE_CHECKING:
-    from service.jobs.attempt import Attempt
+    from service.jobs.context import Attempt
 
 
 class Refused(InvalidInput):
@@ -44,7 +44,7 @@ class Parent:
 class JobKind:
     name: str
     config: type[BaseModel]  # the job's config: the API's request body, down to the work
-    # What one attempt does, given an Attempt (service/jobs/attempt.py): the function, or
+    # What one attempt does, given an Attempt (service/jobs/context.py): the function, or
     # "module:function" to import it where an attempt runs (the built-in kinds' work loads PyTorch;
     # the API never imports it).
     work: str | Callable[[Attempt], None]

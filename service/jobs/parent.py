@@ -16,7 +16,7 @@ from service.store import ArtifactStore, describe
 from service.tables import Artifact
 
 if TYPE_CHECKING:
-    from service.jobs.attempt import Attempt
+    from service.jobs.context import Attempt
     from workers.trained import Trained
 
 FINAL_NAMES = ("final/models.pt", "final/occupancy.pt")  # what a render needs of its training job

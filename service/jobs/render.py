@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import logging
 
-from service.jobs.attempt import Attempt
+from service.jobs.context import Attempt
 from service.jobs.parent import parent_of
 from workers.render.job import outputs, render_video
 from workers.render.schemas import RENDER_PHASE, RenderConfig

@@ -11,7 +11,7 @@ from pathlib import Path
 from sqlalchemy import select
 
 from service.db import reading, retrying
-from service.jobs.attempt import Attempt
+from service.jobs.context import Attempt
 from service.jobs.paths import job_dir_for, run_dir_for
 from service.runstore import DatabaseRunStore
 from service.settings import Settings

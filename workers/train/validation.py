@@ -4,7 +4,6 @@ no jitter), and the PNGs a person looks at: prediction, ground truth and depth s
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -13,10 +12,9 @@ from PIL import Image
 from model.methods import Method
 from model.methods.base import Networks
 from model.scenes.rays import PixelTable
+from model.scenes.scene import Views
+from workers.models import LiveNetworks
 from workers.renderer import Rendering, depth_grey, depth_range, render_rays, to_uint8
-
-if TYPE_CHECKING:
-    from workers.train.loop import RankRun
 
 
 def render_image(
@@ -43,13 +41,14 @@ def save_triptych(path: Path, prediction: Rendering, truth: torch.Tensor) -> Non
     tmp.replace(path)
 
 
-def write_validation_renders(run: RankRun, step: int) -> Path:
-    """During training: the first validation view (or training view when the scene has no val
-    split)."""
-    views = run.scene.splits.get("val", run.scene.train)
+def write_validation_renders(
+    live: LiveNetworks, phase: str, views: Views, run_dir: Path, step: int
+) -> Path:
+    """During training: the first of `views` (the validation views, or the training views when the
+    scene has no val split) as RUN_DIR/renders/step<step>_<name>.png."""
     rendered = render_image(
-        run.method, run.models, run.progress["phase"], PixelTable(views), 0, run.aabb, run.device
+        live.method, live.models, phase, PixelTable(views), 0, live.aabb, live.device
     )
-    path = run.run_dir / "renders" / f"step{step:07d}_{views.names[0]}.png"
+    path = run_dir / "renders" / f"step{step:07d}_{views.names[0]}.png"
     save_triptych(path, rendered, views.image(0))
     return path
