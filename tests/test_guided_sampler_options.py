@@ -5,9 +5,9 @@ kept. Every option must keep the packed invariants: samples grouped by ray in in
 import pytest
 import torch
 
+from model.estimators.guided import dilate_bins, guided_samples
 from model.estimators.occupancy import OccupancyQuery
 from model.fields.hmoe import OccupancyNetwork
-from model.render.samples import dilate_bins, guided_samples
 
 # a thin wall at x in [2, 2.2]: between the mid-points 1.5 and 2.5 of unit coarse bins
 SLAB = (2.0, 2.2)

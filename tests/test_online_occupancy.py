@@ -7,10 +7,11 @@ import json
 import pytest
 import torch
 
+from model.estimators.guided import guided_samples
 from model.estimators.occupancy import OccupancyPredictor
 from model.estimators.online import OnlineOccupancy
 from model.fields.hmoe import OccupancyNetwork
-from model.render.samples import PackedSamples, guided_samples
+from model.render.samples import PackedSamples
 from model.render.volume import packed_weights
 from model.scenes.rays import RayBatch
 from workers.config import TrainConfig

@@ -4,6 +4,7 @@ network is counted alike for every method (model/render/accounting.py)."""
 import pytest
 import torch
 
+from model.estimators.guided import guided_samples
 from model.estimators.placement import (
     bin_mass,
     confident_bins,
@@ -13,7 +14,7 @@ from model.estimators.placement import (
 )
 from model.fields.hmoe import OccupancyNetwork
 from model.render.accounting import step_accounting, surface_accounting
-from model.render.samples import PackedSamples, guided_samples, stratified_edges
+from model.render.samples import PackedSamples, stratified_edges
 from model.render.volume import batched_weights, packed_weights
 
 

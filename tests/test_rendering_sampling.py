@@ -3,8 +3,8 @@
 import pytest
 import torch
 
+from model.estimators.guided import guided_samples
 from model.render.samples import (
-    guided_samples,
     inverse_cdf_edges,
     merge_edges,
     pack_edges,

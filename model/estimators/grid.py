@@ -16,10 +16,11 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from model.estimators.base import Estimator
 from model.render.samples import PackedSamples
 
 
-class GridEstimator:
+class GridEstimator(Estimator):
     """nerfacc's OccGridEstimator in plain PyTorch: a binary grid over the foreground box, kept
     from the density it was last asked (the module's docstring says how)."""
 
@@ -77,7 +78,7 @@ class GridEstimator:
         return ((level * r + ijk[:, 0]) * r + ijk[:, 1]) * r + ijk[:, 2], inside
 
     def occupied(self, points: Tensor) -> Tensor:
-        """Estimator interface shared with OccupancyPredictor; points no level holds are free."""
+        """Points no level holds are free."""
         index, inside = self._cell_index(points.to(self.aabb.device))
         return self.binary[index] & inside
 
@@ -137,37 +138,6 @@ class GridEstimator:
         self.values = torch.where(touched, torch.maximum(self.values * decay, fresh), self.values)
         self.binary = self.values > min(float(self.values.mean()), threshold)
         return True
-
-    @torch.no_grad()
-    def sample(
-        self,
-        origins: Tensor,
-        directions: Tensor,
-        near: Tensor,
-        far: Tensor,
-        step_size: float,
-        generator: torch.Generator | None = None,
-    ) -> PackedSamples:
-        """March each ray's foreground segment with a fixed step and keep the intervals whose
-        midpoints lie in occupied cells (packed, grouped by ray)."""
-        steps = int(torch.ceil(((far - near).max() / step_size)).clamp(min=1))
-        offset = (
-            torch.rand(len(near), 1, generator=generator, device=near.device) * step_size
-            if generator is not None
-            else 0.0
-        )
-        starts = (
-            near[:, None]
-            + offset
-            + step_size * torch.arange(steps, dtype=near.dtype, device=near.device)
-        )
-        ends = torch.minimum(starts + step_size, far[:, None])
-        valid = ends > starts
-        mids = 0.5 * (starts + ends)
-        points = origins[:, None, :] + directions[:, None, :] * mids[..., None]
-        keep = valid & self.occupied(points.reshape(-1, 3)).reshape(valid.shape)
-        ray, k = torch.nonzero(keep, as_tuple=True)
-        return PackedSamples(starts[ray, k], ends[ray, k], ray)
 
 
 def cull_by_transmittance(

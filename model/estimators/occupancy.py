@@ -1,6 +1,6 @@
 """The frozen occupancy network O on its own: the compact artifact a user can take to other
 pipelines, saved and loaded without the experts, behind the same estimator interface as the
-occupancy grid."""
+occupancy grid (model/estimators/base.py); and O as LeCO's guided sampler asks it."""
 
 from __future__ import annotations
 
@@ -9,12 +9,13 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from model.estimators.base import Estimator
 from model.fields.hmoe import HMoE, OccupancyNetwork
 
 FORMAT = "leco-occupancy-v1"
 
 
-class OccupancyPredictor:
+class OccupancyPredictor(Estimator):
     """`occupied(points)` for world-frame points, batched so any number of points fits in memory."""
 
     def __init__(
@@ -65,7 +66,7 @@ class OccupancyPredictor:
         return cls(network, empty_threshold=empty_threshold)
 
 
-class OccupancyQuery:
+class OccupancyQuery(Estimator):
     """O as the guided sampler asks it, one coarse bin point at a time: `occupied` decides, and
     keeps the logits (and the placement head's densities) of the last call, with gradient while
     `learn` is set, for the step's losses. A frozen O (the paper) never learns."""

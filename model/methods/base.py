@@ -24,8 +24,8 @@ from model.profiles import Profile
 from model.render.volume import Rendered
 from model.scenes.rays import RayBatch
 
-# The estimator interface: world points (N, 3) on any device -> bool (N,) on the estimator's own
-# device.
+# An estimator's answer (model/estimators/base.py Estimator.occupied): world points (N, 3) on any
+# device -> bool (N,) on the estimator's own device.
 Occupied = Callable[[Tensor], Tensor]
 
 

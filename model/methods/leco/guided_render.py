@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from model.estimators.fine_placement import FineDraw, fine_placement_loss, fine_samples
+from model.estimators.guided import BinOptions, draw_guided
 from model.estimators.occupancy import OccupancyQuery
 from model.estimators.online import OnlineOccupancy
 from model.estimators.placement import (
@@ -25,7 +26,7 @@ from model.fields.switch_nerf import SwitchNeRF
 from model.methods.leco.phase1 import render_background
 from model.methods.main_phase import MainRender, composite_field, cull_occluded, field_on_packed
 from model.profiles import GuidedConfig, Profile
-from model.render.samples import PackedSamples, draw_guided, pack_edges, stratified_edges
+from model.render.samples import PackedSamples, pack_edges, stratified_edges
 from model.render.volume import Rendered, batched_weights
 from model.scenes.rays import RayBatch
 
@@ -133,16 +134,10 @@ def render_guided(
             sub.origins,
             sub.directions,
             query.occupied,
-            g.coarse_samples,
-            g.split,
             generator,
-            g.jitter,
-            g.dilate,
-            g.fallback,
-            g.fallback_topk,
+            BinOptions.of(g),
             query.scores,
             place,
-            g.queries_per_bin,
         )
     local = draw.samples
     evaluated = 0
