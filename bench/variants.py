@@ -178,7 +178,8 @@ def sweep(methods: list[str], profile_of: Callable[[str], Profile]) -> list[Vari
             f"{m}-sweep-{p.tag}",
             m,
             f"{get_method(m).label}, {p.text}",
-            p.overrides,
+            # as the job sets them: a method that reads a section from its own is swept there
+            {get_method(m).own_key(key): value for key, value in p.overrides.items()},
             ablation=True,
             sweep=True,
         )

@@ -4,7 +4,7 @@ docs/PROFILES.md for each choice."""
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -464,36 +464,6 @@ class NGPConfig(Frozen):
     background_max_resolution: int = Field(
         2048, ge=2, le=65536, description="cells per side of the background's finest level"
     )
-    # The hash field resolves finer surfaces than the MLP LeCO's count reaches (docs/BENCHMARKS.md,
-    # "42 main samples for the hash field"); ngp-prop keeps prop.main_samples, its better count
-    main_samples: int | None = Field(
-        None,
-        ge=1,
-        le=4096,
-        description="main samples a hit ray that ngp-leco's O places for the hash field, unless "
-        "guided.main_samples is set for the job; None: guided.main_samples",
-    )
-    # ngp-leco's own values of LeCO's sampler settings (MethodSpec.settings_from): the hash field
-    # wants a different sampler from the MLP's (docs/BENCHMARKS.md, "NGP+LeCO's own sampler")
-    coarse_samples: int | None = Field(
-        None, ge=1, le=4096, description="ngp-leco's guided.coarse_samples; None: guided's"
-    )
-    split: int | None = Field(
-        None, ge=1, le=64, description="ngp-leco's guided.split; None: guided's"
-    )
-    dilate: int | None = Field(
-        None, ge=0, le=64, description="ngp-leco's guided.dilate; None: guided's"
-    )
-    placement: bool | None = Field(None, description="ngp-leco's guided.placement; None: guided's")
-    placement_in_phase1: bool | None = Field(
-        None, description="ngp-leco's guided.placement_in_phase1; None: guided's"
-    )
-    online_warmup: int | None = Field(
-        None, ge=0, le=10**7, description="ngp-leco's guided.online_warmup; None: guided's"
-    )
-    occupancy_budget_share: float | None = Field(
-        None, gt=0, lt=1, description="ngp-leco's occupancy.budget_share; None: occupancy's"
-    )
     grid: GridConfig = Field(
         GridConfig(levels=4),
         description="`ngp`'s own occupancy grid: Instant-NGP's 128^3 cells per cascade; 4 "
@@ -524,6 +494,19 @@ class NGPConfig(Frozen):
         return self
 
 
+class NGPLeCOConfig(Frozen):
+    """NGP+LeCO's own phase 1 and sampler (`ngp-leco`): the hash field wants a sampler other than
+    the MLP's (docs/EXPERIMENTS.md), so it reads these in place of `occupancy` and `guided`, which
+    are `leco`'s. The paper profile keeps the paper's for both."""
+
+    occupancy: OccupancyPhaseConfig = Field(
+        OccupancyPhaseConfig(), description="ngp-leco's phase 1 (as `occupancy` is leco's)"
+    )
+    guided: GuidedConfig = Field(
+        GuidedConfig(), description="ngp-leco's main-phase sampler (as `guided` is leco's)"
+    )
+
+
 class Profile(Frozen):
     """Sizes and sampling of every method at one scale; a job may override any field."""
 
@@ -536,6 +519,7 @@ class Profile(Frozen):
     grid: GridConfig = GridConfig()
     prop: ProposalConfig = ProposalConfig()
     ngp: NGPConfig = NGPConfig()
+    ngp_leco: NGPLeCOConfig = NGPLeCOConfig()
     rays_per_device: int = Field(1024, ge=1, le=65536, description="rays per step per worker")
     main_steps: int = Field(
         500_000,
@@ -557,39 +541,50 @@ class Profile(Frozen):
     )
 
 
+def changed(section: Frozen, **values: object) -> Any:
+    """A validated copy of a profile section with some values changed."""
+    return type(section).model_validate({**section.model_dump(), **values})
+
+
+# LeCO's phase 1 and sampler at `cpu`: measured settings beyond the paper (docs/EXPERIMENTS.md,
+# the ablation ladder); bench/variants.py PAPER_FORMULATION undoes them.
+CPU_OCCUPANCY = OccupancyPhaseConfig(
+    samples_per_ray=64,
+    steps=1500,
+    lr=2e-3,
+    w_g=5e-2,
+    empty_gate_grad=False,
+    budget_share=0.15,
+)
+CPU_GUIDED = GuidedConfig(
+    coarse_samples=16,
+    split=4,
+    dilate=1,
+    jitter=True,
+    fallback=True,
+    warm_start=True,
+    empty_threshold=0.9,
+    online=True,
+    warm_start_background=False,
+    online_free_opacity=0.5,
+    fallback_topk=2,
+    placement=True,
+    placement_in_phase1=True,
+    main_samples=21,
+    placement_padding=0.001,
+)
+SMOKE_OCCUPANCY = OccupancyPhaseConfig(samples_per_ray=16, steps=20, lr=5e-3, w_g=5e-2)
+SMOKE_GUIDED = GuidedConfig(coarse_samples=8, split=4)
+
+
 PROFILES: dict[str, Profile] = {
     "paper": Profile(name="paper"),
     "cpu": Profile(
         name="cpu",
         network=NetworkConfig(width=64, num_experts=8, expert_layers=4),
         background=BackgroundConfig(width=32, layers=2, samples=16),
-        # Measured settings beyond the paper (docs/BENCHMARKS.md, ablation ladder);
-        # bench/variants.py PAPER_FORMULATION undoes them.
-        occupancy=OccupancyPhaseConfig(
-            samples_per_ray=64,
-            steps=1500,
-            lr=2e-3,
-            w_g=5e-2,
-            empty_gate_grad=False,
-            budget_share=0.15,
-        ),
-        guided=GuidedConfig(
-            coarse_samples=16,
-            split=4,
-            dilate=1,
-            jitter=True,
-            fallback=True,
-            warm_start=True,
-            empty_threshold=0.9,
-            online=True,
-            warm_start_background=False,
-            online_free_opacity=0.5,
-            fallback_topk=2,
-            placement=True,
-            placement_in_phase1=True,
-            main_samples=21,
-            placement_padding=0.001,
-        ),
+        occupancy=CPU_OCCUPANCY,
+        guided=CPU_GUIDED,
         vanilla=VanillaConfig(coarse_samples=32, fine_samples=64),
         grid=GridConfig(resolution=128, march_steps=256),
         # LeCO's main samples per ray on the city at this profile: 21.2 (8-minute benchmark,
@@ -607,20 +602,23 @@ PROFILES: dict[str, Profile] = {
             # 64^3 a cascade: the update then costs about a quarter of a step, as on a GPU,
             # where 128^3 at 2 cores costs three times the training (docs/PROFILES.md)
             grid=GridConfig(resolution=64, march_steps=256, levels=2),
-            # twice the MLP LeCO's 21: +0.94 dB on lego, +0.45 / +0.54 on city-0 seeds 0 / 1, level
-            # on fern (docs/BENCHMARKS.md, "42 main samples for the hash field")
-            main_samples=42,
+        ),
+        ngp_leco=NGPLeCOConfig(
             # O keeps or drops 64 bins a ray and the hash field gets 2 even samples in each kept bin
             # and its neighbours; O learns online from main step 250 and phase 1 takes 8% of the
-            # budget: lego and the city level with or above NGP where O's placement fell 1.7 dB
-            # short on lego (docs/BENCHMARKS.md, "NGP+LeCO's own sampler")
-            coarse_samples=64,
-            split=2,
-            dilate=1,
-            placement=False,
-            placement_in_phase1=False,
-            online_warmup=250,
-            occupancy_budget_share=0.08,
+            # budget (docs/EXPERIMENTS.md: where O's placement fell 1.7 dB short of NGP on lego)
+            occupancy=changed(CPU_OCCUPANCY, budget_share=0.08),
+            guided=changed(
+                CPU_GUIDED,
+                coarse_samples=64,
+                split=2,
+                dilate=1,
+                placement=False,
+                placement_in_phase1=False,
+                online_warmup=250,
+                # twice the MLP LeCO's 21: the hash field resolves finer surfaces
+                main_samples=42,
+            ),
         ),
         rays_per_device=256,
         main_steps=1500,
@@ -638,8 +636,8 @@ PROFILES: dict[str, Profile] = {
             appearance_dim=8,
         ),
         background=BackgroundConfig(width=8, layers=1, samples=4),
-        occupancy=OccupancyPhaseConfig(samples_per_ray=16, steps=20, lr=5e-3, w_g=5e-2),
-        guided=GuidedConfig(coarse_samples=8, split=4),
+        occupancy=SMOKE_OCCUPANCY,
+        guided=SMOKE_GUIDED,
         vanilla=VanillaConfig(coarse_samples=8, fine_samples=16),
         grid=GridConfig(resolution=32, warmup_steps=4, update_every=4, march_steps=64),
         prop=ProposalConfig(samples=(16, 8), main_samples=8, anneal_steps=10, update_warmup=10),
@@ -656,12 +654,40 @@ PROFILES: dict[str, Profile] = {
                 resolution=32, warmup_steps=4, update_every=4, march_steps=64, levels=2
             ),
         ),
+        ngp_leco=NGPLeCOConfig(occupancy=SMOKE_OCCUPANCY, guided=SMOKE_GUIDED),
         rays_per_device=64,
         main_steps=20,
         lr=5e-3,
         lr_final=5e-4,
     ),
 }
+
+
+# NGPConfig's keys that held ngp-leco's sampler before it had a section of its own (ngp_leco): an
+# ngp-leco run saved their values in its own `guided` and `occupancy`.
+RETIRED_NGP_KEYS = (
+    "main_samples",
+    "coarse_samples",
+    "split",
+    "dilate",
+    "placement",
+    "placement_in_phase1",
+    "online_warmup",
+    "occupancy_budget_share",
+)
+
+
+def upgrade_saved(data: dict) -> dict:
+    """A resolved profile saved by a run of an earlier version (run.json, checkpoints, final/) in
+    today's schema: the retired `ngp.*` sampler keys dropped and `ngp_leco` made from the run's
+    own `occupancy` and `guided`, which are what it trained with whatever its method."""
+    ngp = data.get("ngp")
+    if "ngp_leco" in data or not isinstance(ngp, dict):
+        return data
+    upgraded = {**data, "ngp": {k: v for k, v in ngp.items() if k not in RETIRED_NGP_KEYS}}
+    if "occupancy" in data and "guided" in data:
+        upgraded["ngp_leco"] = {"occupancy": data["occupancy"], "guided": data["guided"]}
+    return upgraded
 
 
 def get_profile(name: str) -> Profile:

@@ -65,25 +65,25 @@ def test_registry_lists_every_method_once_and_refuses_a_second_owner_of_a_name()
         TrainConfig(method="nope")
 
 
-def test_a_method_takes_a_shared_setting_from_its_own_unless_the_job_sets_it():
-    # a toy that reads the vanilla fine count from the background's sample count
+def test_a_method_reads_a_shared_section_from_a_section_of_its_own():
+    # a toy that samples as LeCO's sampler says, with ngp-leco's section as its own
     spec = MethodSpec(
-        "toy-linked",
-        "S+Linked (toy)",
+        "toy-own",
+        "S+Own (toy)",
         UniformSamples,
         uniform_memory,
-        settings_from=(("vanilla.fine_samples", "background.samples"),),
+        sections=(("guided", "ngp_leco.guided"),),
     )
     register(spec)
     try:
         resolve = lambda method, **o: TrainConfig(method=method, profile="cpu", overrides=o)
-        assert resolve("toy-linked").resolved_profile().vanilla.fine_samples == 16
-        linked = resolve("toy-linked", **{"background.samples": 24}).resolved_profile()
-        assert linked.vanilla.fine_samples == linked.background.samples == 24
-        own = resolve("toy-linked", **{"vanilla.fine_samples": 40}).resolved_profile()
-        assert own.vanilla.fine_samples == 40  # the job's own value wins
+        assert resolve("toy-own").resolved_profile().guided.coarse_samples == 64
+        own = resolve("toy-own", **{"ngp_leco.guided.coarse_samples": 40}).resolved_profile()
+        assert own.guided.coarse_samples == 40
         # every other method keeps the profile's value
-        assert resolve("switch").resolved_profile().vanilla.fine_samples == 64
+        assert resolve("switch").resolved_profile().guided.coarse_samples == 16
+        with pytest.raises(ValueError, match="set 'ngp_leco.guided.split' instead"):
+            resolve("toy-own", **{"guided.split": 2})
     finally:
         METHODS.pop(spec.name)
 

@@ -40,60 +40,47 @@ def resolved(method: str, profile: str = "cpu", **overrides):
     return TrainConfig(method=method, profile=profile, overrides=overrides).resolved_profile()
 
 
-def test_ngp_leco_places_ngp_main_samples_for_the_hash_field():
-    def count(method: str, **overrides) -> tuple[int, int]:
-        p = resolved(method, **overrides)
-        return p.guided.main_samples, p.prop.main_samples
-
-    # cpu: O would place 42 for the hash field; the proposals and the Switch-NeRF samplers keep 21
-    assert count("ngp-leco") == (42, 21)
-    assert count("ngp-prop") == count("leco") == count("prop") == (21, 21)
-    assert count("ngp-leco", **{"ngp.main_samples": 30})[0] == 30
-    # every other method keeps its own, and a job's own count wins
-    assert count("ngp-prop", **{"ngp.main_samples": 30}) == (21, 21)
-    assert count("leco", **{"ngp.main_samples": 30}) == (21, 21)
-    assert count("prop", **{"ngp.main_samples": 30}) == (21, 21)
-    own = {"ngp.main_samples": 30, "guided.main_samples": 12}
-    assert count("ngp-leco", **own)[0] == 12
-    # None: O places guided.main_samples, as in `leco`
-    assert count("ngp-leco", **{"ngp.main_samples": None}) == (21, 21)
-    # with O placing, the bench sweep halves and doubles the method's own count, and the memory
-    # check sees it
-    from bench.variants import sweep
-
-    def placing(method: str, n: int = 30):
-        return resolved(method, **{"ngp.main_samples": n, "ngp.placement": True})
-
-    points = {v.name: v.overrides for v in sweep(["ngp-leco", "leco"], placing)}
-    assert points["ngp-leco-sweep-rich"] == {"guided.main_samples": 60}
-    assert points["leco-sweep-rich"] == {"guided.main_samples": 42}
-    main_phase = lambda n: get_method("ngp-leco").memory(placing("ngp-leco", n), 40)["main"]
-    assert main_phase(60).samples_per_ray == 60 and main_phase(30).samples_per_ray == 30
-
-
-def test_ngp_leco_has_its_own_sampler_and_leco_keeps_the_mlps():
+def test_ngp_leco_reads_its_own_sections_and_leco_keeps_the_mlps():
     def sampler(p) -> tuple:
         g = p.guided
         keys = (g.placement, g.placement_in_phase1, g.coarse_samples, g.split, g.dilate)
-        return (*keys, g.online_warmup, p.occupancy.budget_share)
+        return (*keys, g.online_warmup, g.main_samples, p.occupancy.budget_share)
 
     # cpu: 64 bins kept or dropped, 2 even samples a kept bin and its neighbours, O online from
     # main step 250, phase 1 at 8% of the budget; the MLP's LeCO keeps O's placement
-    assert sampler(resolved("ngp-leco")) == (False, False, 64, 2, 1, 250, 0.08)
-    assert sampler(resolved("leco")) == (True, True, 16, 4, 1, 500, 0.15)
+    assert sampler(resolved("ngp-leco")) == (False, False, 64, 2, 1, 250, 42, 0.08)
+    assert sampler(resolved("leco")) == (True, True, 16, 4, 1, 500, 21, 0.15)
     assert sampler(resolved("ngp-prop")) == sampler(resolved("leco"))
-    # a job's own guided or occupancy key wins over ngp's
-    own = resolved("ngp-leco", **{"guided.split": 3, "occupancy.budget_share": 0.2})
-    assert (own.guided.split, own.occupancy.budget_share) == (3, 0.2)
-    # None falls back to guided's value
-    assert resolved("ngp-leco", **{"ngp.split": None, "ngp.dilate": None}).guided.split == 4
+    # a job sets ngp-leco's sampler in its section; leco's is untouched by it, and the reverse
+    own = {"ngp_leco.guided.split": 3, "ngp_leco.occupancy.budget_share": 0.2}
+    assert (resolved("ngp-leco", **own).guided.split, resolved("leco", **own).guided.split) == (
+        3,
+        4,
+    )
+    assert resolved("ngp-leco", **own).occupancy.budget_share == 0.2
+    # leco's sections are not ngp-leco's: a job that sets them for it is told where its own are
+    with pytest.raises(ValueError, match="set 'ngp_leco.guided.split' instead"):
+        resolved("ngp-leco", **{"guided.split": 3})
+    with pytest.raises(ValueError, match="set 'ngp_leco.occupancy.budget_share' instead"):
+        resolved("ngp-leco", **{"occupancy.budget_share": 0.2})
     # the paper profile: NGP+Ours samples as the paper's LeCO does
     assert sampler(resolved("ngp-leco", "paper")) == sampler(resolved("leco", "paper"))
-    with pytest.raises(ValueError, match="ngp.split"):
-        resolved("ngp-leco", **{"ngp.split": 0})
-    # a setting the job never set is traced to where ngp-leco took it from
-    with pytest.raises(ValueError, match="guided.placement comes from ngp.placement=false"):
-        resolved("ngp-leco", **{"guided.placement_fine": 2})
+    with pytest.raises(ValueError, match="ngp_leco.guided.split"):
+        resolved("ngp-leco", **{"ngp_leco.guided.split": 0})
+
+
+def test_the_sweep_and_the_memory_check_read_ngp_lecos_own_count():
+    from bench.variants import sweep
+
+    def placing(method: str, n: int = 30):
+        section = "ngp_leco.guided" if method == "ngp-leco" else "guided"
+        return resolved(method, **{f"{section}.main_samples": n, f"{section}.placement": True})
+
+    points = {v.name: v.overrides for v in sweep(["ngp-leco", "leco"], placing)}
+    assert points["ngp-leco-sweep-rich"] == {"ngp_leco.guided.main_samples": 60}
+    assert points["leco-sweep-rich"] == {"guided.main_samples": 60}
+    main_phase = lambda n: get_method("ngp-leco").memory(placing("ngp-leco", n), 40)["main"]
+    assert main_phase(60).samples_per_ray == 60 and main_phase(30).samples_per_ray == 30
 
 
 def test_the_hash_grid_trains_with_instant_ngps_adam_and_only_it(tiny_scene):

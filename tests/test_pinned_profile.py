@@ -94,3 +94,22 @@ def test_a_checkpoint_whose_settings_this_version_cannot_read_is_refused(tiny_sc
     torch.save({"resolved_profile": profile}, seed / "state.pt")
     with pytest.raises(RunError, match="cannot resume: the run was trained with settings"):
         prepare_run_dir(cfg, tiny_scene.root, tmp_path / "run", resume_from=seed)
+
+
+def test_a_profile_saved_before_ngp_leco_had_its_own_section_still_loads():
+    # what an ngp-leco run saved when its sampler lived under `ngp.*`: its resolved guided and
+    # occupancy already held ngp-leco's values
+    new = TrainConfig(method="ngp-leco", profile="cpu").resolved_profile()
+    old = new.model_dump(mode="json")
+    del old["ngp_leco"]
+    old["ngp"].update(main_samples=42, coarse_samples=64, split=2, dilate=1, placement=False)
+    old["ngp"].update(placement_in_phase1=False, online_warmup=250, occupancy_budget_share=0.08)
+    pinned = TrainConfig(method="ngp-leco", profile="cpu").pinned(old).resolved_profile()
+    assert pinned == new
+    assert (pinned.guided.coarse_samples, pinned.occupancy.budget_share) == (64, 0.08)
+    # any other method's old profile loads as it was saved
+    leco = TrainConfig(method="leco", profile="cpu")
+    saved = leco.resolved_profile().model_dump(mode="json")
+    del saved["ngp_leco"]
+    saved["ngp"].update(main_samples=42, coarse_samples=64)
+    assert leco.pinned(saved).resolved_profile().guided == leco.resolved_profile().guided

@@ -7,7 +7,6 @@ trains."""
 from __future__ import annotations
 
 import json
-import re
 from typing import TYPE_CHECKING, Any
 
 from pydantic import (
@@ -21,7 +20,8 @@ from pydantic import (
 )
 
 from model.methods import METHODS, get_method
-from model.profiles import MAX_STEPS, PROFILES, Profile
+from model.methods.spec import setting
+from model.profiles import MAX_STEPS, PROFILES, Profile, upgrade_saved
 
 if TYPE_CHECKING:
     from model.methods.base import Method
@@ -142,7 +142,8 @@ class TrainConfig(BaseModel):
         and final/models.pt), so a later change of a profile's defaults does not reach a run made
         before it, when it resumes or is loaded to render."""
         try:
-            fixed = Profile.model_validate(profile)
+            saved = upgrade_saved(profile) if isinstance(profile, dict) else profile
+            fixed = Profile.model_validate(saved)
         except ValidationError as error:
             raise ValueError(
                 "the run was trained with settings this version cannot read "
@@ -156,29 +157,27 @@ class TrainConfig(BaseModel):
     def resolved_profile(self) -> Profile:
         if self._pinned is not None:
             return self._pinned
+        spec = get_method(self.method)
         data = PROFILES[self.profile].model_dump()
         for key, value in self.overrides.items():
+            section = spec.shared_key(key)
+            if section is not None:
+                raise ValueError(
+                    f"override {key!r}: {self.method} reads {key.split('.')[0]} from its own "
+                    f"section, {section}; set {spec.own_key(key)!r} instead"
+                )
             node, name = setting_node(data, key)
             node[name] = value
-        # the method's own defaults for settings it shares with others (MethodSpec.settings_from)
-        taken: dict[str, str] = {}
-        for key, source in get_method(self.method).settings_from:
-            node, name = setting_node(data, source)
-            if key not in self.overrides and node[name] is not None:
-                target, target_name = setting_node(data, key)
-                target[target_name] = node[name]
-                taken[key] = f"{key} comes from {source}={json.dumps(node[name])}"
         try:
-            return Profile.model_validate(data)
+            profile = Profile.model_validate(data)
         except ValidationError as error:
             problems = "; ".join(
                 f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in error.errors()
             )
-            # a problem may name a setting the job never set: say where the method took it from
-            hints = [why for key, why in taken.items() if re.search(rf"{key}\b(?!_)", problems)]
-            if hints:
-                problems += f" ({self.method}: {', '.join(hints)})"
             raise ValueError(f"overrides make an invalid profile: {problems}") from None
+        # the method's own sections in place of the shared ones its code reads (MethodSpec.sections)
+        sections = {shared: setting(profile, own) for shared, own in spec.sections}
+        return profile.model_copy(update=sections) if sections else profile
 
     @property
     def global_batch(self) -> int:

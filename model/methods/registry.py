@@ -90,16 +90,6 @@ register(
         colour="#8c564b",
     )
 )
-# ngp-leco's own values of these guided settings live under `ngp` (model/profiles.py NGPConfig)
-NGP_LECO_SAMPLER = (
-    "main_samples",
-    "coarse_samples",
-    "split",
-    "dilate",
-    "placement",
-    "placement_in_phase1",
-    "online_warmup",
-)
 # The hash-grid family (the paper's Appendix C, Table 6): Instant-NGP's field under each sampler,
 # with its own pair of "ours" and "reference".
 register(
@@ -131,8 +121,7 @@ register(
         colour="#e377c2",
         budget_shares=(("occupancy", "occupancy.budget_share"),),
         family="Instant-NGP",
-        settings_from=tuple((f"guided.{key}", f"ngp.{key}") for key in NGP_LECO_SAMPLER)
-        + (("occupancy.budget_share", "ngp.occupancy_budget_share"),),
+        sections=(("occupancy", "ngp_leco.occupancy"), ("guided", "ngp_leco.guided")),
     )
 )
 register(

@@ -62,9 +62,9 @@ class MethodSpec:
     # The main network the method trains: a benchmark compares the methods of one family (its
     # default is the family of the method whose role is "ours").
     family: str = "Switch-NeRF"
-    # Settings the method takes from another of the profile's unless a job sets them itself
-    # (setting, source); a source of None leaves the setting as it is.
-    settings_from: tuple[tuple[str, str], ...] = ()
+    # Sections of the profile the method reads from a section of its own (shared, own): its code
+    # reads `shared`, and a job sets `own` (ngp-leco's sampler is `ngp_leco.guided`, not leco's).
+    sections: tuple[tuple[str, str], ...] = ()
 
     @property
     def phases(self) -> tuple[str, ...]:
@@ -87,6 +87,18 @@ class MethodSpec:
         method = self.load()(profile)
         method.spec = self
         return method
+
+    def own_key(self, key: str) -> str:
+        """The key a job sets for this method: a key of a shared section it reads from its own
+        (`guided.split` for ngp-leco) becomes the own section's (`ngp_leco.guided.split`)."""
+        for shared, own in self.sections:
+            if key.startswith(f"{shared}."):
+                return own + key[len(shared) :]
+        return key
+
+    def shared_key(self, key: str) -> str | None:
+        """The own section this method reads in place of `key`'s shared one, if any."""
+        return next((own for shared, own in self.sections if key.startswith(f"{shared}.")), None)
 
 
 def setting(profile: Profile, key: str):
