@@ -556,8 +556,8 @@ def family_sections(block: dict, labels: dict, plan: dict, several: bool) -> lis
         missed = [t for t in block["targets"] if t["met"] is False]
         if missed:
             parts += [
-                f"{len(missed)} target(s) missed; docs/BENCHMARKS.md explains why and what would "
-                "fix it.",
+                f"{len(missed)} target(s) missed; docs/RESULTS.md and docs/EXPERIMENTS.md say "
+                "what was measured and tried.",
                 "",
             ]
     return parts

@@ -101,7 +101,7 @@ PAPER_FORMULATION = {
 
 # The ablation ladder: from the paper's formulation, one change at a time (cumulative) up to the
 # `cpu` defaults. The last rung is the profile's defaults, so the `leco` run itself stands for it (a
-# test checks that the changes add up to the `cpu` profile). Measured in docs/BENCHMARKS.md.
+# test checks that the changes add up to the `cpu` profile). Measured in docs/EXPERIMENTS.md.
 RUNGS: list[tuple[str, str, dict]] = [
     ("leco-paper", "paper's formulation", {}),
     ("leco-rung-empty-gate", "+ E_e gate detached from L_r", {"occupancy.empty_gate_grad": False}),

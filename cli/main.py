@@ -87,6 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
     from bench.render_speed import add_commands as add_render_bench_commands
     from bench.scale import add_commands as add_scale_commands
     from cli.render import add_commands as add_render_commands
+    from cli.results import add_commands as add_results_commands
     from cli.serve import add_commands as add_service_commands
     from cli.settings import add_commands as add_settings_commands
     from cli.train import add_commands
@@ -99,6 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_load_commands(commands)
     add_scale_commands(commands)
     add_render_bench_commands(commands)
+    add_results_commands(commands)
     return parser
 
 

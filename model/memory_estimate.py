@@ -5,7 +5,7 @@ request asks for. Activations use the bytes autograd keeps per main-network samp
 the measured `activation_memory_mb` of the `cpu` profile within 5% for vanilla Switch-NeRF (98
 estimated vs 103 MB); a validation render holds a chunk of rays' samples at once without gradient,
 which is what sets a small run's peak. Against measured peak RSS on the city (`cpu`,
-docs/BENCHMARKS.md): vanilla 1,340 MiB estimated vs 1,507-1,529 measured, LeCO 1,123 vs 849-1,085,
+measured 2026-11-26): vanilla 1,340 MiB estimated vs 1,507-1,529 measured, LeCO 1,123 vs 849-1,085,
 the grid 2,393 vs 1,133 (its bound keeps every march step)."""
 
 from __future__ import annotations

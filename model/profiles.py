@@ -57,8 +57,8 @@ class BackgroundConfig(Frozen):
 
 class OccupancyPhaseConfig(Frozen):
     """Phase 1 of LeCO: the HMoE and its losses (paper section 4.3). The settings after
-    `homogeneous` are not in the paper (docs/BENCHMARKS.md "ablation ladder"); their defaults keep
-    the paper's formulation."""
+    `homogeneous` are not in the paper (docs/EXPERIMENTS.md, the ablation ladder); their defaults
+    keep the paper's formulation."""
 
     samples_per_ray: int = Field(512, ge=2, le=4096, description="HMoE samples per ray")
     steps: int = Field(
@@ -129,7 +129,7 @@ class OccupancyPhaseConfig(Frozen):
 class GuidedConfig(Frozen):
     """The main phase of LeCO: how O guides Switch-NeRF's samples. Only `coarse_samples` and `split`
     are the paper's; the defaults of the rest keep the paper's sampler and its from-scratch main
-    network (docs/BENCHMARKS.md measures each)."""
+    network (docs/EXPERIMENTS.md measures each)."""
 
     coarse_samples: int = Field(
         128, ge=1, le=4096, description="coarse bins per ray, each one query of O"
@@ -588,7 +588,7 @@ PROFILES: dict[str, Profile] = {
         vanilla=VanillaConfig(coarse_samples=32, fine_samples=64),
         grid=GridConfig(resolution=128, march_steps=256),
         # LeCO's main samples per ray on the city at this profile: 21.2 (8-minute benchmark,
-        # docs/BENCHMARKS.md).
+        # 2026-11-24), so S+Prop's main network does the same work.
         prop=ProposalConfig(samples=(64, 32), main_samples=21),
         # Sized for this machine's minutes (docs/PROFILES.md): 8 levels up to 512 cells a side,
         # 2^16 entries each, and a 4-level background.

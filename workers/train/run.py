@@ -297,7 +297,7 @@ def run_training(
     # Training runs in this thread; a side thread reports progress. PyTorch's CPU kernels run
     # 1.4-1.7x slower in a second thread once this one has used its OpenMP pool (load_scene above
     # does): measured on the `cpu` profile, a LeCO main step 28 -> 47 ms, a vanilla one 88 -> 126 ms
-    # (docs/BENCHMARKS.md).
+    # (docs/EXPERIMENTS.md, 2026-11-24).
     done = threading.Event()
     watcher = None
     if on_progress is not None:
