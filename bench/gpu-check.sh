@@ -2,7 +2,8 @@
 # The GPU check, for a machine with one CUDA device and a Python whose torch sees it (the project's other
 # dependencies installed, or at least pydantic on PYTHONPATH: the training stack needs nothing else).
 #   bench/gpu-check.sh [OUT]     (default OUT: gpu-check/)
-# 1. tests/test_cuda.py: every method trains on the GPU and its model scores the same on the CPU.
+# 1. tests/workers/train/test_cuda.py: every method trains on the GPU and its model scores the
+#    same on the CPU.
 # 2. GPU_PAIR_METHODS (default leco,prop: LeCO against proposal networks) on the synthetic city at the `cpu`
 #    profile, equal wall-clock budgets on the GPU (GPU_PAIR_MIN minutes each, default 2).
 # 3. GPU_PAPER_METHODS (default: every method) at the `paper` profile for GPU_PAPER_MIN minutes (default
@@ -43,7 +44,7 @@ sys.exit(args.func(args))' bench)
 } >"$OUT/env.txt" 2>&1
 
 if [ "${GPU_TESTS:-1}" != 0 ]; then
-    timeout 150 "$PY" -m pytest -q -s -p no:cacheprovider tests/test_cuda.py >"$OUT/test_cuda.log" 2>&1
+    timeout 150 "$PY" -m pytest -q -s -p no:cacheprovider tests/workers/train/test_cuda.py >"$OUT/test_cuda.log" 2>&1
     echo "test_cuda rc=$?" >>"$OUT/env.txt"
 fi
 

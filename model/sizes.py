@@ -1,9 +1,9 @@
 """Parameter counts of the networks in model/fields, from a profile's numbers alone (no torch).
 
 The API checks a job's memory before accepting it and must not load PyTorch to do so; these formulas
-follow the layer lists in model/fields, and tests/test_sizes.py holds them equal to the counts of
-networks built on PyTorch's meta device for every profile and the settings that change a network's
-shape."""
+follow the layer lists in model/fields, and tests/model/test_sizes.py holds them equal to the counts
+of networks built on PyTorch's meta device for every profile and the settings that change a
+network's shape."""
 
 from __future__ import annotations
 

@@ -59,7 +59,7 @@ def describe_folder(
 # average and 1.6 in its densest image, fern 0.6, the synthetic city 0.5): an archive may declare at
 # most this many, so a small upload cannot register a scene that later decodes to gigabytes (1 MiB:
 # at most one 4096 x 4096 image's worth of pixels, 48 MB as RGB; decoding it grows a process by well
-# under 256 MB, tests/test_decode_memory.py).
+# under 256 MB, tests/model/scenes/test_decode_memory.py).
 MAX_PIXELS_PER_UPLOAD_BYTE = 16
 
 

@@ -1,13 +1,12 @@
 """Shared fixtures: the real scenes in ../shared/datasets (tests skip, saying why, when it is
 absent), and the service's databases (SQLite, and the machine's PostgreSQL)."""
 
-import itertools
-import threading
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
+
+from tests.helpers import drop_postgres_database, fresh_postgres_database
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "datasets"
 
@@ -30,6 +29,19 @@ def pixel_cache(tmp_path_factory) -> Path:
     cache = tmp_path_factory.mktemp("pixel-cache")
     os.environ["LECO_PIXEL_CACHE"] = str(cache)
     return cache
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    """A local Ray with two CPUs for the tests of one module (`pytest.mark.usefixtures`), shut
+    down after them."""
+    from workers.train.run import ensure_ray
+
+    ensure_ray(2)
+    yield
+    import ray
+
+    ray.shutdown()
 
 
 @pytest.fixture(scope="session")
@@ -67,49 +79,6 @@ def city_scene(tmp_path_factory) -> tuple[Path, dict, float]:
     return out, summary, time.perf_counter() - started
 
 
-def free_port() -> int:
-    """A free TCP port on the loopback interface, for a server a test starts."""
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-# ----- the service: every database test runs on SQLite and on the machine's real PostgreSQL
-# ----------------
-PG_ADMIN = "host=127.0.0.1 port=5432 user=postgres dbname=postgres"
-
-
-def fresh_postgres_database() -> str:
-    """A new, empty database on 127.0.0.1:5432; skips (saying why) when no server answers there."""
-    import os
-
-    try:
-        import psycopg
-
-        with psycopg.connect(PG_ADMIN, autocommit=True, connect_timeout=3) as conn:
-            name = f"leco_test_{os.getpid()}_{next(_pg_counter)}"
-            conn.execute(f"DROP DATABASE IF EXISTS {name} WITH (FORCE)")
-            conn.execute(f"CREATE DATABASE {name}")
-    except Exception as error:  # no server: the SQLite half of the tests still runs
-        pytest.skip(f"PostgreSQL at 127.0.0.1:5432 not available ({type(error).__name__}: {error})")
-    return f"postgresql+psycopg://postgres@127.0.0.1:5432/{name}"
-
-
-def drop_postgres_database(url: str) -> None:
-    import psycopg
-
-    from service.db import engine_for
-
-    engine_for(url).dispose()
-    with psycopg.connect(PG_ADMIN, autocommit=True) as conn:
-        conn.execute(f"DROP DATABASE IF EXISTS {url.rsplit('/', 1)[1]} WITH (FORCE)")
-
-
-_pg_counter = itertools.count()
-
-
 @pytest.fixture(params=["sqlite", "postgresql"])
 def database_url(request, tmp_path):
     """An empty database of each kind (no schema yet)."""
@@ -132,23 +101,3 @@ def service_settings(database_url, tmp_path):
     return Settings(
         data_dir=tmp_path / "data", database_url=database_url, local_cpus=2, lease_s=5.0
     )
-
-
-@contextmanager
-def uvicorn_in_thread(app, **config):
-    """A real uvicorn server for `app` on a free loopback port, in a thread; yields the port."""
-    import uvicorn
-
-    port = free_port()
-    runner = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, **config))
-    thread = threading.Thread(target=runner.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 20
-    while not runner.started and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert runner.started
-    try:
-        yield port
-    finally:
-        runner.should_exit = True
-        thread.join(10)

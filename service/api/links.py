@@ -1,8 +1,8 @@
 """OpenAPI links: which answer's ids feed which next request (a scene's id into a job, a job's id
 into its metrics, cancel and artifacts, an artifact's id into its download). They document the API's
-workflows for client authors, and the stateful fuzz (tests/test_api_stateful.py) follows them to
-build chains of calls; a test there checks that every link names an existing operation, parameter
-and response field.
+workflows for client authors, and the stateful fuzz (tests/service/api/test_stateful.py) follows
+them to build chains of calls; a test there checks that every link names an existing operation,
+parameter and response field.
 
 A link's parameter is written `<location>.<name>` and its value is an OpenAPI runtime expression:
 `$response.body#/<pointer>` reads the answer, `$request.path.<name>` the request that got it (the

@@ -1,0 +1,165 @@
+"""Slow upload bodies, against a real uvicorn server: they hold a receiving slot until their
+deadline, never a place in the scene pool, so other registrations go on; past the receiving slots
+one more is answered 429; a body that stalls is answered 408 and its slot comes back."""
+
+import socket
+import time
+
+import httpx
+import pytest
+
+from service.api.app import create_app
+from service.settings import Settings
+from tests.helpers import uvicorn_in_thread
+
+TOKEN = "slow-token"
+
+
+@pytest.fixture
+def server(service_settings):
+    settings = Settings(
+        **{
+            **service_settings.model_dump(),
+            "api_tokens": (TOKEN,),
+            "scene_workers": 1,
+            "scene_queue": 0,
+            "upload_receivers": 3,
+            "upload_receivers_per_client": 3,
+            "upload_idle_s": 1.5,
+        }
+    )
+    app = create_app(settings)
+    with uvicorn_in_thread(app, log_level="warning") as port:
+        yield port, app
+
+
+def slow_upload(port: int, name: str) -> socket.socket:
+    """Headers and the body's first bytes of a 1 MB upload; the rest never comes."""
+    sock = socket.create_connection(("127.0.0.1", port))
+    sock.sendall(
+        f"POST /v1/scenes/upload?name={name} HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer "
+        f"{TOKEN}\r\nContent-Type: application/octet-stream\r\n"
+        "Content-Length: 1000000\r\n\r\n".encode()
+        + b"x" * 100
+    )
+    return sock
+
+
+def status_of(sock: socket.socket, timeout: float) -> int:
+    sock.settimeout(timeout)
+    line = sock.recv(4096).split(b"\r\n", 1)[0]
+    return int(line.split()[1])
+
+
+def slots_back(slots, within_s: float = 5.0) -> bool:
+    """Whether every receiving slot (and every client's count) comes back within `within_s`."""
+    deadline = time.monotonic() + within_s
+    while slots.taken and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return slots.taken == 0 and slots.by_client == {}
+
+
+def test_slow_uploads_hold_no_pool_place_and_are_cut_off_at_their_deadline(server):
+    port, app = server
+    slow = [slow_upload(port, f"slow-{i}") for i in range(3)]
+    try:
+        time.sleep(0.3)
+        assert app.state.upload_slots.taken == 3
+        with httpx.Client(
+            base_url=f"http://127.0.0.1:{port}",
+            headers={"Authorization": f"Bearer {TOKEN}"},
+            timeout=10,
+        ) as client:
+            fourth = client.post(
+                "/v1/scenes/upload", params={"name": "fourth"}, content=b"y" * 1000
+            )
+            assert fourth.status_code == 429 and "uploads are being received" in fourth.text
+            # The pool's one place is free while three bodies trickle in: a registration takes it.
+            started = time.monotonic()
+            synthetic = client.post("/v1/scenes/synthetic", json={"preset": "tiny", "seed": 0})
+            assert synthetic.status_code == 202, synthetic.text
+            assert time.monotonic() - started < 1.0
+        for sock in slow:  # each is cut off once it has sent nothing for upload_idle_s
+            assert status_of(sock, timeout=10) == 408
+    finally:
+        for sock in slow:
+            sock.close()
+    assert slots_back(app.state.upload_slots)
+
+
+def test_one_client_may_hold_only_so_many_receiving_slots(service_settings):
+    settings = Settings(
+        **{
+            **service_settings.model_dump(),
+            "api_tokens": (TOKEN,),
+            "upload_receivers": 3,
+            "upload_receivers_per_client": 2,
+            "upload_idle_s": 1.5,
+        }
+    )
+    app = create_app(settings)
+    with uvicorn_in_thread(app, log_level="warning") as port:
+        slow = [slow_upload(port, f"slow-{i}") for i in range(2)]
+        try:
+            time.sleep(0.3)
+            third = slow_upload(port, "third")
+            assert status_of(third, timeout=5) == 429
+            third.close()
+            assert app.state.upload_slots.taken == 2 and app.state.upload_slots.by_client == {
+                "127.0.0.1": 2
+            }
+        finally:
+            for sock in slow:
+                sock.close()
+        assert slots_back(app.state.upload_slots)
+
+
+def test_the_per_client_cap_counts_each_address_apart_and_the_total_still_binds():
+    from fastapi import HTTPException
+
+    from service.api.receiving import ReceivingSlots
+
+    slots = ReceivingSlots(limit=3, per_client=2)
+    with slots.slot("10.0.0.1"), slots.slot("10.0.0.1"):
+        with pytest.raises(HTTPException, match="this client already sends 2 uploads"):
+            with slots.slot("10.0.0.1"):
+                pass
+        with slots.slot("10.0.0.2"):  # another client still gets the last slot
+            with pytest.raises(HTTPException, match="3 uploads are being received"):
+                with slots.slot("10.0.0.3"):
+                    pass
+    assert slots.taken == 0 and slots.by_client == {}
+
+
+def receive(chunks, gap_s: float, **limits):
+    import asyncio
+    import io
+
+    from service.api.receiving import receive_body
+
+    async def body():
+        for chunk in chunks:
+            await asyncio.sleep(gap_s)
+            yield chunk
+
+    into = io.BytesIO()
+    return asyncio.run(
+        receive_body(
+            body(), into, **{"max_bytes": 10_000, "idle_s": 0.3, "min_bytes_per_s": 0.0, **limits}
+        )
+    ), into.getvalue()
+
+
+def test_a_trickling_body_is_refused_and_a_steady_one_is_received_whole():
+    from fastapi import HTTPException
+
+    assert receive([b"ab", b"cd", b"e"], gap_s=0.01) == (5, b"abcde")
+    with pytest.raises(HTTPException) as trickle:  # never idle for 0.3 s, but 1 byte per 0.1 s
+        receive([b"x"] * 10, gap_s=0.1, min_bytes_per_s=100.0)
+    assert trickle.value.status_code == 408 and "averaged" in trickle.value.detail
+    with pytest.raises(HTTPException) as stalled:
+        receive([b"x", b"y"], gap_s=0.5)
+    assert stalled.value.status_code == 408 and "sent nothing for 0.3 s" in stalled.value.detail
+    with pytest.raises(HTTPException) as big:
+        receive([b"x" * 6000] * 2, gap_s=0.0)
+    assert big.value.status_code == 413
