@@ -10,6 +10,7 @@ occupancy grid, a frozen predictor), which it checkpoints through `state_dict` /
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Protocol
 
@@ -76,6 +77,18 @@ def background(profile: Profile, num_images: int) -> BackgroundField:
         appearance_dim=n.appearance_dim,
         density_noise=n.density_noise,
     )
+
+
+@dataclass(frozen=True)
+class Step:
+    """What one training step works on besides the networks."""
+
+    phase: str
+    rays: RayBatch  # this rank's share of the step's rays, on the run's device
+    generator: torch.Generator | None  # this rank's draws; None: deterministic (perturb off)
+    progress: float  # of the phase, in [0, 1] (model/methods/schedules.py)
+    phase_step: int  # steps of this phase done before this one
+    seed: int  # the run's, for any draw that must be the same on every rank (a grid's update)
 
 
 class Networks(nn.Module):
@@ -191,21 +204,11 @@ class Method:
     def lr_ramp_steps(self, phase: str) -> int:
         return 0
 
-    def step(
-        self,
-        models: Networks,
-        phase: str,
-        rays: RayBatch,
-        generator: torch.Generator | None,
-        progress: float,
-        phase_step: int,
-        seed: int,
-    ) -> tuple[Tensor, dict]:
-        """One training step's loss and its parts (floats). `seed`: the run's, for any draw that
-        must be the same on every rank (a replicated estimator's update)."""
-        render = self.render_main(models, rays, generator, phase_step)
+    def step(self, models: Networks, step: Step) -> tuple[Tensor, dict]:
+        """One training step's loss and its parts (floats)."""
+        render = self.render_main(models, step.rays, step.generator, step.phase_step)
         return main_loss(
-            render, rays, self.profile.balance_weight, self.profile.guided.coarse_samples
+            render, step.rays, self.profile.balance_weight, self.profile.guided.coarse_samples
         )
 
     def render_main(

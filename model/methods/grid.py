@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from model.estimators.grid import GridEstimator
-from model.methods.base import Method, Networks, Occupied, SweepPoint, mean_of
+from model.methods.base import Method, Networks, Occupied, Step, SweepPoint, mean_of
 from model.methods.main_phase import MainRender, grid_step_size, render_grid
 from model.methods.spec import setting
 from model.profiles import GridConfig
@@ -45,32 +45,23 @@ class GridMethod(Method):
         self.grid.to(device)
         return self
 
-    def step(
-        self,
-        models: Networks,
-        phase: str,
-        rays: RayBatch,
-        generator: torch.Generator | None,
-        progress: float,
-        phase_step: int,
-        seed: int,
-    ) -> tuple[Tensor, dict]:
+    def step(self, models: Networks, step: Step) -> tuple[Tensor, dict]:
         g, field = self.grid_config, models.field
         was_training = field.training
         field.eval()
         # Same generator on every rank, so the replicated grids stay identical.
         self.grid.update(
-            phase_step,
+            step.phase_step,
             lambda x: self.density(models, x),
             grid_step_size(self.grid, g.march_steps),
             g.threshold,
             g.decay,
             g.warmup_steps,
             g.update_every,
-            torch.Generator().manual_seed(seed * 100_003 + phase_step),
+            torch.Generator().manual_seed(step.seed * 100_003 + step.phase_step),
         )
         field.train(was_training)
-        return super().step(models, phase, rays, generator, progress, phase_step, seed)
+        return super().step(models, step)
 
     def density(self, models: Networks, x: Tensor) -> Tensor:
         """What the grid's update reads: the field's density in the box and, where cascades reach

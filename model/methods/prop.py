@@ -21,7 +21,7 @@ from torch import Tensor, nn
 from model.estimators.grid import GridEstimator
 from model.estimators.proposal import UpdateSchedule, anneal_power, interlevel_loss, pdf_edges
 from model.fields.proposal import ProposalDensity
-from model.methods.base import Method, Networks, Occupied, SweepPoint, mean_of
+from model.methods.base import Method, Networks, Occupied, Step, SweepPoint, mean_of
 from model.methods.costs import proposal_parameters, proposal_width
 from model.methods.leco.phase1 import render_background
 from model.methods.main_phase import MainRender, grid_step_size, main_loss, render_batched
@@ -77,26 +77,19 @@ class ProposalMethod(Method):
         self.aabb = self.aabb.to(device)
         return self
 
-    def step(
-        self,
-        models: Networks,
-        phase: str,
-        rays: RayBatch,
-        generator: torch.Generator | None,
-        progress: float,
-        phase_step: int,
-        seed: int,
-    ) -> tuple[Tensor, dict]:
-        learn = self.schedule.due(phase_step)
-        hits = self.hits(rays)
+    def step(self, models: Networks, step: Step) -> tuple[Tensor, dict]:
+        learn = self.schedule.due(step.phase_step)
+        hits = self.hits(step.rays)
         with torch.set_grad_enabled(learn):
-            levels, edges = self.propose(models, rays.subset(hits), generator, phase_step)
-        render = self.render_on(models, rays, hits, edges, generator)
+            levels, edges = self.propose(
+                models, step.rays.subset(hits), step.generator, step.phase_step
+            )
+        render = self.render_on(models, step.rays, hits, edges, step.generator)
         loss, parts = main_loss(
-            render, rays, self.profile.balance_weight, self.profile.guided.coarse_samples
+            render, step.rays, self.profile.balance_weight, self.profile.guided.coarse_samples
         )
         parts["proposal_samples_per_ray"] = (
-            float(sum(self.profile.prop.samples)) * len(hits) / max(len(rays), 1)
+            float(sum(self.profile.prop.samples)) * len(hits) / max(len(step.rays), 1)
         )
         # only the proposals get this gradient: the main weights are detached inside
         if learn and len(hits):

@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 
 from model.errors import Failed
+from model.methods.base import Step
 from model.scenes import RaySampler, load_scene
 from workers.config import TrainConfig
 from workers.memory import SavedTensorBytes
@@ -259,15 +260,8 @@ class RankRun:
     def forward(self, phase: str, progress: float) -> tuple[torch.Tensor, dict]:
         rays = self.state.sampler.next().to(self.device)
         generator = self.state.generator if self.profile.perturb else None
-        return self.method.step(
-            self.models,
-            phase,
-            rays,
-            generator,
-            progress,
-            self.progress["phase_step"],
-            self.cfg.seed,
-        )
+        step = Step(phase, rays, generator, progress, self.progress["phase_step"], self.cfg.seed)
+        return self.method.step(self.models, step)
 
     def count_nonfinite(self, phase: str) -> None:
         self.progress["nonfinite"] += 1

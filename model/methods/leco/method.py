@@ -20,6 +20,7 @@ from model.methods.base import (
     Method,
     Networks,
     Occupied,
+    Step,
     SweepPoint,
     background,
     count,
@@ -173,17 +174,9 @@ class LeCOMethod(Method):
         g = self.profile.guided
         return g.warm_start_ramp if phase == "main" and self.warm_starts() else 0
 
-    def step(
-        self,
-        models: Networks,
-        phase: str,
-        rays: RayBatch,
-        generator: torch.Generator | None,
-        progress: float,
-        phase_step: int,
-        seed: int,
-    ) -> tuple[Tensor, dict]:
-        if phase == "occupancy":
+    def step(self, models: Networks, step: Step) -> tuple[Tensor, dict]:
+        rays, generator = step.rays, step.generator
+        if step.phase == "occupancy":
             g = self.profile.guided
             extra = None
             # O's placement head learns the HMoE's own weights
@@ -199,10 +192,10 @@ class LeCOMethod(Method):
                 self.profile.occupancy,
                 self.profile.background.samples,
                 generator,
-                progress,
+                step.progress,
                 extra,
             )
-        return super().step(models, phase, rays, generator, progress, phase_step, seed)
+        return super().step(models, step)
 
     def render_main(
         self,

@@ -14,6 +14,7 @@ from model.estimators.proposal import (
 )
 from model.fields.proposal import ProposalDensity
 from model.methods import get_method
+from model.methods.base import Step
 from model.methods.costs import proposal_width
 from model.model_info import model_info
 from model.profiles import get_profile
@@ -105,7 +106,7 @@ def test_a_prop_step_samples_main_samples_per_ray_and_learns_only_when_due(tiny_
 
     rays: RayBatch = RaySampler(tiny_scene.train, tiny_scene.bounds.aabb, 64, 0, 0, 1).next()
     g = torch.Generator().manual_seed(0)
-    loss, parts = method.step(models, "main", rays, g, 0.0, 0, seed=0)
+    loss, parts = method.step(models, Step("main", rays, g, 0.0, 0, seed=0))
     loss.backward()
     # Every ray that crosses the box gets exactly main_samples; the ones that miss it (7 of these
     # 64) get none.
@@ -118,7 +119,7 @@ def test_a_prop_step_samples_main_samples_per_ray_and_learns_only_when_due(tiny_
     assert all(p.grad is not None for p in models.proposals.parameters())
     models.zero_grad(set_to_none=True)
     method.schedule.since_update = -10  # not due on the next step
-    loss, parts = method.step(models, "main", rays, g, 0.0, 11, seed=0)
+    loss, parts = method.step(models, Step("main", rays, g, 0.0, 11, seed=0))
     loss.backward()
     assert "interlevel_loss" not in parts and all(
         p.grad is None for p in models.proposals.parameters()
