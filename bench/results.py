@@ -336,12 +336,12 @@ def write(root: Path) -> list[Path]:
     """Renders docs/RESULTS.md and README.md's block (when its markers exist); the files written."""
     summaries = [s for _, s in load_all(root)]
     written = [root / RESULTS_MD]
-    (root / RESULTS_MD).write_text(render_results(summaries))
+    replace_file(root / RESULTS_MD, render_results(summaries))
     readme = root / README
     if readme.exists():
         updated = replace_block(readme.read_text(), render_readme_block(summaries))
         if updated is not None:
-            readme.write_text(updated)
+            replace_file(readme, updated)
             written.append(readme)
     return written
 
@@ -399,8 +399,15 @@ def add(
         raise InvalidInput(f"{source}: missing or malformed field {error}") from None
     out = root / SUMMARIES / f"{name}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(summary.model_dump(mode="json"), indent=2) + "\n")
+    replace_file(out, json.dumps(summary.model_dump(mode="json"), indent=2) + "\n")
     return out
+
+
+def replace_file(path: Path, text: str) -> None:
+    """Writes beside the file and renames over it: a reader never sees half of it."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
 
 
 def compact(

@@ -78,9 +78,11 @@ def settings_command(args: argparse.Namespace) -> int:
 def markdown(prefix: str = "") -> str:
     """docs/PROFILES.md: the header, then one table per section with every key's value in each
     profile and its description."""
-    from model.profiles import PROFILES, Profile
+    from model.profiles import PROFILES, Profile, settings
 
-    profiles = [PROFILES[name] for name in ORDER]
+    # each profile's settings by key, and each key's description (the same in every profile)
+    profiles = [{key: value for key, value, _ in settings(PROFILES[name])} for name in ORDER]
+    described = {key: text for key, _, text in settings(PROFILES["paper"])}
     cpu, paper = ORDER.index("cpu"), ORDER.index("paper")
     lines = [HEADER]
     for section, intro, names in sections(Profile):
@@ -94,11 +96,11 @@ def markdown(prefix: str = "") -> str:
         lines += ["| key | " + " | ".join(f"`{p}`" for p in ORDER) + " | what it sets |"]
         lines += ["|---|---|---|---|---|"]
         for key in keys:
-            values = [dig(profile, key) for profile in profiles]
+            values = [profile[key] for profile in profiles]
             shown = [f"`{json.dumps(v)}`" for v in values]
             if values[cpu] != values[paper]:
                 shown[cpu] = f"**{shown[cpu]}**"
-            lines += [f"| `{key}` | " + " | ".join(shown) + f" | {escape(described(key))} |"]
+            lines += [f"| `{key}` | " + " | ".join(shown) + f" | {escape(described[key])} |"]
         lines += [""]
     return "\n".join(lines)
 
@@ -119,22 +121,6 @@ def sections(model: type[BaseModel], prefix: str = "") -> list[tuple[str, str, l
         elif name != "name":
             own.append(name)
     return [(prefix, model.__doc__ or "", own), *nested]
-
-
-def dig(section: object, key: str) -> object:
-    for part in key.split("."):
-        section = getattr(section, part)
-    return section
-
-
-def described(key: str) -> str:
-    from model.profiles import Profile
-
-    model: type[BaseModel] = Profile
-    *path, name = key.split(".")
-    for part in path:
-        model = model.model_fields[part].annotation  # type: ignore[assignment]
-    return model.model_fields[name].description or ""
 
 
 def escape(text: str) -> str:
