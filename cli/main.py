@@ -55,8 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument(
         "--preset",
         default="city",
-        help="tiny | city | large | xl (default: city; xl is the 2,000-view scale scene: 640x480, "
-        "about 1 GB on disk and 5 minutes to write)",
+        help="tiny | city | village | large | xl (default: city; village is countryside flown low, "
+        "seeing the horizon; xl is the 2,000-view scale scene: 640x480, about 1 GB on disk and 5 "
+        "minutes to write)",
     )
     synth.add_argument("--seed", type=int, default=0)
     synth.add_argument("--out", required=True, help="output folder (must not exist or be empty)")

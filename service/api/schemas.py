@@ -29,7 +29,7 @@ class SyntheticSceneRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     name: str | None = Field(None, pattern=NAME, description="default: <preset>-<seed>")
-    preset: Literal["tiny", "city", "large"] = "city"
+    preset: Literal["tiny", "city", "village", "large"] = "city"
     seed: int = Field(0, ge=0, le=2**31 - 1)
 
     @field_validator("name")

@@ -5,38 +5,30 @@ Frame: metres, x east, y north, z up; the district is centred on the origin.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import torch
-from torch import Tensor
 
+from model.scenes.synthetic.geometry import (  # noqa: F401 (re-exported)
+    BUILDING,
+    KIND_NAMES,
+    KIOSK,
+    MAST,
+    POLE,
+    CityGeometry,
+    district_extent,
+)
 from model.scenes.synthetic.presets import CityPreset
-
-# Box kinds (they pick the material).
-BUILDING, MAST, POLE, KIOSK = 1, 2, 3, 4
-KIND_NAMES = {BUILDING: "building", MAST: "mast", POLE: "pole", KIOSK: "kiosk"}
-
-
-@dataclass
-class CityGeometry:
-    boxes: Tensor  # (K, 2, 3) float64: min, max corners in metres
-    kind: Tensor  # (K,) int64: BUILDING | MAST | POLE | KIOSK
-    colour: Tensor  # (K, 3) float32 base albedo
-    building: Tensor  # (K,) int64: which building a box belongs to (-1 for street furniture)
-    extent: float  # the district spans [-extent/2, extent/2]^2
-    preset: CityPreset
-
-    @property
-    def top(self) -> float:
-        return float(self.boxes[:, 1, 2].max())
-
-
-def district_extent(p: CityPreset) -> float:
-    return p.blocks * p.block_size + (p.blocks + 1) * p.street_width
+from model.scenes.synthetic.village import build_village
 
 
 def build_city(preset: CityPreset, seed: int) -> CityGeometry:
+    """The preset's layout at this seed: the city's streets and blocks, or the village's fields."""
+    if preset.layout == "village":
+        return build_village(preset, seed)
+    return build_streets(preset, seed)
+
+
+def build_streets(preset: CityPreset, seed: int) -> CityGeometry:
     rng = np.random.default_rng(seed)
     p = preset
     extent = district_extent(p)

@@ -29,7 +29,7 @@ def flight_poses(p: CityPreset, extent: float, seed: int) -> Tensor:
     rng = np.random.default_rng(seed + 7919)
     half = extent / 2
     main = int(round(p.views * 0.7))
-    passes = [(0, main, p.pitch_deg), (1, p.views - main, p.pitch_deg / 2)]
+    passes = [(0, main, p.pitch_deg), (1, p.views - main, p.pitch_deg * p.cross_pitch_share)]
     poses = []
     for axis, count, pitch_deg in passes:
         # ground distance to the image centre

@@ -28,6 +28,9 @@ class CityPreset:
     crops_per_render: int = 1
     render_margin: float = 1.0
     depth_maps: bool = True  # gt/depth per view (float32 at image size: 1.2 MB a 640x480 view)
+    layout: str = "city"  # city: streets and blocks; village: fields, woods and farmsteads
+    # the flatter pass (30% of the views) flies at this share of pitch_deg: it sees the horizon
+    cross_pitch_share: float = 0.5
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -76,6 +79,25 @@ PRESETS = {
         altitude=100.0,
         pitch_deg=45.0,
         cell_size=1.5,
+    ),
+    # Countryside of another character than the city, for judging settings on a scene they were
+    # not chosen on: wider (228 m), sparser and lower (trees and barns, a few silos), flown at 30 m;
+    # the flatter pass (and some of the main one) sees the horizon and the sky.
+    "village": CityPreset(
+        "village",
+        blocks=5,
+        block_size=36.0,
+        street_width=8.0,
+        max_height=18.0,
+        views=80,
+        width=100,
+        height=75,
+        hfov_deg=70.0,
+        altitude=30.0,
+        pitch_deg=28.0,
+        cell_size=1.0,
+        layout="village",
+        cross_pitch_share=0.4,
     ),
     # Mega-NeRF's captures at the scale of the paper's 1/4-resolution training (2,000+ photos):
     # 2,000 views of 640x480 (614M pixels, a 1.8 GB pixel cache), from 125 renders; no depth maps

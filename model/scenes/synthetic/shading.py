@@ -7,8 +7,9 @@ import math
 import torch
 from torch import Tensor
 
-from model.scenes.synthetic.city import BUILDING, KIOSK, CityGeometry
+from model.scenes.synthetic.geometry import BUILDING, CANOPY, HEDGE, KIOSK, CityGeometry
 from model.scenes.synthetic.raycast import GROUND, SKY, raycast
+from model.scenes.synthetic.village import PLOUGHED, WHEAT, YOUNG_CROP
 
 SUN = torch.tensor(
     [
@@ -47,6 +48,60 @@ def sky(dirs: Tensor) -> Tensor:
 
 
 def ground_albedo(p: Tensor, geometry: CityGeometry) -> Tensor:
+    """The ground's colour under each point, by the preset's layout."""
+    if geometry.parcels is not None:
+        return village_ground_albedo(p, geometry)
+    return city_ground_albedo(p, geometry)
+
+
+def outer_fields(p: Tensor) -> Tensor:
+    """Farmland beyond the district, out to the horizon: 20 m patches of varied hue."""
+    fine = hash_noise(lattice(p, 0.35), 1)[:, None]
+    field = (
+        torch.tensor([0.45, 0.42, 0.22])
+        + torch.tensor([-0.2, 0.05, -0.05]) * hash_noise(lattice(p, 20.0), 3)[:, None]
+    )
+    return field * (0.85 + 0.3 * fine)
+
+
+def village_ground_albedo(p: Tensor, geometry: CityGeometry) -> Tensor:
+    """Crops in rows (wheat, young crop, ploughed furrows) or meadow per parcel, grass lanes between
+    them, a dirt road along the middle lane, farmland beyond."""
+    pr, parcels = geometry.preset, geometry.parcels
+    assert parcels is not None
+    half = geometry.extent / 2
+    period = pr.block_size + pr.street_width
+    x, y = p[:, 0], p[:, 1]
+    sx, sy = torch.remainder(x + half, period), torch.remainder(y + half, period)
+    inside = (x.abs() < half) & (y.abs() < half)
+    lane = inside & ((sx < pr.street_width) | (sy < pr.street_width))
+    i = torch.floor((x + half) / period).long().clamp(0, pr.blocks - 1)
+    j = torch.floor((y + half) / period).long().clamp(0, pr.blocks - 1)
+    code = parcels[i, j]
+    fine = hash_noise(lattice(p, 0.3), 6)[:, None]
+    patch = hash_noise(lattice(p, 3.0), 7)[:, None]
+    # rows run along x or y, by parcel
+    along_x = hash_noise(torch.stack([i, j, torch.zeros_like(i)], -1), 8) < 0.5
+    rows = torch.where(along_x, torch.remainder(y, 1.6), torch.remainder(x, 1.6)) < 0.7
+    row_shade = torch.where(rows, 0.75, 1.1)[:, None]
+    meadow = torch.tensor([0.3, 0.48, 0.2]) * (0.75 + 0.5 * fine) * (0.85 + 0.3 * patch)
+    wheat = torch.tensor([0.66, 0.56, 0.28]) * row_shade * (0.9 + 0.2 * fine)
+    young = torch.tensor([0.34, 0.52, 0.18]) * row_shade * (0.85 + 0.3 * fine)
+    ploughed = torch.tensor([0.36, 0.26, 0.17]) * row_shade * (0.8 + 0.4 * fine)
+    albedo = meadow
+    for value, colour in ((WHEAT, wheat), (YOUNG_CROP, young), (PLOUGHED, ploughed)):
+        albedo = torch.where((code == value)[:, None], colour, albedo)
+    grass = torch.tensor([0.36, 0.5, 0.24]) * (0.8 + 0.4 * fine)
+    albedo = torch.where(lane[:, None], grass, albedo)
+    # the dirt road: 5 m down the middle of the middle lane running north
+    middle = torch.floor((x + half) / period) == pr.blocks // 2
+    road = inside & middle & ((sx - pr.street_width / 2).abs() < 2.5)
+    dirt = torch.tensor([0.55, 0.47, 0.36]) * (0.85 + 0.3 * fine)
+    albedo = torch.where(road[:, None], dirt, albedo)
+    return torch.where(inside[:, None], albedo, outer_fields(p))
+
+
+def city_ground_albedo(p: Tensor, geometry: CityGeometry) -> Tensor:
     """Streets (asphalt, lane dashes), sidewalks, plazas with grass inside blocks, fields
     outside."""
     pr = geometry.preset
@@ -65,12 +120,7 @@ def ground_albedo(p: Tensor, geometry: CityGeometry) -> Tensor:
     asphalt = torch.tensor([0.22, 0.22, 0.24]) * (0.85 + 0.3 * fine)
     pavement = torch.tensor([0.58, 0.56, 0.52]) * (0.8 + 0.4 * fine)
     grass = torch.tensor([0.25, 0.45, 0.18]) * (0.7 + 0.6 * fine) * (0.85 + 0.3 * coarse)
-    field = (
-        torch.tensor([0.45, 0.42, 0.22])
-        + torch.tensor([-0.2, 0.05, -0.05]) * hash_noise(lattice(p, 20.0), 3)[:, None]
-    )
-    field = field * (0.85 + 0.3 * fine)
-    albedo = torch.where(inside[:, None], grass, field)
+    albedo = torch.where(inside[:, None], grass, outer_fields(p))
     albedo = torch.where(sidewalk[:, None], pavement, albedo)
     albedo = torch.where(street[:, None], asphalt, albedo)
     # Dashed lane markings on street centre lines.
@@ -113,6 +163,11 @@ def box_albedo(p: Tensor, normal: Tensor, box: Tensor, geometry: CityGeometry) -
     roof_colour = (0.55 * base + 0.2) * (0.75 + 0.5 * fine)
     albedo = torch.where(roof[:, None], roof_colour, facade)
     albedo = torch.where((kind == BUILDING)[:, None], albedo, base * (0.9 + 0.2 * fine))
+    # Foliage: leaves and gaps at 0.25 m, darker clumps at 1.5 m.
+    leaves = hash_noise(lattice(p, 0.25), 9)[:, None]
+    clumps = hash_noise(lattice(p, 1.5), 10)[:, None]
+    foliage = base * (0.55 + 0.7 * leaves) * (0.75 + 0.4 * clumps)
+    albedo = torch.where(((kind == CANOPY) | (kind == HEDGE))[:, None], foliage, albedo)
     return torch.where((kind == KIOSK)[:, None], base, albedo)
 
 

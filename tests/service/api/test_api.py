@@ -865,3 +865,15 @@ def test_a_render_accepted_while_its_training_job_is_deleted_survives(api):
     with transaction(url) as session:  # nothing orphaned: every render's parent exists
         renders = session.query(Job).filter(Job.kind == "render").all()
         assert all(session.get(Job, r.parent_id) is not None for r in renders)
+
+
+def test_synthetic_presets_the_api_offers_are_the_generators_but_the_scale_scene():
+    """The API's preset choice is spelled out (the API process loads no generator); it must name
+    every preset but xl, whose gigabyte of files is generated with `leco scene synth`."""
+    from typing import get_args
+
+    from model.scenes.synthetic import PRESETS
+    from service.api.schemas import SyntheticSceneRequest
+
+    offered = get_args(SyntheticSceneRequest.model_fields["preset"].annotation)
+    assert set(offered) == set(PRESETS) - {"xl"}
