@@ -14,6 +14,16 @@ from pydantic import ValidationError
 
 
 def bench_command(args: argparse.Namespace) -> int:
+    if args.suite:
+        return suite_command(args)
+    if not args.scene:
+        raise SystemExit("leco bench: name a scene (--scene DIR) or a suite (--suite NAME)")
+    if args.scenes:
+        raise SystemExit("leco bench: --scenes narrows a suite; with --scene, drop it")
+    from model.methods import family_of, with_role
+
+    args.methods = args.methods or ",".join(family_of(with_role("ours")))
+    args.seeds = args.seeds or "0"
     from bench import analysis, plots, report
     from bench.runner import BenchError, Plan, config_for, run_variant
     from bench.variants import select
@@ -150,6 +160,64 @@ def bench_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def suite_command(args: argparse.Namespace) -> int:
+    """`leco bench --suite NAME`: a suite's scenes from a frozen copy of HEAD (bench/suite.py)."""
+    from bench.suite import load_suite, narrowed, run_suite
+    from model.errors import LecoError
+
+    log = lambda text: print(text, file=sys.stderr, flush=True)
+    conflicting = [
+        flag
+        for flag, value in (
+            ("--scene", args.scene),
+            ("--ablation", args.ablation),
+            ("--ladder", args.ladder),
+            ("--sweep", args.sweep),
+            ("--budget-min", args.budget_min),
+            ("--eval-every-s", args.eval_every_s),
+            ("--downscale", args.downscale),
+            ("--gpu", args.gpu),
+            ("--backend ray", args.backend != "local"),
+        )
+        if value
+    ]
+    if conflicting:
+        raise SystemExit(
+            f"leco bench --suite: {', '.join(conflicting)} cannot be given with a suite (its file "
+            "names the scenes, budgets and evaluation)"
+        )
+    try:
+        suite = narrowed(
+            load_suite(args.suite),
+            [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None,
+            parse_seeds(args.seeds) if args.seeds else None,
+            [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None,
+        )
+        summary = run_suite(suite, Path(args.out), args.set or [], suite_command_line(args), log)
+    except ValueError as error:
+        raise SystemExit(f"leco bench: {error}") from None
+    except LecoError as error:
+        raise SystemExit(f"leco bench --suite: {error}") from None
+    best = max(summary["methods"].values(), key=lambda m: m["mean_psnr"] or float("-inf"))
+    log(f"[suite] {suite.name}: best mean PSNR {best['label']} {best['mean_psnr']}")
+    print(f"{Path(args.out) / 'report.md'}\n{Path(args.out) / 'suite.json'}")
+    return 0
+
+
+def suite_command_line(args: argparse.Namespace) -> str:
+    words = ["leco", "bench", "--suite", args.suite, "--out", args.out]
+    for flag, value in (
+        ("--methods", args.methods),
+        ("--seeds", args.seeds),
+        ("--scenes", args.scenes),
+    ):
+        if value:
+            words += [flag, value]
+    for item in args.set or []:
+        words += ["--set", item]
+    return " ".join(shlex.quote(w) for w in words)
+
+
 def parse_seeds(text: str) -> list[int]:
     try:
         seeds = [int(s) for s in text.split(",")]
@@ -205,7 +273,15 @@ def add_commands(commands) -> None:
         help="every registered method on one scene (LeCO, vanilla Switch-NeRF, the occupancy grid, "
         "proposal networks): report, plots",
     )
-    bench.add_argument("--scene", required=True, help="scene folder (any supported format)")
+    bench.add_argument("--scene", help="scene folder (any supported format)")
+    bench.add_argument(
+        "--suite",
+        help="a suite of scenes instead of one (bench/suites/: dev, held-out; or a .toml path), "
+        "run from a frozen copy of HEAD; --methods, --seeds and --scenes narrow it",
+    )
+    bench.add_argument(
+        "--scenes", help="with --suite: comma-separated scene names of the suite to run"
+    )
     bench.add_argument("--profile", default="cpu", help="smoke | cpu | paper (default: cpu)")
     bench.add_argument("--out", required=True, help="output folder; finished runs in it are reused")
     bench.add_argument(
@@ -217,9 +293,9 @@ def add_commands(commands) -> None:
     )
     bench.add_argument(
         "--methods",
-        default=",".join(family_of(with_role("ours"))),
-        help=f"comma-separated, from: {', '.join(METHODS)} (default: the Switch-NeRF family, "
-        f"{', '.join(family_of(with_role('ours')))})",
+        help=f"comma-separated, from: {', '.join(METHODS)}, or an earlier default (bench/"
+        f"variants.py CONFIGURATIONS) (default: the Switch-NeRF family, "
+        f"{', '.join(family_of(with_role('ours')))}; with --suite, the suite's)",
     )
     bench.add_argument(
         "--ladder",
@@ -238,7 +314,9 @@ def add_commands(commands) -> None:
         action="store_true",
         help="also train the ablations: homogeneous MoE and HMoE without the density loss",
     )
-    bench.add_argument("--seeds", default="0", help="comma-separated seeds, e.g. 0,1,2")
+    bench.add_argument(
+        "--seeds", help="comma-separated seeds, e.g. 0,1,2 (default: 0; with --suite, the suite's)"
+    )
     bench.add_argument(
         "--eval-every-s",
         type=float,

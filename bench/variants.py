@@ -161,6 +161,42 @@ def rung_overrides() -> list[dict]:
     return out
 
 
+def rung(name: str) -> dict:
+    """One rung's overrides: the paper's formulation and every change of the ladder up to it."""
+    names = [n for n, _, _ in RUNGS]
+    return rung_overrides()[names.index(name)]
+
+
+# Earlier defaults, by the date they were the defaults, so a suite can judge a default against the
+# one it replaced in one command (`--methods leco,leco-2026-11-25`). Each is the method at the
+# `cpu` profile with the values it had then; the code is today's.
+CONFIGURATIONS: dict[str, Variant] = {
+    # before 9f50ef1 and dc86ef6: no placement head, dilation 2, the warm-started background, no
+    # free-opacity rule or top-2 fallback, phase 1 at 25% of a budget: the ladder's online rung
+    "leco-2026-11-25": Variant(
+        "leco-2026-11-25",
+        "leco",
+        "LeCO, defaults of 2026-11-25",
+        rung("leco-rung-online"),
+    ),
+    # before 2602b02: ngp-leco read LeCO's phase 1 and sampler (placement learnt in both phases,
+    # 16 bins split in 4, online from step 500, phase 1 at 15%) with 42 placed samples (e661066)
+    "ngp-leco-2026-11-27": Variant(
+        "ngp-leco-2026-11-27",
+        "ngp-leco",
+        "NGP+LeCO, defaults of 2026-11-27",
+        {
+            "ngp_leco.occupancy.budget_share": 0.15,
+            "ngp_leco.guided.coarse_samples": 16,
+            "ngp_leco.guided.split": 4,
+            "ngp_leco.guided.placement": True,
+            "ngp_leco.guided.placement_in_phase1": True,
+            "ngp_leco.guided.online_warmup": 500,
+        },
+    ),
+}
+
+
 def ladder() -> list[Variant]:
     """The rungs to train besides `leco` (the last rung)."""
     return [
@@ -203,7 +239,7 @@ def select(
     with_ladder: bool = False,
     sweep_profile: Callable[[str], Profile] | None = None,
 ) -> list[Variant]:
-    known = method_variants()
+    known = {**method_variants(), **CONFIGURATIONS}
     unknown = [m for m in methods if m not in known]
     if unknown:
         raise ValueError(
@@ -224,5 +260,5 @@ def select(
         if ours not in [v.name for v in chosen]:
             chosen.append(known[ours])  # the last rung: the profile's defaults
     if sweep_profile is not None:
-        chosen += sweep([m for m in dict.fromkeys(methods)], sweep_profile)
+        chosen += sweep([m for m in dict.fromkeys(methods) if m in REGISTRY], sweep_profile)
     return chosen

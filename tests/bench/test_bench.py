@@ -191,6 +191,48 @@ def test_ladder_climbs_from_the_papers_formulation_to_the_cpu_defaults():
     assert all(len(b) >= len(a) for a, b in zip(steps, steps[1:]))
 
 
+def differences(a, b, prefix=""):
+    """{dotted key: (a's value, b's value)} where two dumped profile sections differ."""
+    out = {}
+    for key in a.keys() | b.keys():
+        if isinstance(a.get(key), dict) and isinstance(b.get(key), dict):
+            out |= differences(a[key], b[key], f"{prefix}{key}.")
+        elif a.get(key) != b.get(key):
+            out[f"{prefix}{key}"] = (a.get(key), b.get(key))
+    return out
+
+
+def test_earlier_defaults_are_todays_profile_with_the_values_they_had():
+    from bench.variants import CONFIGURATIONS, select
+    from workers.config import TrainConfig
+
+    def resolved(method, overrides=None):
+        config = TrainConfig(method=method, profile="cpu", overrides=overrides or {})
+        return config.resolved_profile().model_dump()
+
+    old = CONFIGURATIONS["leco-2026-11-25"]
+    assert differences(resolved("leco", old.overrides), resolved("leco")) == {
+        "guided.warm_start_background": (True, False),
+        "guided.online_free_opacity": (0.0, 0.5),
+        "guided.fallback_topk": (0, 2),
+        "guided.placement": (False, True),
+        "guided.placement_in_phase1": (False, True),
+        "guided.dilate": (2, 1),
+        "guided.placement_padding": (0.01, 0.001),
+        "occupancy.budget_share": (0.25, 0.15),
+    }
+    # ngp-leco as it read LeCO's sections, with its own 42 placed samples
+    old = CONFIGURATIONS["ngp-leco-2026-11-27"]
+    then, leco = resolved("ngp-leco", old.overrides), resolved("leco")
+    assert then["occupancy"] == leco["occupancy"]
+    assert differences(then["guided"], leco["guided"]) == {"main_samples": (42, 21)}
+    # a suite or a bench names them as it names a method; they are compared rows, not ablations
+    chosen = select(["leco", "leco-2026-11-25"], ablation=False)
+    assert [v.name for v in chosen] == ["leco", "leco-2026-11-25"] and not chosen[1].ablation
+    with pytest.raises(ValueError, match="unknown method.*leco-2026-11-25"):
+        select(["leco-1999"], ablation=False)
+
+
 def test_exact_occupancy_reference_scores_the_truth_one_and_nothing_zero(tiny_scene):
     truth, views = tiny_scene.occupancy, tiny_scene.splits["val"]
     perfect = evaluate_occupancy_exact(truth.lookup, truth, views)
