@@ -22,8 +22,10 @@ def bench_command(args: argparse.Namespace) -> int:
         raise SystemExit("leco bench: --scenes narrows a suite; with --scene, drop it")
     from model.methods import family_of, with_role
 
-    args.methods = args.methods or ",".join(family_of(with_role("ours")))
-    args.seeds = args.seeds or "0"
+    if args.methods is None:
+        args.methods = ",".join(family_of(with_role("ours")))
+    if args.seeds is None:
+        args.seeds = "0"
     from bench import analysis, plots, report
     from bench.runner import BenchError, Plan, config_for, run_variant
     from bench.variants import select
@@ -189,8 +191,8 @@ def suite_command(args: argparse.Namespace) -> int:
     try:
         suite = narrowed(
             load_suite(args.suite),
-            [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None,
-            parse_seeds(args.seeds) if args.seeds else None,
+            None if args.methods is None else [m for m in args.methods.split(",") if m.strip()],
+            None if args.seeds is None else parse_seeds(args.seeds),
             [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None,
         )
         summary = run_suite(suite, Path(args.out), args.set or [], suite_command_line(args), log)

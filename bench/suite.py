@@ -118,13 +118,15 @@ def narrowed(
                 f"({', '.join(s.name for s in suite.scenes)})"
             )
     data = suite.model_dump()
-    data["methods"] = methods or suite.methods
+    data["methods"] = methods if methods is not None else suite.methods
     data["seeds"] = seeds if seeds is not None else suite.seeds
     data["scenes"] = [s for s in data["scenes"] if not scenes or s["name"] in scenes]
     try:
         return Suite.model_validate(data)
     except ValidationError as error:
-        raise InvalidInput("; ".join(e["msg"] for e in error.errors())) from None
+        raise InvalidInput(
+            "; ".join(f"--{e['loc'][0]}: {e['msg']}" for e in error.errors())
+        ) from None
 
 
 def git(root: Path, *args: str) -> str:

@@ -124,6 +124,14 @@ class OccupancyPhaseConfig(Frozen):
         description="under a wall-clock budget phase 1 stops at this share of it (or at `steps`); "
         "the main phase gets the rest",
     )
+    min_steps: int = Field(
+        0,
+        ge=0,
+        le=MAX_STEPS,
+        description="under a wall-clock budget phase 1 takes at least this many steps (at most "
+        "`steps`) before it stops at its share, while the budget lasts: a short budget's share "
+        "may be too few steps for O to become selective",
+    )
 
 
 class GuidedConfig(Frozen):
@@ -463,6 +471,19 @@ class NGPConfig(Frozen):
     )
     background_max_resolution: int = Field(
         2048, ge=2, le=65536, description="cells per side of the background's finest level"
+    )
+    background: Literal["hash", "mlp"] = Field(
+        "hash",
+        description="the far field: hash (a hash grid on the contracted space, Instant-NGP's and "
+        "nerfacto's) or mlp (the Switch-NeRF methods' NeRF++ MLP on the inverted sphere, at the "
+        "profile's lr and `background.*` sizes)",
+    )
+    distortion_weight: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="weight of mip-NeRF 360's distortion loss on the main samples' weights "
+        "(nerfacto's: 0.002); 0: off",
     )
     grid: GridConfig = Field(
         GridConfig(levels=4),

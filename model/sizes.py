@@ -135,6 +135,8 @@ def ngp_field(profile: Profile, num_images: int) -> int:
 
 def ngp_background(profile: Profile, num_images: int) -> int:
     g, a = profile.ngp, profile.network.appearance_dim
+    if g.background == "mlp":
+        return background(profile, num_images)
     top = max(g.background_max_resolution, g.min_resolution)
     body = hash_field(
         g.background_levels,

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One lever of docs/EXPERIMENTS.md: METHODS on SCENE at SEEDS with each KEY=VALUE as a --set, at
 # the budget the ledger's rows used for that scene (city-N 8 minutes; lego, fern and rooftop 5;
-# tiny-N 2; BUDGET=M overrides it). Fern runs validate one tracked view every 60 s, as its rows did.
+# village-N 4; tiny-N 2; BUDGET=M overrides it). Fern runs validate one tracked view every 60 s, as its rows did.
 # Run it once without a KEY=VALUE for the defaults beside it: the ledger compares runs made one
 # after another on one machine.
 # Time: the budget times the runs (methods x seeds), plus validation.
@@ -18,6 +18,7 @@ dir=$(scene "$name")
 case "$name" in
     city-*) budget=8 ;;
     tiny-*) budget=2 ;;
+    village-*) budget=4 ;;
     *) budget=5 ;;
 esac
 extra=()

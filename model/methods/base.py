@@ -44,6 +44,8 @@ class Entry(Protocol):
 
     def budget_share(self, profile: Profile, phase: str) -> float | None: ...
 
+    def min_steps(self, profile: Profile, phase: str) -> int: ...
+
     @property
     def memory(self) -> Callable[[Profile, int], dict[str, PhaseMemory]]: ...
 
@@ -172,6 +174,10 @@ class Method:
         left."""
         return self.spec.budget_share(self.profile, phase)
 
+    def budget_min_steps(self, phase: str) -> int:
+        """The fewest steps a phase with a budget share takes before the share stops it."""
+        return self.spec.min_steps(self.profile, phase)
+
     def phase_lr(self, phase: str) -> tuple[float, float | None]:
         """(start, final) learning rate of the phase; the schedule decays log-linearly between
         them."""
@@ -180,6 +186,14 @@ class Method:
     def adam_options(self, phase: str) -> dict:
         """Adam's betas and eps for the phase, where the method wants other than PyTorch's."""
         return {}
+
+    def distortion_weight(self) -> float:
+        """The main phase's weight on mip-NeRF 360's distortion loss (0: none)."""
+        return 0.0
+
+    def lr_scales(self, models: Networks, phase: str) -> list[tuple[nn.Module, float]]:
+        """Networks the phase trains at a multiple of its learning rate (the rest: 1)."""
+        return []
 
     def trained_modules(self, models: Networks, phase: str) -> list[nn.Module]:
         """The networks the phase trains and renders with (their appearance embeddings are the ones
@@ -208,7 +222,11 @@ class Method:
         """One training step's loss and its parts (floats)."""
         render = self.render_main(models, step.rays, step.generator, step.phase_step)
         return main_loss(
-            render, step.rays, self.profile.balance_weight, self.profile.guided.coarse_samples
+            render,
+            step.rays,
+            self.profile.balance_weight,
+            self.profile.guided.coarse_samples,
+            self.distortion_weight(),
         )
 
     def render_main(

@@ -141,8 +141,10 @@ def on_hash_grids(phases: dict[str, PhaseMemory], profile: Profile, num_images: 
             main,
             trained=main.trained - switch + hashed,
             bytes_per_sample=hash_grid_bytes_per_sample(g.levels, g.features, g.width),
-            background_bytes_per_sample=hash_grid_bytes_per_sample(
-                g.background_levels, g.features, g.width
+            background_bytes_per_sample=(
+                main.background_bytes_per_sample  # the Switch-NeRF methods' MLP
+                if g.background == "mlp"
+                else hash_grid_bytes_per_sample(g.background_levels, g.features, g.width)
             ),
         ),
     }

@@ -26,7 +26,12 @@ from model.methods.leco.phase1 import field_on_edges, render_background
 from model.profiles import Profile
 from model.render.accounting import step_accounting
 from model.render.front_to_back import front_to_back
-from model.render.losses import balance_loss, dispatch_fractions, rendering_loss
+from model.render.losses import (
+    balance_loss,
+    dispatch_fractions,
+    distortion_loss,
+    rendering_loss,
+)
 from model.render.samples import (
     PackedSamples,
     inverse_cdf_edges,
@@ -218,11 +223,15 @@ def render_grid(
 
 
 def main_loss(
-    render: MainRender, rays: RayBatch, balance_weight: float, bins: int | None = None
+    render: MainRender,
+    rays: RayBatch,
+    balance_weight: float,
+    bins: int | None = None,
+    distortion_weight: float = 0.0,
 ) -> tuple[Tensor, dict]:
-    """L_r + balance_weight * balance loss, and the parts as floats; with `bins`, what reached the
-    main network counted on that many coarse bins per hit ray (model/render/accounting.py), the same
-    way for every method."""
+    """L_r + balance_weight * balance loss (+ distortion_weight * L_dist), and the parts as floats;
+    with `bins`, what reached the main network counted on that many coarse bins per hit ray
+    (model/render/accounting.py), the same way for every method."""
     l_r = rendering_loss(render.rendered.rgb, rays.rgb)
     loss = l_r
     parts = {
@@ -230,6 +239,13 @@ def main_loss(
         "samples_per_ray": render.samples_per_ray,
         **render.stats,
     }
+    weights = render.rendered.weights.reshape(-1)
+    if distortion_weight > 0 and render.samples is not None:
+        # a sampler's weights are per sample of `samples`, packed or batched in the same order
+        assert len(weights) == len(render.samples), "weights and samples disagree"
+        l_dist = distortion_loss(weights, render.samples, rays.near, rays.far, len(rays))
+        loss = loss + distortion_weight * l_dist
+        parts["distortion_loss"] = float(l_dist.detach())
     if bins is not None and render.samples is not None:
         parts.update(step_accounting(render.samples, rays.near, rays.far, bins))
     if render.out is not None:

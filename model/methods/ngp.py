@@ -11,7 +11,7 @@ import torch
 from torch import Tensor, nn
 
 from model.fields.ngp import NGPBackground, NGPField
-from model.methods.base import count
+from model.methods.base import Networks, background, count
 from model.methods.grid import GridMethod
 from model.methods.leco.method import LeCOMethod
 from model.methods.prop import ProposalMethod
@@ -39,8 +39,10 @@ def hash_fields(profile: Profile) -> tuple[dict, dict]:
     return fore, back
 
 
-def ngp_networks(profile: Profile, num_images: int, aabb: Tensor) -> tuple[NGPField, NGPBackground]:
+def ngp_networks(profile: Profile, num_images: int, aabb: Tensor) -> tuple[NGPField, nn.Module]:
     fore, back = hash_fields(profile)
+    if profile.ngp.background == "mlp":  # the Switch-NeRF methods' far field
+        return NGPField(num_images, aabb, **fore), background(profile, num_images)
     return NGPField(num_images, aabb, **fore), NGPBackground(num_images, aabb, **back)
 
 
@@ -74,6 +76,15 @@ class HashGridNetworks:
             g = self.profile.ngp
             return {"betas": (0.9, g.adam_beta2), "eps": g.adam_eps}
         return super().adam_options(phase)  # type: ignore[misc]
+
+    def distortion_weight(self) -> float:
+        return self.profile.ngp.distortion_weight
+
+    def lr_scales(self, models: Networks, phase: str) -> list[tuple[nn.Module, float]]:
+        if phase == "main" and self.profile.ngp.background == "mlp":
+            # an MLP far field trains at the MLPs' rate, not the hash tables'
+            return [(models.background, self.profile.lr / self.profile.ngp.lr)]
+        return super().lr_scales(models, phase)  # type: ignore[misc]
 
 
 class NGPMethod(HashGridNetworks, GridMethod):

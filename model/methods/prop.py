@@ -86,7 +86,11 @@ class ProposalMethod(Method):
             )
         render = self.render_on(models, step.rays, hits, edges, step.generator)
         loss, parts = main_loss(
-            render, step.rays, self.profile.balance_weight, self.profile.guided.coarse_samples
+            render,
+            step.rays,
+            self.profile.balance_weight,
+            self.profile.guided.coarse_samples,
+            self.distortion_weight(),
         )
         parts["proposal_samples_per_ray"] = (
             float(sum(self.profile.prop.samples)) * len(hits) / max(len(step.rays), 1)

@@ -56,6 +56,7 @@ register(
         has_occupancy=True,
         colour="#d62728",
         budget_shares=(("occupancy", "occupancy.budget_share"),),
+        budget_min_steps=(("occupancy", "occupancy.min_steps"),),
     )
 )
 register(
@@ -120,6 +121,7 @@ register(
         has_occupancy=True,
         colour="#e377c2",
         budget_shares=(("occupancy", "occupancy.budget_share"),),
+        budget_min_steps=(("occupancy", "occupancy.min_steps"),),
         family="Instant-NGP",
         sections=(("occupancy", "ngp_leco.occupancy"), ("guided", "ngp_leco.guided")),
     )

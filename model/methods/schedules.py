@@ -15,11 +15,15 @@ def log_linear(start: float, final: float | None, progress: float) -> float:
 
 
 def phase_progress(
-    step: int, total_steps: int, elapsed_s: float, allotted_s: float | None
+    step: int, total_steps: int, elapsed_s: float, allotted_s: float | None, min_steps: int = 0
 ) -> float:
     """How far a phase is: steps done over its step count, or training seconds over its time
-    allotment."""
+    allotment. A phase that must take `min_steps` before its allotment stops it is no further
+    than those steps say, so its schedule ends with them when they outlast the allotment."""
     progress = step / max(total_steps, 1)
     if allotted_s is not None and allotted_s > 0:
-        progress = max(progress, elapsed_s / allotted_s)
+        timed = elapsed_s / allotted_s
+        if min_steps:
+            timed = min(timed, step / min_steps)
+        progress = max(progress, timed)
     return min(progress, 1.0)

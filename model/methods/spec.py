@@ -59,6 +59,8 @@ class MethodSpec:
     # The profile setting that stops a phase at a share of a wall-clock budget (phase -> dotted
     # key).
     budget_shares: tuple[tuple[str, str], ...] = ()
+    # The profile setting of the fewest steps such a phase takes before its share stops it.
+    budget_min_steps: tuple[tuple[str, str], ...] = ()
     # The main network the method trains: a benchmark compares the methods of one family (its
     # default is the family of the method whose role is "ours").
     family: str = "Switch-NeRF"
@@ -76,6 +78,10 @@ class MethodSpec:
     def budget_share(self, profile: Profile, phase: str) -> float | None:
         key = dict(self.budget_shares).get(phase)
         return None if key is None else setting(profile, key)
+
+    def min_steps(self, profile: Profile, phase: str) -> int:
+        key = dict(self.budget_min_steps).get(phase)
+        return 0 if key is None else min(int(setting(profile, key)), self.steps(profile, phase))
 
     def load(self) -> type[Method]:
         if not isinstance(self.implementation, str):

@@ -33,6 +33,7 @@ SHAPES = [
         "background.width": 18,
         "background.layers": 2,
     },
+    {"ngp.background": "mlp", "background.width": 20},
 ]
 
 

@@ -178,7 +178,7 @@ class RankRun:
         self.report("phase_started", phase)
 
     def budget_left(self, phase: str) -> bool:
-        return self.budget.left(phase, self.progress["elapsed"])
+        return self.budget.left(phase, self.progress["elapsed"], self.progress["phase_step"])
 
     def run_phase(self, phase: str) -> None:
         objects = self.current_phase()
@@ -232,7 +232,8 @@ class RankRun:
             else 1.0
         )
         for group in optimizer.param_groups:
-            group["lr"] = lr_at(progress) * ramp
+            # a checkpoint saved before groups had scales restores groups without one
+            group["lr"] = lr_at(progress) * ramp * group.get("lr_scale", 1.0)
         measure_memory = (self.progress["step"] + 1) % self.cfg.metrics_every == 0
         with SavedTensorBytes() if measure_memory else contextlib.nullcontext() as saved:
             loss, parts = self.forward(phase, progress)

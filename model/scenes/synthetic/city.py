@@ -8,9 +8,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from model.scenes.synthetic.geometry import (  # noqa: F401 (re-exported)
+from model.scenes.synthetic.geometry import (
     BUILDING,
-    KIND_NAMES,
     KIOSK,
     MAST,
     POLE,
@@ -18,14 +17,6 @@ from model.scenes.synthetic.geometry import (  # noqa: F401 (re-exported)
     district_extent,
 )
 from model.scenes.synthetic.presets import CityPreset
-from model.scenes.synthetic.village import build_village
-
-
-def build_city(preset: CityPreset, seed: int) -> CityGeometry:
-    """The preset's layout at this seed: the city's streets and blocks, or the village's fields."""
-    if preset.layout == "village":
-        return build_village(preset, seed)
-    return build_streets(preset, seed)
 
 
 def build_streets(preset: CityPreset, seed: int) -> CityGeometry:

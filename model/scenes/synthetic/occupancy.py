@@ -9,7 +9,7 @@ import math
 import torch
 from torch import Tensor
 
-from model.scenes.synthetic.city import CityGeometry
+from model.scenes.synthetic.geometry import CityGeometry
 
 MARGIN = 5.0  # metres of ground around the district inside the grid
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from model.scenes.synthetic.city import CityGeometry
+from model.scenes.synthetic.geometry import CityGeometry
 
 SKY, GROUND = -1, 0
 # rays per chunk: small chunks cull more boxes; the Python loop cost stays ~1 ms a chunk

@@ -16,8 +16,9 @@ import numpy as np
 import torch
 from PIL import Image
 
-from model.scenes.synthetic.city import KIND_NAMES, CityGeometry, build_city
 from model.scenes.synthetic.flight import flight_poses, intrinsics
+from model.scenes.synthetic.geometry import KIND_NAMES, CityGeometry
+from model.scenes.synthetic.layouts import build_city
 from model.scenes.synthetic.occupancy import occupancy_grid
 from model.scenes.synthetic.presets import CityPreset, get_preset
 from model.scenes.synthetic.shading import shade

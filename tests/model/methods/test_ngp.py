@@ -98,6 +98,48 @@ def test_the_hash_grid_trains_with_instant_ngps_adam_and_only_it(tiny_scene):
 
 
 @pytest.mark.parametrize("method", FAMILY)
+def test_an_mlp_far_field_trains_at_the_mlps_rate_beside_the_hash_tables(method, tiny_scene):
+    """ngp.background=mlp: the Switch-NeRF methods' background in place of the contracted hash
+    grid, in its own Adam group whose rate follows the schedule at profile.lr / ngp.lr of it."""
+    from model.fields.background import BackgroundField
+    from model.fields.ngp import NGPBackground
+
+    def built(**overrides):
+        config = TrainConfig(method=method, profile="smoke", overrides=overrides)
+        m = get_method(method)(config.resolved_profile())
+        models = build_models(m, tiny_scene.num_images, tiny_scene.bounds.aabb, 0)
+        return m, models, build_optimizer(m, models, "main")
+
+    m, models, objects = built()
+    assert isinstance(models.background, NGPBackground)
+    assert [g["lr_scale"] for g in objects.optimizer.param_groups] == [1.0]
+    m, models, objects = built(**{"ngp.background": "mlp"})
+    assert isinstance(models.background, BackgroundField)
+    main, far = objects.optimizer.param_groups
+    assert main["lr_scale"] == 1.0 and far["lr_scale"] == pytest.approx(
+        m.profile.lr / m.profile.ngp.lr
+    )
+    assert {id(p) for p in far["params"]} == {id(p) for p in models.background.parameters()}
+    assert not {id(p) for p in far["params"]} & {id(p) for p in main["params"]}
+    assert len(main["params"]) + len(far["params"]) == len(objects.params)
+
+
+@pytest.mark.parametrize("method", FAMILY)
+def test_each_sampler_trains_with_the_mlp_far_field_and_the_distortion_loss(
+    method, tiny_scene, tmp_path
+):
+    out = tmp_path / "run"
+    args = ["train", "--scene", str(tiny_scene.root), "--method", method, "--profile", "smoke"]
+    args += ["--out", str(out), "--backend", "local", "--set", "main_steps=6"]
+    args += ["--set", "ngp.background=mlp", "--set", "ngp.distortion_weight=0.01"]
+    assert main(args) == 0
+    logged = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    distortion = [r["distortion_loss"] for r in logged if "distortion_loss" in r]
+    assert distortion and all(0 < d < 1 for d in distortion)
+    assert 5 < json.loads((out / "summary.json").read_text())["val"]["psnr"] < 60
+
+
+@pytest.mark.parametrize("method", FAMILY)
 def test_each_sampler_trains_the_hash_grid_through_leco_train(method, tiny_scene, tmp_path, capsys):
     out = tmp_path / "run"
     args = ["train", "--scene", str(tiny_scene.root), "--method", method, "--profile", "smoke"]

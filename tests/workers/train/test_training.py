@@ -266,6 +266,57 @@ def test_phase_one_stops_at_its_share_of_the_budget(tiny_scene, tmp_path):
     assert wall["occupancy"] + wall["main"] == pytest.approx(budget, abs=0.5)
 
 
+def test_phase_one_takes_its_minimum_steps_past_its_share(tiny_scene, tmp_path):
+    """occupancy.min_steps: a share too short for the steps is outlasted, the main phase still
+    gets the rest of the budget, and the budget still bounds the whole run."""
+    budget = 2.0
+    cfg = TrainConfig(
+        method="leco",
+        profile="smoke",
+        budget_min=budget / 60,
+        overrides={
+            "occupancy.steps": 100_000,
+            "main_steps": 100_000,
+            "occupancy.budget_share": 0.01,
+            "occupancy.min_steps": 40,
+        },
+    )
+    summary = run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")
+    wall = summary["wall_time_s"]["phases"]
+    assert summary["steps"]["phases"]["occupancy"] == 40 and wall["occupancy"] > 0.01 * budget
+    assert summary["steps"]["phases"]["main"] > 0
+    assert wall["occupancy"] + wall["main"] == pytest.approx(budget, abs=0.5)
+
+
+def test_the_budget_with_a_minimum_of_steps():
+    from model.methods import get_method
+    from workers.train.budget import Budget
+
+    def budget(**overrides):
+        config = TrainConfig(method="leco", profile="smoke", overrides=overrides)
+        return Budget(1.0, get_method("leco")(config.resolved_profile()))  # 60 s
+
+    plain = budget(**{"occupancy.budget_share": 0.1, "occupancy.steps": 500})
+    assert plain.left("occupancy", {"occupancy": 5.9}, 3)
+    assert not plain.left("occupancy", {"occupancy": 6.0}, 3)
+    floor = budget(
+        **{"occupancy.budget_share": 0.1, "occupancy.steps": 500, "occupancy.min_steps": 100}
+    )
+    assert floor.left("occupancy", {"occupancy": 6.0}, 99)
+    assert not floor.left("occupancy", {"occupancy": 6.0}, 100)
+    assert not floor.left("occupancy", {"occupancy": 60.0}, 3)  # the whole budget is spent
+    # the schedule follows the steps once the time allotment is spent: halfway at 50 of 100
+    assert floor.progress("occupancy", 50, {"occupancy": 9.0}) == pytest.approx(0.5)
+    # and time where time is behind: 3 of 6 s at step 80
+    assert floor.progress("occupancy", 80, {"occupancy": 3.0}) == pytest.approx(0.5)
+    assert plain.progress("occupancy", 50, {"occupancy": 9.0}) == 1.0
+    # a minimum above the phase's steps is its steps
+    capped = budget(**{"occupancy.steps": 30, "occupancy.min_steps": 100})
+    assert capped.method.budget_min_steps("occupancy") == 30
+    # without a budget nothing changes
+    assert Budget(None, floor.method).left("occupancy", {"occupancy": 1e9}, 0)
+
+
 def test_leco_eval_command_reevaluates_a_finished_run(tiny_scene, tmp_path, capsys):
     from cli.main import main
 

@@ -415,6 +415,42 @@ def test_shading_shadow_is_the_only_difference():
     assert light[in_shadow].mean(-1).max() < 0.6 * light[~in_shadow].mean(-1).min()
 
 
+def test_a_toy_layout_is_a_builder_and_a_line(tmp_path, monkeypatch):
+    """A layout registered in LAYOUTS is generated with the same exact truth: one pillar."""
+    from model.scenes.synthetic import LAYOUTS
+    from model.scenes.synthetic.geometry import BUILDING, CityGeometry
+
+    def pillar(preset, seed):
+        box = [[[-3.0, -3.0, 0.0], [3.0, 3.0, 10.0 + seed]]]
+        return CityGeometry(
+            boxes=torch.tensor(box, dtype=torch.float64),
+            kind=torch.tensor([BUILDING]),
+            colour=torch.tensor([[0.8, 0.2, 0.2]]),
+            building=torch.tensor([1]),
+            extent=40.0,
+            preset=preset,
+        )
+
+    monkeypatch.setitem(LAYOUTS, "pillar", pillar)
+    preset = replace(PRESETS["tiny"], name="pillar", layout="pillar")
+    out = tmp_path / "pillar-2"
+    generate(preset, 2, out)
+    info = json.loads((out / "gt/scene.json").read_text())
+    assert info["boxes"] == [[[-3.0, -3.0, 0.0], [3.0, 3.0, 12.0]]]
+    geometry = build_city(preset, 2)
+    hits = 0
+    for split, name in views(out):
+        origins, dirs = pixel_rays(out, split, name)
+        t, hit, _ = raycast(geometry, origins, dirs)
+        stored = depth_of(out, split, name)
+        finite = torch.isfinite(stored)
+        assert ((stored[finite] - t[finite]).abs() / t[finite]).max() < 1e-4
+        hits += int((hit == 1).sum())
+    assert hits > 100  # the cameras see the pillar
+    with pytest.raises(ValueError, match="unknown synthetic layout 'moon'"):
+        build_city(replace(preset, layout="moon"), 0)
+
+
 def test_refuses_non_empty_output_and_leaves_it_unchanged(tmp_path):
     out = tmp_path / "taken"
     out.mkdir()
