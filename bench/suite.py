@@ -156,12 +156,18 @@ def freeze(out: Path, root: Path, log) -> dict:
     partial = out / f".source.partial-{os.getpid()}"
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir()
-    archive = subprocess.run(["git", "-C", str(root), "archive", commit], capture_output=True)
-    if archive.returncode != 0:
-        raise Failed(f"git archive {commit}: {archive.stderr.decode(errors='replace').strip()}")
-    subprocess.run(["tar", "-x", "-C", str(partial)], input=archive.stdout, check=True)
-    shutil.rmtree(source, ignore_errors=True)
-    partial.rename(source)
+    try:
+        archive = subprocess.run(["git", "-C", str(root), "archive", commit], capture_output=True)
+        if archive.returncode != 0:
+            raise Failed(f"git archive {commit}: {archive.stderr.decode(errors='replace').strip()}")
+        tar = subprocess.run(["tar", "-x", "-C", str(partial)], input=archive.stdout)
+        if tar.returncode != 0:
+            raise Failed(f"unpacking commit {commit[:10]} into {partial} failed")
+        shutil.rmtree(source, ignore_errors=True)
+        partial.rename(source)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
     stamp = {"commit": commit, "dirty_checkout": dirty, "frozen_at": time.strftime("%Y-%m-%d")}
     stamp_file.write_text(json.dumps(stamp, indent=1))
     return stamp

@@ -6,6 +6,7 @@ import torch
 from torch import Tensor
 
 from model.render.samples import PackedSamples
+from model.render.volume import exclusive_cumsum_per_ray
 
 EPS = 1e-10
 
@@ -53,17 +54,6 @@ def visibility_loss(probs: Tensor, weights: Tensor) -> Tensor:
     w = weights.detach().float().reshape(-1)
     not_empty = (1.0 - probs[:, -1]).clamp(min=EPS)
     return -(w * torch.log(not_empty)).sum() / (w.sum() + EPS)
-
-
-def exclusive_cumsum_per_ray(values: Tensor, ray_index: Tensor, num_rays: int) -> Tensor:
-    """sum_{j<i} values_j over the samples of sample i's ray (packed, grouped by ray)."""
-    inclusive = values.cumsum(0)
-    start = torch.zeros(num_rays, dtype=values.dtype, device=values.device)
-    if len(values):
-        first = torch.ones_like(ray_index, dtype=torch.bool)
-        first[1:] = ray_index[1:] != ray_index[:-1]
-        start[ray_index[first]] = (inclusive - values)[first]
-    return inclusive - values - start[ray_index]
 
 
 def distortion_loss(

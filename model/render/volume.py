@@ -35,14 +35,19 @@ def packed_optical_depth(
     total = torch.zeros(num_rays, dtype=torch.float64, device=tau.device).index_add_(
         0, ray_index, tau
     )
-    inclusive = tau.cumsum(0)
-    start = torch.zeros(num_rays, dtype=torch.float64, device=tau.device)
-    if len(tau):
+    return tau, exclusive_cumsum_per_ray(tau, ray_index, num_rays), total
+
+
+def exclusive_cumsum_per_ray(values: Tensor, ray_index: Tensor, num_rays: int) -> Tensor:
+    """sum_{j<i} values_j over the samples of sample i's ray (packed, grouped by ray)."""
+    inclusive = values.cumsum(0)
+    start = torch.zeros(num_rays, dtype=values.dtype, device=values.device)
+    if len(values):
         # Cumulative sum at the first sample of each ray, so each ray's sum starts from zero.
         first = torch.ones_like(ray_index, dtype=torch.bool)
         first[1:] = ray_index[1:] != ray_index[:-1]
-        start[ray_index[first]] = (inclusive - tau)[first]
-    return tau, inclusive - tau - start[ray_index], total
+        start[ray_index[first]] = (inclusive - values)[first]
+    return inclusive - values - start[ray_index]
 
 
 def packed_transmittance(sigma: Tensor, deltas: Tensor, ray_index: Tensor, num_rays: int) -> Tensor:

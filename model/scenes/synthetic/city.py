@@ -6,13 +6,13 @@ Frame: metres, x east, y north, z up; the district is centred on the origin.
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 from model.scenes.synthetic.geometry import (
     BUILDING,
     KIOSK,
     MAST,
     POLE,
+    Boxes,
     CityGeometry,
     district_extent,
 )
@@ -24,14 +24,8 @@ def build_streets(preset: CityPreset, seed: int) -> CityGeometry:
     p = preset
     extent = district_extent(p)
     half = extent / 2
-    boxes, kinds, colours, owners = [], [], [], []
-
-    def add(lo, hi, kind, colour, owner):
-        boxes.append([lo, hi])
-        kinds.append(kind)
-        colours.append(colour)
-        owners.append(owner)
-
+    built = Boxes()
+    add = built.add
     building = 0
     for bx in range(p.blocks):
         for by in range(p.blocks):
@@ -46,14 +40,7 @@ def build_streets(preset: CityPreset, seed: int) -> CityGeometry:
                     building += 1
                     add_building(rng, p, x0 + lx * lot, y0 + ly * lot, lot, building, add)
     add_street_furniture(rng, p, half, add)
-    return CityGeometry(
-        boxes=torch.tensor(boxes, dtype=torch.float64),
-        kind=torch.tensor(kinds, dtype=torch.long),
-        colour=torch.tensor(colours, dtype=torch.float32),
-        building=torch.tensor(owners, dtype=torch.long),
-        extent=extent,
-        preset=p,
-    )
+    return built.geometry(p)
 
 
 def add_building(rng, p: CityPreset, x0: float, y0: float, lot: float, owner: int, add) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import torch
 from torch import Tensor
 
 from model.scenes.synthetic.presets import CityPreset
@@ -41,6 +42,33 @@ class CityGeometry:
     @property
     def top(self) -> float:
         return float(self.boxes[:, 1, 2].max())
+
+
+class Boxes:
+    """The boxes a layout adds one by one, then its CityGeometry."""
+
+    def __init__(self) -> None:
+        self.boxes: list = []
+        self.kinds: list[int] = []
+        self.colours: list = []
+        self.owners: list[int] = []
+
+    def add(self, lo, hi, kind: int, colour, owner: int) -> None:
+        self.boxes.append([lo, hi])
+        self.kinds.append(kind)
+        self.colours.append(colour)
+        self.owners.append(owner)
+
+    def geometry(self, p: CityPreset, parcels: Tensor | None = None) -> CityGeometry:
+        return CityGeometry(
+            boxes=torch.tensor(self.boxes, dtype=torch.float64),
+            kind=torch.tensor(self.kinds, dtype=torch.long),
+            colour=torch.tensor(self.colours, dtype=torch.float32),
+            building=torch.tensor(self.owners, dtype=torch.long),
+            extent=district_extent(p),
+            preset=p,
+            parcels=parcels,
+        )
 
 
 def district_extent(p: CityPreset) -> float:

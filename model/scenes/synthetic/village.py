@@ -17,6 +17,7 @@ from model.scenes.synthetic.geometry import (
     HEDGE,
     MAST,
     TRUNK,
+    Boxes,
     CityGeometry,
     district_extent,
 )
@@ -33,14 +34,9 @@ def build_village(preset: CityPreset, seed: int) -> CityGeometry:
     p = preset
     extent = district_extent(p)
     half = extent / 2
-    boxes, kinds, colours, owners = [], [], [], []
+    built = Boxes()
+    add = built.add
     parcels = torch.zeros(p.blocks, p.blocks, dtype=torch.long)
-
-    def add(lo, hi, kind, colour, owner):
-        boxes.append([lo, hi])
-        kinds.append(kind)
-        colours.append(colour)
-        owners.append(owner)
 
     farm = 0
     for bx in range(p.blocks):
@@ -61,15 +57,7 @@ def build_village(preset: CityPreset, seed: int) -> CityGeometry:
                     corner = np.array([x0, y0]) + rng.choice([1.5, p.block_size - 1.5], 2)
                     add_tree(rng, p, corner, add)
             add_hedges(rng, p, x0, y0, add)
-    return CityGeometry(
-        boxes=torch.tensor(boxes, dtype=torch.float64),
-        kind=torch.tensor(kinds, dtype=torch.long),
-        colour=torch.tensor(colours, dtype=torch.float32),
-        building=torch.tensor(owners, dtype=torch.long),
-        extent=extent,
-        preset=p,
-        parcels=parcels,
-    )
+    return built.geometry(p, parcels)
 
 
 def add_tree(rng, p: CityPreset, xy: np.ndarray, add) -> None:

@@ -2,8 +2,9 @@
 
 import torch
 
-from model.render.losses import distortion_loss, exclusive_cumsum_per_ray
+from model.render.losses import distortion_loss
 from model.render.samples import PackedSamples
+from model.render.volume import exclusive_cumsum_per_ray
 
 
 def brute_force(weights, starts, ends, ray_index, near, far, num_rays):
