@@ -296,7 +296,8 @@ def add_commands(commands) -> None:
     bench.add_argument(
         "--methods",
         help=f"comma-separated, from: {', '.join(METHODS)}, or an earlier default (bench/"
-        f"variants.py CONFIGURATIONS) (default: the Switch-NeRF family, "
+        f"variants.py CONFIGURATIONS), either with settings of its own to train beside it "
+        f"(leco+occupancy.min_steps=900) (default: the Switch-NeRF family, "
         f"{', '.join(family_of(with_role('ours')))}; with --suite, the suite's)",
     )
     bench.add_argument(

@@ -11,6 +11,7 @@ from typing import Callable
 from model.methods import METHODS as REGISTRY
 from model.methods import get_method, with_role
 from model.profiles import Profile
+from workers.config import parse_overrides
 
 
 @dataclass(frozen=True)
@@ -233,6 +234,37 @@ def _ours() -> str:
     return ours
 
 
+LEVER = "+"  # `leco+occupancy.min_steps=900`: a method with settings of its own, beside the method
+
+
+def lever(name: str, known: dict[str, Variant]) -> Variant | None:
+    """`METHOD+KEY=VALUE[+KEY=VALUE...]`: a known method or configuration with these settings on top
+    of its own, so a lever and its baseline train in one command (`--methods leco,leco+KEY=VALUE`),
+    seed by seed in turn. None if the name has no `+`; an error naming what is wrong otherwise."""
+    base, sep, rest = name.partition(LEVER)
+    if not sep:
+        return None
+    if base not in known:
+        raise ValueError(
+            f"--methods {name!r}: unknown method {base!r}: choose from {', '.join(known)}"
+        )
+    items = rest.split(LEVER)
+    if not all("=" in item for item in items):
+        raise ValueError(
+            f"--methods {name!r}: after {base!r} expected KEY=VALUE settings joined by "
+            f"'{LEVER}', e.g. {base}+occupancy.min_steps=900"
+        )
+    try:
+        settings = parse_overrides(items)
+    except ValueError as error:
+        raise ValueError(f"--methods {name!r}: {error}") from None
+    origin = known[base]
+    label = ", ".join(f"{key}={value}" for key, value in settings.items())
+    return Variant(
+        name, origin.method, f"{origin.label}, {label}", {**origin.overrides, **settings}
+    )
+
+
 def select(
     methods: list[str],
     ablation: bool,
@@ -240,6 +272,7 @@ def select(
     sweep_profile: Callable[[str], Profile] | None = None,
 ) -> list[Variant]:
     known = {**method_variants(), **CONFIGURATIONS}
+    known.update({m: v for m in methods if (v := lever(m, known)) is not None})
     unknown = [m for m in methods if m not in known]
     if unknown:
         raise ValueError(

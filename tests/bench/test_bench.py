@@ -233,6 +233,31 @@ def test_earlier_defaults_are_todays_profile_with_the_values_they_had():
         select(["leco-1999"], ablation=False)
 
 
+def test_a_lever_trains_beside_its_method_in_one_command():
+    from bench.runner import Plan, config_for
+    from bench.variants import CONFIGURATIONS, select
+
+    chosen = select(
+        ["leco", "leco+occupancy.min_steps=900+guided.dilate=2", "leco-2026-11-25+guided.dilate=0"],
+        ablation=False,
+    )
+    assert [v.method for v in chosen] == ["leco"] * 3
+    assert chosen[1].overrides == {"occupancy.min_steps": 900, "guided.dilate": 2}
+    assert chosen[1].label == "S+Ours (LeCO), occupancy.min_steps=900, guided.dilate=2"
+    # on top of an earlier default: its values, then the lever's
+    assert chosen[2].overrides == {
+        **CONFIGURATIONS["leco-2026-11-25"].overrides,
+        "guided.dilate": 0,
+    }
+    plan = Plan(Path("."), "cpu", Path("."), None, [0], eval_every_s=30.0, eval_views=1)
+    profile = config_for(chosen[1], plan, 0).resolved_profile()
+    assert (profile.occupancy.min_steps, profile.guided.dilate) == (900, 2)
+    with pytest.raises(ValueError, match="unknown method 'nerfacto'"):
+        select(["nerfacto+guided.dilate=2"], ablation=False)
+    with pytest.raises(ValueError, match="expected KEY=VALUE settings joined by '\\+'"):
+        select(["leco+dilate"], ablation=False)
+
+
 def test_exact_occupancy_reference_scores_the_truth_one_and_nothing_zero(tiny_scene):
     truth, views = tiny_scene.occupancy, tiny_scene.splits["val"]
     perfect = evaluate_occupancy_exact(truth.lookup, truth, views)
