@@ -528,6 +528,30 @@ class NGPLeCOConfig(Frozen):
     )
 
 
+class LeCOPropConfig(Frozen):
+    """LeCO+Prop (`leco-prop`, `ngp-leco-prop`, model/methods/leco_prop.py): phase 1 as LeCO's,
+    then proposal networks that sample only where O lets them. It reads these in place of
+    `occupancy`, `guided` and `prop`, which are `leco`'s and `prop`'s."""
+
+    bound: Literal["range", "mask", "off"] = Field(
+        "range",
+        description="where O lets the proposals sample: range, each ray from its first kept bin "
+        "to its last; mask, the kept bins only, end to end; off, the whole segment (S+Prop after "
+        "phase 1 and the warm start: the control)",
+    )
+    occupancy: OccupancyPhaseConfig = Field(
+        OccupancyPhaseConfig(), description="leco-prop's phase 1 (as `occupancy` is leco's)"
+    )
+    guided: GuidedConfig = Field(
+        GuidedConfig(),
+        description="how O keeps bins in leco-prop's main phase (as `guided` is leco's; the "
+        "placement settings are not read: the proposals place the samples)",
+    )
+    prop: ProposalConfig = Field(
+        ProposalConfig(), description="leco-prop's proposal levels (as `prop` is S+Prop's)"
+    )
+
+
 class Profile(Frozen):
     """Sizes and sampling of every method at one scale; a job may override any field."""
 
@@ -541,6 +565,7 @@ class Profile(Frozen):
     prop: ProposalConfig = ProposalConfig()
     ngp: NGPConfig = NGPConfig()
     ngp_leco: NGPLeCOConfig = NGPLeCOConfig()
+    leco_prop: LeCOPropConfig = LeCOPropConfig()
     rays_per_device: int = Field(1024, ge=1, le=65536, description="rays per step per worker")
     main_steps: int = Field(
         500_000,
@@ -594,8 +619,12 @@ CPU_GUIDED = GuidedConfig(
     main_samples=21,
     placement_padding=0.001,
 )
+# LeCO's main samples per ray on the city at this profile: 21.2 (8-minute benchmark, 2026-11-24), so
+# S+Prop's main network does the same work.
+CPU_PROP = ProposalConfig(samples=(64, 32), main_samples=21)
 SMOKE_OCCUPANCY = OccupancyPhaseConfig(samples_per_ray=16, steps=20, lr=5e-3, w_g=5e-2)
 SMOKE_GUIDED = GuidedConfig(coarse_samples=8, split=4)
+SMOKE_PROP = ProposalConfig(samples=(16, 8), main_samples=8, anneal_steps=10, update_warmup=10)
 
 
 PROFILES: dict[str, Profile] = {
@@ -608,9 +637,7 @@ PROFILES: dict[str, Profile] = {
         guided=CPU_GUIDED,
         vanilla=VanillaConfig(coarse_samples=32, fine_samples=64),
         grid=GridConfig(resolution=128, march_steps=256),
-        # LeCO's main samples per ray on the city at this profile: 21.2 (8-minute benchmark,
-        # 2026-11-24), so S+Prop's main network does the same work.
-        prop=ProposalConfig(samples=(64, 32), main_samples=21),
+        prop=CPU_PROP,
         # Sized for this machine's minutes (docs/PROFILES.md): 8 levels up to 512 cells a side,
         # 2^16 entries each, and a 4-level background.
         ngp=NGPConfig(
@@ -641,6 +668,13 @@ PROFILES: dict[str, Profile] = {
                 main_samples=42,
             ),
         ),
+        leco_prop=LeCOPropConfig(
+            occupancy=CPU_OCCUPANCY,
+            # O keeps and drops bins as LeCO's does; the proposals, not O's head, place the samples
+            guided=changed(CPU_GUIDED, placement=False, placement_in_phase1=False),
+            # the first level over the kept length only: half S+Prop's 64 over the whole segment
+            prop=changed(CPU_PROP, samples=(32, 32)),
+        ),
         rays_per_device=256,
         main_steps=1500,
         lr=2e-3,
@@ -661,7 +695,7 @@ PROFILES: dict[str, Profile] = {
         guided=SMOKE_GUIDED,
         vanilla=VanillaConfig(coarse_samples=8, fine_samples=16),
         grid=GridConfig(resolution=32, warmup_steps=4, update_every=4, march_steps=64),
-        prop=ProposalConfig(samples=(16, 8), main_samples=8, anneal_steps=10, update_warmup=10),
+        prop=SMOKE_PROP,
         ngp=NGPConfig(
             levels=2,
             log2_table_size=8,
@@ -676,6 +710,7 @@ PROFILES: dict[str, Profile] = {
             ),
         ),
         ngp_leco=NGPLeCOConfig(occupancy=SMOKE_OCCUPANCY, guided=SMOKE_GUIDED),
+        leco_prop=LeCOPropConfig(occupancy=SMOKE_OCCUPANCY, guided=SMOKE_GUIDED, prop=SMOKE_PROP),
         rays_per_device=64,
         main_steps=20,
         lr=5e-3,

@@ -85,7 +85,17 @@ class GuidedDraw:
     edges: Tensor  # (R, n + 1) the coarse bins
 
 
-def draw_guided(
+@dataclass
+class KeptBins:
+    """O's answer for a batch of rays, before any sample is drawn."""
+
+    edges: Tensor  # (R, n + 1) the coarse bins
+    keep: Tensor  # (R, n) the bins to sample: O's decisions dilated, with the fallback
+    occupied_bins: Tensor  # (R, n) O's own decisions (False on rays that miss the box)
+    lost: Tensor  # (R,) hit rays that kept nothing and took the fallback
+
+
+def keep_bins(
     near: Tensor,
     far: Tensor,
     origins: Tensor,
@@ -94,20 +104,17 @@ def draw_guided(
     generator: torch.Generator | None,
     options: BinOptions,
     scores: Callable[[], Tensor] | None = None,
-    place: Callable[[Tensor, Tensor, Tensor], PackedSamples] | None = None,
-) -> GuidedDraw:
-    """LeCO's guided sampling (section 3.4): O keeps or drops each of `options.coarse` bins of a
-    ray, the kept ones are split (BinOptions says how). `scores()`: the decision logits of the last
-    `occupied` call (for the top-k fallback); `place(rows, edges, keep)`: draws the samples of these
-    rows over their kept bins instead of splitting them (model/estimators/placement.py). O is asked
-    about the rays that cross the box only: the others have no bin to keep."""
-    num_coarse, split, queries = options.coarse, options.split, options.queries
-    jitter, dilate, fallback, topk = options.jitter, options.dilate, options.fallback, options.topk
+) -> KeptBins:
+    """O keeps or drops each of `options.coarse` bins of a ray (section 3.4), then dilation and the
+    fallback (BinOptions). `scores()`: the decision logits of the last `occupied` call (for the
+    top-k fallback). O is asked about the rays that cross the box only: the others have no bin to
+    keep."""
+    num_coarse, queries = options.coarse, options.queries
     # coarse bins are fixed; jitter happens inside them
     edges = stratified_edges(near, far, num_coarse, None)
     lo_all, hi_all = edges[:, :-1, None], edges[:, 1:, None]
     u = (torch.arange(queries, device=near.device, dtype=near.dtype) + 0.5) / queries
-    if jitter and generator is not None:
+    if options.jitter and generator is not None:
         u = (
             u
             + (
@@ -129,18 +136,37 @@ def draw_guided(
     if bool(hits.any()):
         asked = occupied(points[hits].reshape(-1, 3)).reshape(-1, num_coarse, queries)
         occupied_bins[hits] = asked.any(dim=-1)
-        if topk > 0 and scores is not None:
+        if options.topk > 0 and scores is not None:
             score = torch.full(t.shape[:2], -torch.inf, device=near.device)
             score[hits] = scores().reshape(-1, num_coarse, queries).amax(dim=-1).to(score.dtype)
-    keep, lost = select_bins(occupied_bins, dilate, fallback, score, topk)
-    keep, lost = keep & hits[:, None], lost & hits
+    keep, lost = select_bins(occupied_bins, options.dilate, options.fallback, score, options.topk)
+    return KeptBins(edges, keep & hits[:, None], occupied_bins, lost & hits)
+
+
+def draw_guided(
+    near: Tensor,
+    far: Tensor,
+    origins: Tensor,
+    directions: Tensor,
+    occupied: Callable[[Tensor], Tensor],
+    generator: torch.Generator | None,
+    options: BinOptions,
+    scores: Callable[[], Tensor] | None = None,
+    place: Callable[[Tensor, Tensor, Tensor], PackedSamples] | None = None,
+) -> GuidedDraw:
+    """LeCO's guided sampling (section 3.4): O keeps or drops each of `options.coarse` bins of a
+    ray (`keep_bins`), the kept ones are split (BinOptions says how). `place(rows, edges, keep)`:
+    draws the samples of these rows over their kept bins instead of splitting them
+    (model/estimators/placement.py)."""
+    bins = keep_bins(near, far, origins, directions, occupied, generator, options, scores)
+    edges, keep, lost, split = bins.edges, bins.keep, bins.lost, options.split
     if place is not None:
         rows = torch.nonzero(keep.any(dim=1))[:, 0]
         drawn = place(rows, edges[rows], keep[rows])
         samples = PackedSamples(drawn.starts, drawn.ends, rows[drawn.ray_index])
-        return GuidedDraw(samples, occupied_bins, lost, edges)
+        return GuidedDraw(samples, bins.occupied_bins, lost, edges)
     counts = torch.full_like(keep, split, dtype=torch.long)
-    if topk == 0:
+    if options.topk == 0:
         counts[lost] = 1
     ray, bin_ = torch.nonzero(keep, as_tuple=True)  # row-major: grouped by ray, increasing t
     samples = split_bins(
@@ -150,7 +176,7 @@ def draw_guided(
         counts[ray, bin_],
         generator if split > 1 else None,
     )
-    return GuidedDraw(samples, occupied_bins, lost, edges)
+    return GuidedDraw(samples, bins.occupied_bins, lost, edges)
 
 
 def guided_samples(

@@ -121,6 +121,27 @@ def prop(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
     }
 
 
+def leco_prop(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
+    """LeCO's phase 1, then S+Prop's main phase with O beside it, trained while it learns online:
+    its queries' activations (one coarse bin point each, an MLP of O's width, as a proposal's are
+    counted) on top of the proposal levels'."""
+    phases, main = leco(profile, num_images), prop(profile, num_images)["main"]
+    n, g = profile.network, profile.guided
+    inner = profile.occupancy.gate_width or n.width
+    o_per_ray = g.coarse_samples * g.queries_per_bin * 4 * (2 * 3 * inner + 100)
+    o = sizes.occupancy_network(profile)
+    return {
+        "occupancy": phases["occupancy"],
+        "main": replace(
+            main,
+            trained=main.trained + (o if g.online else 0),
+            frozen=0 if g.online else o,
+            render_samples_per_ray=max(main.samples_per_ray, profile.occupancy.samples_per_ray),
+            extra_bytes_per_ray=main.extra_bytes_per_ray + o_per_ray,
+        ),
+    }
+
+
 def hash_grid_bytes_per_sample(levels: int, features: int, width: int) -> int:
     """What backward keeps for one sample through a HashField (model/fields/ngp.py): each level's 8
     corner rows (int64) and trilinear weights, the gathered features, and the MLPs' inputs and ReLU
@@ -160,3 +181,7 @@ def ngp_leco(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
 
 def ngp_prop(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
     return on_hash_grids(prop(profile, num_images), profile, num_images)
+
+
+def ngp_leco_prop(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
+    return on_hash_grids(leco_prop(profile, num_images), profile, num_images)

@@ -1,9 +1,9 @@
 """The hash-grid family (the paper's Appendix C): Instant-NGP's field (model/fields/ngp.py) for the
 box and on the contracted space for the background, in place of Switch-NeRF and Mega-NeRF's
 background, under each sampler the Switch-NeRF methods have: `ngp` marches the occupancy grid (the
-paper's NGP), `ngp-leco` follows LeCO's occupancy network (the paper's NGP+Ours) and `ngp-prop`
-the proposal networks. A row and its Switch-NeRF namesake differ only in the main networks, and the
-three rows only in the sampler."""
+paper's NGP), `ngp-leco` follows LeCO's occupancy network (the paper's NGP+Ours), `ngp-prop`
+the proposal networks and `ngp-leco-prop` the proposals inside O's keep. A row and its Switch-NeRF
+namesake differ only in the main networks, and the rows of a family only in the sampler."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from model.fields.ngp import NGPBackground, NGPField
 from model.methods.base import Networks, background, count
 from model.methods.grid import GridMethod
 from model.methods.leco.method import LeCOMethod
+from model.methods.leco_prop import LeCOPropMethod
 from model.methods.prop import ProposalMethod
 from model.profiles import Profile
 
@@ -96,4 +97,8 @@ class NGPLeCOMethod(HashGridNetworks, LeCOMethod):
 
 
 class NGPProposalMethod(HashGridNetworks, ProposalMethod):
+    pass
+
+
+class NGPLeCOPropMethod(HashGridNetworks, LeCOPropMethod):
     pass

@@ -19,7 +19,9 @@ import torch
 from torch import Tensor, nn
 
 from model.estimators.grid import GridEstimator
+from model.estimators.kept_axis import Axis, SegmentAxis
 from model.estimators.proposal import UpdateSchedule, anneal_power, interlevel_loss, pdf_edges
+from model.fields.output import FieldOutput
 from model.fields.proposal import ProposalDensity
 from model.methods.base import Method, Networks, Occupied, Step, SweepPoint, mean_of
 from model.methods.costs import proposal_parameters, proposal_width
@@ -27,8 +29,31 @@ from model.methods.leco.phase1 import render_background
 from model.methods.main_phase import MainRender, grid_step_size, main_loss, render_batched
 from model.profiles import Profile
 from model.render.samples import PackedSamples, pack_edges, stratified_edges
-from model.render.volume import Rendered, batched_weights
+from model.render.volume import Rendered, batched_weights, composite_batched
 from model.scenes.rays import RayBatch
+
+
+def render_on_axis(
+    field: nn.Module, rays: RayBatch, axis: Axis, edges: Tensor, behind: Tensor
+) -> tuple[Rendered, FieldOutput, PackedSamples]:
+    """`render_batched` for intervals on an axis other than the ray's segment: each interval is a
+    sample at t(mid) with its length on the axis as delta (model/estimators/kept_axis.py); also the
+    samples, packed, as [t - delta / 2, t + delta / 2]."""
+    mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
+    t = axis.to_t(mids)
+    r, n = t.shape
+    xyz = rays.origins[:, None] + rays.directions[:, None] * t[..., None]
+    out = field(
+        xyz.reshape(-1, 3),
+        rays.directions.repeat_interleave(n, 0),
+        rays.image_index.repeat_interleave(n, 0),
+    )
+    rendered = composite_batched(
+        out.sigma.reshape(r, n), out.rgb.reshape(r, n, 3), t, deltas, behind
+    )
+    ray = torch.arange(r, device=t.device).repeat_interleave(n)
+    t, half = t.reshape(-1), 0.5 * deltas.reshape(-1)
+    return rendered, out, PackedSamples(t - half, t + half, ray)
 
 
 def scatter(values: Tensor, index: Tensor, size: int, fill: float) -> Tensor:
@@ -47,13 +72,17 @@ class ProposalMethod(Method):
 
     def build(self, num_images: int, aabb: Tensor) -> Networks:
         models = super().build(num_images, aabb)
+        models.proposals = self.proposal_networks()
+        self.aabb = aabb.float()
+        return models
+
+    def proposal_networks(self) -> nn.ModuleList:
+        """One density MLP per proposal level (`prop.samples`)."""
         p, width = self.profile.prop, proposal_width(self.profile)
-        models.proposals = nn.ModuleList(
+        return nn.ModuleList(
             ProposalDensity(width, p.layers, self.profile.network.xyz_frequencies)
             for _ in p.samples
         )
-        self.aabb = aabb.float()
-        return models
 
     def components(self, num_images: int) -> dict[str, int]:
         return {
@@ -116,16 +145,19 @@ class ProposalMethod(Method):
         rays: RayBatch,
         generator: torch.Generator | None,
         phase_step: int | None,
+        axis: Axis | None = None,
     ) -> tuple[list[tuple[Tensor, Tensor]], Tensor]:
         """Each proposal level's (edges, weights) and the main network's edges (R, main_samples +
-        1)."""
+        1), all on `axis` (model/estimators/kept_axis.py; default: each ray's [near, far])."""
         p = self.profile.prop
+        axis = axis if axis is not None else SegmentAxis(rays.near, rays.far)
         anneal = anneal_power(phase_step, p.anneal_steps, p.anneal_slope)
-        edges = stratified_edges(rays.near, rays.far, p.samples[0], generator)
+        edges = stratified_edges(axis.start, axis.end, p.samples[0], generator)
         levels = []
         for i, network in enumerate(models.proposals):
             mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
-            xyz = rays.origins[:, None] + rays.directions[:, None] * mids[..., None]
+            t = axis.to_t(mids)
+            xyz = rays.origins[:, None] + rays.directions[:, None] * t[..., None]
             sigma = network(xyz.reshape(-1, 3)).reshape(mids.shape)
             weights = batched_weights(sigma, deltas)[0]
             levels.append((edges, weights))
@@ -140,14 +172,22 @@ class ProposalMethod(Method):
         hits: Tensor,
         edges: Tensor,
         generator: torch.Generator | None,
+        axis: Axis | None = None,
     ) -> MainRender:
-        """The main network on the hit rays' intervals (`edges`, one row per hit ray, batched as the
-        proposals draw them), composited in front of the background of every ray; a ray that misses
-        the box shows its background. `rendered.weights` is (hit rays, main_samples)."""
+        """The main network on the hit rays' intervals (`edges` on `axis`, one row per hit ray,
+        batched as the proposals draw them), composited in front of the background of every ray; a
+        ray that misses the box shows its background. `rendered.weights` is (hit rays,
+        main_samples)."""
         behind = render_background(
             models.background, rays, self.profile.background.samples, generator
         ).rgb
-        sub, out = render_batched(models.field, rays.subset(hits), edges, behind[hits])
+        if axis is None:
+            sub, out = render_batched(models.field, rays.subset(hits), edges, behind[hits])
+            packed = pack_edges(edges)
+        else:
+            sub, out, packed = render_on_axis(
+                models.field, rays.subset(hits), axis, edges, behind[hits]
+            )
         rendered = Rendered(
             behind.index_copy(0, hits, sub.rgb),
             scatter(sub.depth, hits, len(rays), 0.0),
@@ -155,7 +195,6 @@ class ProposalMethod(Method):
             sub.weights,
             scatter(sub.transmittance, hits, len(rays), 1.0),
         )
-        packed = pack_edges(edges)
         samples = PackedSamples(packed.starts, packed.ends, hits[packed.ray_index])
         return MainRender(rendered, out, len(samples) / max(len(rays), 1), None, samples=samples)
 

@@ -91,6 +91,26 @@ register(
         colour="#8c564b",
     )
 )
+# LeCO decides where not to look, proposals decide where to look (model/methods/leco_prop.py).
+LECO_PROP_SECTIONS = (
+    ("occupancy", "leco_prop.occupancy"),
+    ("guided", "leco_prop.guided"),
+    ("prop", "leco_prop.prop"),
+)
+register(
+    MethodSpec(
+        "leco-prop",
+        "S+LeCO+Prop",
+        "model.methods.leco_prop:LeCOPropMethod",
+        costs.leco_prop,
+        phase_steps=(("occupancy", "occupancy.steps"), ("main", "main_steps")),
+        has_occupancy=True,
+        colour="#ff7f0e",
+        budget_shares=(("occupancy", "occupancy.budget_share"),),
+        budget_min_steps=(("occupancy", "occupancy.min_steps"),),
+        sections=LECO_PROP_SECTIONS,
+    )
+)
 # The hash-grid family (the paper's Appendix C, Table 6): Instant-NGP's field under each sampler,
 # with its own pair of "ours" and "reference".
 register(
@@ -135,5 +155,20 @@ register(
         has_occupancy=True,
         colour="#17becf",
         family="Instant-NGP",
+    )
+)
+register(
+    MethodSpec(
+        "ngp-leco-prop",
+        "NGP+LeCO+Prop",
+        "model.methods.ngp:NGPLeCOPropMethod",
+        costs.ngp_leco_prop,
+        phase_steps=(("occupancy", "occupancy.steps"), ("main", "main_steps")),
+        has_occupancy=True,
+        colour="#bcbd22",
+        budget_shares=(("occupancy", "occupancy.budget_share"),),
+        budget_min_steps=(("occupancy", "occupancy.min_steps"),),
+        family="Instant-NGP",
+        sections=LECO_PROP_SECTIONS,
     )
 )

@@ -21,10 +21,10 @@ from tests.workers.train.test_training import read_metrics
 from workers.config import TrainConfig
 from workers.models import build_models, build_optimizer
 
-FAMILY = ["ngp", "ngp-leco", "ngp-prop"]
+FAMILY = ["ngp", "ngp-leco", "ngp-prop", "ngp-leco-prop"]
 
 
-def test_the_family_is_three_samplers_of_one_field():
+def test_the_family_is_four_samplers_of_one_field():
     assert family_of("ngp-leco") == FAMILY and "ngp" not in family_of("leco")
     profile = TrainConfig(method="ngp", profile="cpu").resolved_profile()
     mains = {get_method(m)(profile).main_components(40)["main.hash_tables"] for m in FAMILY}

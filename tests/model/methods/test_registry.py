@@ -49,15 +49,28 @@ def toy():
 
 
 def test_registry_lists_every_method_once_and_refuses_a_second_owner_of_a_name():
-    assert list(METHODS) == ["leco", "switch", "grid", "prop", "ngp", "ngp-leco", "ngp-prop"]
+    assert list(METHODS) == [
+        "leco",
+        "switch",
+        "grid",
+        "prop",
+        "leco-prop",
+        "ngp",
+        "ngp-leco",
+        "ngp-prop",
+        "ngp-leco-prop",
+    ]
     roles = [get_method(n).role for n in METHODS]
     # each family has its pair: Switch-NeRF's, then the hash grids' (Table 6)
-    assert roles == ["ours", "reference", "baseline", "baseline", "reference", "ours", "baseline"]
+    assert (
+        roles == ["ours", "reference"] + ["baseline"] * 3 + ["reference", "ours"] + ["baseline"] * 2
+    )
 
     with pytest.raises(ValueError, match="'grid' is already registered"):
         register(MethodSpec("grid", "Impostor", UniformSamples, uniform_memory))
     with pytest.raises(
-        ValueError, match="unknown method 'nope': choose one of leco, switch, grid, prop, ngp"
+        ValueError,
+        match="unknown method 'nope': choose one of leco, switch, grid, prop, leco-prop, ngp",
     ):
         TrainConfig(method="nope")
 

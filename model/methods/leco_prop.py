@@ -1,0 +1,132 @@
+"""LeCO+Prop (`leco-prop`): LeCO decides where not to look, proposal networks decide where to look.
+
+Phase 1 trains the HMoE with the paper's losses, as `leco` does (section 3.3). In the main phase O
+keeps or drops each coarse bin of a hit ray (threshold, dilation, top-k fallback and online learning
+as LeCO's, model/estimators/guided.py), and two proposal levels, trained with mip-NeRF 360's
+interlevel loss as in `prop`, place the main samples on the axis O's keep bounds
+(`leco_prop.bound`, model/estimators/kept_axis.py). A keep/drop over fixed bins is a good mask and a
+poor pdf; the proposals are a good pdf that spends most of its first level on empty space. The main
+network starts from phase 1's experts (LeCO's warm start)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from model.estimators.guided import BinOptions, keep_bins
+from model.estimators.kept_axis import Axis, KeptAxis, bounded
+from model.estimators.online import OnlineOccupancy
+from model.estimators.proposal import interlevel_loss
+from model.methods.base import Networks, Step, SweepPoint
+from model.methods.leco.method import LeCOMethod
+from model.methods.main_phase import MainRender, main_loss
+from model.methods.prop import ProposalMethod
+from model.render.samples import PackedSamples
+from model.scenes.rays import RayBatch
+
+
+class LeCOPropMethod(LeCOMethod, ProposalMethod):
+    """LeCO's phase 1, O and warm start (LeCOMethod) with S+Prop's proposal levels
+    (ProposalMethod): each inherited piece is the one its owner has, and the main step is here."""
+
+    def build(self, num_images: int, aabb: Tensor) -> Networks:
+        models = LeCOMethod.build(self, num_images, aabb)
+        models.proposals = self.proposal_networks()
+        self.aabb = aabb.float()
+        return models
+
+    def sweep(self) -> list[SweepPoint]:
+        return ProposalMethod.sweep(self)  # the proposals place a fixed budget per hit ray
+
+    def step(self, models: Networks, step: Step) -> tuple[Tensor, dict]:
+        if step.phase == "occupancy":
+            return LeCOMethod.step(self, models, step)
+        learn = self.schedule.due(step.phase_step)
+        render, levels, edges = self.draw(models, step.rays, step.generator, step.phase_step, learn)
+        loss, parts = main_loss(
+            render,
+            step.rays,
+            self.profile.balance_weight,
+            self.profile.guided.coarse_samples,
+            self.distortion_weight(),
+        )
+        hits = int((step.rays.far > step.rays.near).sum())
+        parts["proposal_samples_per_ray"] = (
+            float(sum(self.profile.prop.samples)) * hits / max(len(step.rays), 1)
+        )
+        # only the proposals get this gradient: the main weights are detached inside
+        if learn and hits:
+            l_prop = interlevel_loss(edges, render.rendered.weights, levels)
+            loss = loss + self.profile.prop.loss_weight * l_prop
+            parts["interlevel_loss"] = float(l_prop.detach())
+            parts["loss"] = float(loss.detach())
+        return loss, parts
+
+    def render_main(
+        self,
+        models: Networks,
+        rays: RayBatch,
+        generator: torch.Generator | None,
+        phase_step: int | None,
+    ) -> MainRender:
+        return self.draw(models, rays, generator, phase_step, learn=False)[0]
+
+    def draw(
+        self,
+        models: Networks,
+        rays: RayBatch,
+        generator: torch.Generator | None,
+        phase_step: int | None,
+        learn: bool,
+    ) -> tuple[MainRender, list[tuple[Tensor, Tensor]], Tensor]:
+        """The main render on the axis O bounds, the proposal levels (with gradient when `learn`)
+        and the main samples' edges on that axis; O's keep/drop loss comes back with the render
+        while O learns (model/estimators/online.py)."""
+        g, bound = self.profile.guided, self.profile.leco_prop.bound
+        hits = self.hits(rays)
+        sub = rays.subset(hits)
+        axis: Axis | None = None
+        learner: OnlineOccupancy | None = None
+        stats: dict[str, float] = {}
+        if bound != "off":  # the control arm asks O nothing
+            query = self.main_query()
+            keeps = phase_step is not None and g.online_learns(phase_step)
+            query.learn = keeps
+            learner = query if keeps and isinstance(query, OnlineOccupancy) else None
+            with torch.no_grad():
+                bins = keep_bins(
+                    sub.near,
+                    sub.far,
+                    sub.origins,
+                    sub.directions,
+                    query.occupied,
+                    generator,
+                    BinOptions.of(g),
+                    query.scores,
+                )
+            axis = kept = KeptAxis.of(bins.edges, bounded(bins.keep, bound))
+            if len(sub):
+                share = kept.length() / (sub.far - sub.near)
+                stats = {
+                    "o_kept_ratio": float(bins.occupied_bins.float().mean()),
+                    "fallback_fraction": float(bins.lost.float().mean()),
+                    "bounded_length": float(share.mean()),
+                }
+        with torch.set_grad_enabled(learn):
+            levels, edges = self.propose(models, sub, generator, phase_step, axis)
+        render = self.render_on(models, rays, hits, edges, generator, axis)
+        render.stats.update(stats)
+        if learner is not None and render.samples is not None:
+            local = render.samples
+            order = torch.arange(len(sub), device=hits.device)
+            local = PackedSamples(
+                local.starts, local.ends, order.repeat_interleave(edges.shape[1] - 1)
+            )
+            weights = render.rendered.weights.reshape(-1)
+            render.occupancy_loss = learner.loss(local, weights, sub, g.coarse_samples)
+        return render, levels, edges
+
+    def trained_modules(self, models: Networks, phase: str) -> list[nn.Module]:
+        if phase == "occupancy":
+            return LeCOMethod.trained_modules(self, models, phase)
+        return ProposalMethod.trained_modules(self, models, phase)
