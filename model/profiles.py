@@ -533,11 +533,26 @@ class LeCOPropConfig(Frozen):
     then proposal networks that sample only where O lets them. It reads these in place of
     `occupancy`, `guided` and `prop`, which are `leco`'s and `prop`'s."""
 
-    bound: Literal["range", "mask", "off"] = Field(
+    bound: Literal["range", "mask", "level", "off"] = Field(
         "range",
         description="where O lets the proposals sample: range, each ray from its first kept bin "
-        "to its last; mask, the kept bins only, end to end; off, the whole segment (S+Prop after "
-        "phase 1 and the warm start: the control)",
+        "to its last; mask, the kept bins only, end to end; level, as mask with O's placement "
+        "histogram over them as the first proposal level (needs leco_prop.guided.placement); off, "
+        "the whole segment (S+Prop after phase 1 and the warm start: the control)",
+    )
+    explore: float = Field(
+        0.0,
+        ge=0,
+        lt=1,
+        description="a bin outside the bound keeps this share of its length on the proposals' "
+        "axis, so a few samples look where O says nothing is and O can learn a surface it missed "
+        "(0: none)",
+    )
+    prop_in_phase1: bool = Field(
+        False,
+        description="the proposals already learn in phase 1, from the HMoE's detached weights "
+        "over the whole segment (the interlevel loss), so the main phase starts with proposals "
+        "that know where the weight lies",
     )
     occupancy: OccupancyPhaseConfig = Field(
         OccupancyPhaseConfig(), description="leco-prop's phase 1 (as `occupancy` is leco's)"
@@ -550,6 +565,15 @@ class LeCOPropConfig(Frozen):
     prop: ProposalConfig = Field(
         ProposalConfig(), description="leco-prop's proposal levels (as `prop` is S+Prop's)"
     )
+
+    @model_validator(mode="after")
+    def level_needs_placement(self) -> "LeCOPropConfig":
+        if self.bound == "level" and not self.guided.placement:
+            raise ValueError(
+                "leco_prop.bound=level draws the first level from O's placement histogram: set "
+                "leco_prop.guided.placement=true too"
+            )
+        return self
 
 
 class Profile(Frozen):

@@ -62,16 +62,25 @@ def bounded(keep: Tensor, bound: str) -> Tensor:
 
 @dataclass
 class KeptAxis:
-    """s over the kept bins of each ray laid end to end: [0, kept length]."""
+    """s over the kept bins of each ray laid end to end: [0, kept length]. With `explore` > 0 a
+    dropped bin is not skipped but shrunk to that share of its length, so about that share of a
+    uniform draw looks where O says nothing is (`leco_prop.explore`): a surface O dropped can catch
+    weight there and O, learning online from the main weights, learns to keep it. A sample there
+    has its delta shrunk alike, so the field needs a higher density to stop the ray in it."""
 
     edges: Tensor  # (R, B + 1) the coarse bins in t
-    keep: Tensor  # (R, B) the bins the axis runs over
-    s_edges: Tensor  # (R, B + 1) each bin's edges in s (a dropped bin is zero long)
+    keep: Tensor  # (R, B) the bins the axis runs over at full length
+    scale: Tensor  # (R, B) each bin's length on the axis per unit of t (1 kept, `explore` dropped)
+    s_edges: Tensor  # (R, B + 1) each bin's edges in s (a dropped bin is zero long without explore)
 
     @classmethod
-    def of(cls, edges: Tensor, keep: Tensor) -> "KeptAxis":
-        width = (edges[:, 1:] - edges[:, :-1]) * keep
-        return cls(edges, keep, torch.cat([torch.zeros_like(width[:, :1]), width.cumsum(-1)], -1))
+    def of(cls, edges: Tensor, keep: Tensor, explore: float = 0.0) -> "KeptAxis":
+        # a ray that keeps nothing (it missed the box) gets no length at all
+        anything = keep.any(dim=1, keepdim=True)
+        scale = torch.where(keep, 1.0, explore * anything).to(edges.dtype)
+        width = (edges[:, 1:] - edges[:, :-1]) * scale
+        s_edges = torch.cat([torch.zeros_like(width[:, :1]), width.cumsum(-1)], -1)
+        return cls(edges, keep, scale, s_edges)
 
     @property
     def start(self) -> Tensor:
@@ -82,18 +91,21 @@ class KeptAxis:
         return self.s_edges[:, -1]
 
     def to_t(self, s: Tensor) -> Tensor:
-        """Depths (R, M) of axis coordinates (R, M). A coordinate where a dropped bin separates two
-        kept ones goes to the start of the later one (`right=True` picks the last bin starting at or
-        before s: the dropped bins before it are zero long and start there too); the end of the
-        axis goes to the end of the last kept bin, not to dropped bins after it."""
+        """Depths (R, M) of axis coordinates (R, M). A coordinate where a zero-long dropped bin
+        separates two kept ones goes to the start of the later one (`right=True` picks the last bin
+        starting at or before s: the dropped bins before it start there too); the end of the axis
+        goes to the end of the last bin it runs over, not to zero-long bins after it."""
         b = self.keep.shape[1]
         s_edges = self.s_edges.contiguous()
         bin_ = (torch.searchsorted(s_edges, s.contiguous(), right=True) - 1).clamp(0, b - 1)
-        # only past the last kept bin can that land on a dropped one: take the bin that ends there
+        # only past the last bin with length can that land on a zero-long one: take the bin that
+        # ends there
         ending = torch.searchsorted(s_edges[:, 1:].contiguous(), s.contiguous()).clamp(0, b - 1)
-        bin_ = torch.where(self.keep.gather(1, bin_), bin_, ending)
-        return self.edges.gather(1, bin_) + (s - self.s_edges.gather(1, bin_))
+        scale = self.scale.gather(1, bin_)
+        bin_ = torch.where(scale > 0, bin_, ending)
+        scale = self.scale.gather(1, bin_).clamp(min=1e-30)
+        return self.edges.gather(1, bin_) + (s - self.s_edges.gather(1, bin_)) / scale
 
     def length(self) -> Tensor:
-        """(R,) each ray's kept length in t units."""
+        """(R,) each ray's length on the axis."""
         return self.end - self.start

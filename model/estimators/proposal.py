@@ -30,14 +30,21 @@ def pdf_edges(
     generator: torch.Generator | None,
     anneal: float = 1.0,
     padding: float = 0.01,
+    support: Tensor | None = None,
 ) -> Tensor:
     """(R, n + 1) sorted edges of n new intervals placed by the piecewise-constant pdf of `weights`
     (R, M) over `edges` (R, M + 1): u at n + 1 stratified levels of the CDF (jittered with a
     generator), each mapped back to t. `padding` is added to every weight first (nerfstudio's
-    histogram padding), so no bin is unreachable."""
+    histogram padding), so no bin is unreachable; with `support` (R, M) bool, only to the bins in
+    it, and the others get nothing (zero-long bins of a kept axis, where a sample would be
+    wasted)."""
     w = weights.detach().float().clamp(min=0) ** anneal + padding
-    # a row with no weight: uniform, not NaN
-    w = torch.where(w.sum(-1, keepdim=True) > 0, w, torch.ones_like(w))
+    inside = torch.ones_like(w)
+    if support is not None:  # a row with an empty support draws from every bin
+        inside = torch.where(support.any(-1, keepdim=True), support.to(w.dtype), inside)
+    w = w * inside
+    # a row with no weight: uniform over the support, not NaN
+    w = torch.where(w.sum(-1, keepdim=True) > 0, w, inside)
     cumulative = torch.cat([torch.zeros_like(w[:, :1]), w.cumsum(-1)], -1)
     cdf = cumulative / cumulative[:, -1:]
     r, device = len(edges), edges.device

@@ -130,8 +130,15 @@ def leco_prop(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
     inner = profile.occupancy.gate_width or n.width
     o_per_ray = g.coarse_samples * g.queries_per_bin * 4 * (2 * 3 * inner + 100)
     o = sizes.occupancy_network(profile)
+    phase1 = phases["occupancy"]
+    if profile.leco_prop.prop_in_phase1:  # the proposals already learn beside the HMoE
+        phase1 = replace(
+            phase1,
+            trained=phase1.trained + proposal_parameters(profile),
+            extra_bytes_per_ray=phase1.extra_bytes_per_ray + main.extra_bytes_per_ray,
+        )
     return {
-        "occupancy": phases["occupancy"],
+        "occupancy": phase1,
         "main": replace(
             main,
             trained=main.trained + (o if g.online else 0),

@@ -10,18 +10,24 @@ network starts from phase 1's experts (LeCO's warm start)."""
 
 from __future__ import annotations
 
+from functools import partial
+
 import torch
 from torch import Tensor, nn
 
 from model.estimators.guided import BinOptions, keep_bins
 from model.estimators.kept_axis import Axis, KeptAxis, bounded
+from model.estimators.occupancy import OccupancyQuery
 from model.estimators.online import OnlineOccupancy
 from model.estimators.proposal import interlevel_loss
 from model.methods.base import Networks, Step, SweepPoint
+from model.methods.leco.guided_render import phase1_placement_loss
 from model.methods.leco.method import LeCOMethod
+from model.methods.leco.phase1 import occupancy_step
 from model.methods.main_phase import MainRender, main_loss
 from model.methods.prop import ProposalMethod
 from model.render.samples import PackedSamples
+from model.render.volume import Rendered, batched_weights
 from model.scenes.rays import RayBatch
 
 
@@ -40,7 +46,19 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
 
     def step(self, models: Networks, step: Step) -> tuple[Tensor, dict]:
         if step.phase == "occupancy":
-            return LeCOMethod.step(self, models, step)
+            if not self.profile.leco_prop.prop_in_phase1:
+                return LeCOMethod.step(self, models, step)
+            warm = partial(self.phase1_sampler_loss, models, step)
+            return occupancy_step(
+                models.hmoe,
+                models.occupancy_background,
+                step.rays,
+                self.profile.occupancy,
+                self.profile.background.samples,
+                step.generator,
+                step.progress,
+                ("interlevel_loss", warm),
+            )
         learn = self.schedule.due(step.phase_step)
         render, levels, edges = self.draw(models, step.rays, step.generator, step.phase_step, learn)
         loss, parts = main_loss(
@@ -86,12 +104,14 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
         hits = self.hits(rays)
         sub = rays.subset(hits)
         axis: Axis | None = None
+        first: tuple[Tensor, Tensor, Tensor] | None = None
         learner: OnlineOccupancy | None = None
         stats: dict[str, float] = {}
         if bound != "off":  # the control arm asks O nothing
             query = self.main_query()
             keeps = phase_step is not None and g.online_learns(phase_step)
-            query.learn = keeps
+            # in the level form O's histogram is a proposal level: it learns when they do
+            query.learn = keeps or (learn and bound == "level")
             learner = query if keeps and isinstance(query, OnlineOccupancy) else None
             with torch.no_grad():
                 bins = keep_bins(
@@ -104,7 +124,11 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
                     BinOptions.of(g),
                     query.scores,
                 )
-            axis = kept = KeptAxis.of(bins.edges, bounded(bins.keep, bound))
+            explore = self.profile.leco_prop.explore
+            support = bounded(bins.keep, "mask" if bound == "level" else bound)
+            axis = kept = KeptAxis.of(bins.edges, support, explore)
+            if bound == "level":  # O's placement histogram over its kept bins: the first level
+                first = (kept.s_edges, self.o_histogram(query, kept), kept.s_edges.diff() > 0)
             if len(sub):
                 share = kept.length() / (sub.far - sub.near)
                 stats = {
@@ -113,7 +137,7 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
                     "bounded_length": float(share.mean()),
                 }
         with torch.set_grad_enabled(learn):
-            levels, edges = self.propose(models, sub, generator, phase_step, axis)
+            levels, edges = self.propose(models, sub, generator, phase_step, axis, first)
         render = self.render_on(models, rays, hits, edges, generator, axis)
         render.stats.update(stats)
         if learner is not None and render.samples is not None:
@@ -126,7 +150,34 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
             render.occupancy_loss = learner.loss(local, weights, sub, g.coarse_samples)
         return render, levels, edges
 
+    def o_histogram(self, query: OccupancyQuery, axis: KeptAxis) -> Tensor:
+        """(R, B) the render weights of O's placement densities over the coarse bins on the kept
+        axis (a dropped bin is zero long there, so it holds none), with gradient while O learns."""
+        if query.sigma is None:
+            raise ValueError("leco_prop.bound=level needs O's placement head (guided.placement)")
+        b = axis.keep.shape[1]
+        sigma = query.sigma.reshape(len(axis.keep), b, -1).mean(dim=-1)
+        return batched_weights(sigma, axis.s_edges.diff())[0]
+
+    def phase1_sampler_loss(
+        self, models: Networks, step: Step, rendered: Rendered, edges: Tensor
+    ) -> Tensor:
+        """`leco_prop.prop_in_phase1`: the proposals over each hit ray's whole segment must bound
+        the HMoE's detached render weights (`rendered` on `edges`, mip-NeRF 360's eq. 13); with O's
+        placement head (the level form), its histogram must too (LeCO's phase-1 placement loss)."""
+        hits = self.hits(step.rays)
+        levels, _ = self.propose(models, step.rays.subset(hits), step.generator, step.phase_step)
+        loss = self.profile.prop.loss_weight * interlevel_loss(
+            edges[hits], rendered.weights[hits], levels
+        )
+        g = self.profile.guided
+        if g.placement and g.placement_in_phase1:
+            gate = models.hmoe.gate
+            loss = loss + phase1_placement_loss(gate, step.rays, g, step.generator, rendered, edges)
+        return loss
+
     def trained_modules(self, models: Networks, phase: str) -> list[nn.Module]:
         if phase == "occupancy":
-            return LeCOMethod.trained_modules(self, models, phase)
+            warm = [models.proposals] if self.profile.leco_prop.prop_in_phase1 else []
+            return LeCOMethod.trained_modules(self, models, phase) + warm
         return ProposalMethod.trained_modules(self, models, phase)

@@ -146,14 +146,24 @@ class ProposalMethod(Method):
         generator: torch.Generator | None,
         phase_step: int | None,
         axis: Axis | None = None,
+        first: tuple[Tensor, Tensor, Tensor] | None = None,
     ) -> tuple[list[tuple[Tensor, Tensor]], Tensor]:
         """Each proposal level's (edges, weights) and the main network's edges (R, main_samples +
-        1), all on `axis` (model/estimators/kept_axis.py; default: each ray's [near, far])."""
+        1), all on `axis` (model/estimators/kept_axis.py; default: each ray's [near, far]).
+        `first`: a level given in place of stratified samples, (edges, weights, support), which the
+        first network's samples are drawn from (LeCO+Prop's `level` form: O's histogram)."""
         p = self.profile.prop
         axis = axis if axis is not None else SegmentAxis(rays.near, rays.far)
         anneal = anneal_power(phase_step, p.anneal_steps, p.anneal_slope)
-        edges = stratified_edges(axis.start, axis.end, p.samples[0], generator)
         levels = []
+        if first is None:
+            edges = stratified_edges(axis.start, axis.end, p.samples[0], generator)
+        else:
+            given, weights, support = first
+            levels.append((given, weights))
+            edges = pdf_edges(
+                given, weights, p.samples[0], generator, anneal, p.histogram_padding, support
+            )
         for i, network in enumerate(models.proposals):
             mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
             t = axis.to_t(mids)

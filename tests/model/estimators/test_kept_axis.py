@@ -59,3 +59,19 @@ def test_the_segment_axis_is_the_ray_itself():
     axis = SegmentAxis(near, far)
     x = torch.rand(2, 5)
     assert axis.to_t(x) is x and axis.start is near and axis.end is far
+
+
+def test_with_explore_a_dropped_bin_keeps_a_share_of_its_length_and_maps_back_to_itself():
+    edges = torch.linspace(2.0, 8.0, 7).expand(4, 7).contiguous()
+    axis = KeptAxis.of(edges, KEEP, explore=0.1)
+    # two kept bins of 1 and four dropped of 0.1; a ray that keeps nothing gets no length at all
+    assert torch.allclose(axis.length(), torch.tensor([2.4, 6.0, 1.5, 0.0]))
+    # the first dropped bin ([2, 3]) is s in [0, 0.1]: its middle is t = 2.5; the kept bin after
+    # it ([3, 4]) is s in [0.1, 1.1]
+    t = axis.to_t(torch.tensor([[0.05, 0.6, 1.15, 2.35]] * 4))[0]
+    assert torch.allclose(t, torch.tensor([2.5, 3.5, 4.5, 7.5]))
+    # a uniform draw puts about 0.4 / 2.4 of its samples in the dropped bins
+    s = torch.rand(1, 20_000) * 2.4
+    t = axis.to_t(torch.cat([s, s, s, s]))[0]
+    in_dropped = ~KEEP[0][(t - 2.0).floor().long().clamp(0, 5)]
+    assert abs(float(in_dropped.float().mean()) - 0.4 / 2.4) < 0.01

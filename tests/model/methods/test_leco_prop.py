@@ -48,9 +48,10 @@ def test_both_families_have_a_leco_prop_that_reads_its_own_sections():
     assert profile.leco_prop.bound == "range"
 
 
-@pytest.mark.parametrize("bound", ["range", "mask"])
+@pytest.mark.parametrize("bound", ["range", "mask", "level"])
 def test_no_main_sample_lies_outside_the_bins_o_lets_the_proposals_use(bound, tiny_scene):
-    method, models, rays = started(tiny_scene, **{"leco_prop.bound": bound})
+    placement = {"leco_prop.guided.placement": bound == "level"}
+    method, models, rays = started(tiny_scene, **{"leco_prop.bound": bound, **placement})
     with torch.no_grad():
         render = method.render_main(models, rays, None, None)  # deterministic: no jitter
         hit = torch.nonzero(rays.far > rays.near)[:, 0]
@@ -65,7 +66,7 @@ def test_no_main_sample_lies_outside_the_bins_o_lets_the_proposals_use(bound, ti
             BinOptions.of(method.profile.guided),
             method.query.scores,
         )
-    allowed = bounded(bins.keep, bound)
+    allowed = bounded(bins.keep, "mask" if bound == "level" else bound)
     samples = render.samples
     row = torch.searchsorted(hit, samples.ray_index)  # the hit ray each sample belongs to
     t = samples.mids
@@ -77,7 +78,7 @@ def test_no_main_sample_lies_outside_the_bins_o_lets_the_proposals_use(bound, ti
     )
     positive = samples.deltas > 0  # zero-long intervals hold no weight wherever they are
     assert (allowed[row, b] | on_edge | ~positive).all()
-    if bound == "mask":  # O drops some bins between kept ones on this untrained O
+    if bound != "range":  # O drops some bins between kept ones on this untrained O
         assert bool((bounded(bins.keep, "range") & ~bins.keep).any())
     # a ray that misses the box shows its background alone
     missed = rays.far <= rays.near
@@ -105,6 +106,52 @@ def test_a_step_trains_both_proposal_levels_and_o_on_the_bounded_axis(tiny_scene
         assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in level.parameters())
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in models.hmoe.gate.parameters())
     assert parts["samples_per_hit_ray"] == method.profile.prop.main_samples
+
+
+def test_phase_1_can_warm_the_proposals_on_the_hmoes_weights(tiny_scene):
+    method, models, rays = started(tiny_scene, **{"leco_prop.prop_in_phase1": True})
+    assert models.proposals in method.trained_modules(models, "occupancy")
+    g = torch.Generator().manual_seed(0)
+    loss, parts = method.step(models, Step("occupancy", rays, g, 0.0, 0, seed=0))
+    loss.backward()
+    assert parts["interlevel_loss"] > 0 and "imbalanced_gate_loss" in parts
+    for level in models.proposals:
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in level.parameters())
+    # off (the default), phase 1 is LeCO's and the proposals wait for the main phase
+    method, models, rays = started(tiny_scene)
+    assert models.proposals not in method.trained_modules(models, "occupancy")
+    loss, parts = method.step(models, Step("occupancy", rays, g, 0.0, 0, seed=0))
+    assert "interlevel_loss" not in parts
+
+
+def test_explore_sends_a_share_of_the_samples_outside_the_bound(tiny_scene):
+    method, models, rays = started(tiny_scene, **{"leco_prop.explore": 0.2})
+    render = method.render_main(models, rays, None, None)
+    plain = started(tiny_scene)
+    bounded_only = plain[0].render_main(plain[1], plain[2], None, None)
+    # the axis is longer by a fifth of what the bound left out
+    assert render.stats["bounded_length"] > bounded_only.stats["bounded_length"]
+    assert render.stats["bounded_length"] <= 1.0
+
+
+def test_in_the_level_form_os_histogram_is_the_first_level_and_learns_with_the_proposals(
+    tiny_scene,
+):
+    overrides = {"leco_prop.bound": "level", "leco_prop.guided.placement": True}
+    method, models, rays = started(tiny_scene, **overrides)
+    g = torch.Generator().manual_seed(0)
+    render, levels, edges = method.draw(models, rays, g, 0, learn=True)
+    coarse = method.profile.guided.coarse_samples
+    # O's coarse bins, then one level per proposal network
+    assert [e.shape[1] - 1 for e, _ in levels] == [coarse, *method.profile.prop.samples]
+    loss = method.step(models, Step("main", rays, g, 0.0, 0, seed=0))[0]
+    loss.backward()
+    head = models.hmoe.gate
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in head.parameters())
+    with pytest.raises(ValueError, match="leco_prop.bound=level .* set leco_prop.guided.placement"):
+        TrainConfig(
+            method="leco-prop", profile="smoke", overrides={"leco_prop.bound": "level"}
+        ).resolved_profile()
 
 
 def test_a_ray_with_nothing_kept_renders_its_background_without_nans(tiny_scene):
