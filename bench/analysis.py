@@ -75,6 +75,36 @@ def time_to_psnr(points: list[tuple[float, float]], target: float) -> float | No
     return None
 
 
+TRACKED_STEPS = (1000, 2000, 4000, 8000)  # main steps the tracked curve is read at
+
+
+def psnr_at_main_step(run: dict, step: int) -> float | None:
+    """The tracked validation PSNR at main-phase step `step`, linearly interpolated between the
+    evaluations around it; None before the first or after the last (a run that never got there)."""
+    points = [
+        (p["phase_step"], p["val_psnr"])
+        for p in run["curve"]
+        if p.get("phase") == "main" and "val_psnr" in p and "phase_step" in p
+    ]
+    for (s0, v0), (s1, v1) in zip(points, points[1:]):
+        if s0 <= step <= s1:
+            return v0 if s1 == s0 else v0 + (step - s0) / (s1 - s0) * (v1 - v0)
+    return None
+
+
+def tracked_by_step(runs: list[dict]) -> dict[str, dict[int, tuple[float | None, float | None]]]:
+    """Per variant, the tracked PSNR at each of TRACKED_STEPS (mean and std over seeds; a seed that
+    did not get there is left out)."""
+    names = dict.fromkeys(r["variant"] for r in runs)
+    return {
+        n: {
+            step: mean_std([psnr_at_main_step(r, step) for r in runs if r["variant"] == n])
+            for step in TRACKED_STEPS
+        }
+        for n in names
+    }
+
+
 def mean_std(values: list[float | None]) -> tuple[float | None, float | None]:
     finite = [v for v in values if v is not None and math.isfinite(v)]
     if not finite:

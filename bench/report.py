@@ -11,6 +11,7 @@ from pathlib import Path
 import torch
 
 from bench.analysis import (
+    TRACKED_STEPS,
     families,
     get,
     layer_recalls,
@@ -20,6 +21,7 @@ from bench.analysis import (
     per_variant,
     roles,
     time_to_psnr,
+    tracked_by_step,
 )
 from bench.variants import ABLATIONS, RUNGS, TABLE_REFERENCES
 from model.methods import METHODS
@@ -488,6 +490,22 @@ def paper_tables(numbers: list[str]) -> str:
     return f"Tables {', '.join(numbers[:-1])} and {numbers[-1]}"
 
 
+def tracked_table(runs: list[dict], names: list[str], labels: dict) -> str:
+    """The tracked validation PSNR at fixed main steps, beside the main steps and phase-1 time
+    each run got: a sampler that is ahead at equal steps but behind at equal time pays in cost."""
+    at = tracked_by_step(runs)
+    steps = per_variant(runs, "steps.phases.main")
+    phase1 = per_variant(runs, "wall_time_s.phases.occupancy")
+    rows = [
+        [labels[n]]
+        + [cell(at[n][step], ".2f") for step in TRACKED_STEPS]
+        + [cell(steps[n], ",.0f"), cell(phase1[n], ".0f")]
+        for n in names
+    ]
+    header = ["method"] + [f"PSNR at main step {s:,}" for s in TRACKED_STEPS]
+    return table(header + ["main steps", "phase 1 (s)"], rows)
+
+
 def family_sections(block: dict, labels: dict, plan: dict, several: bool) -> list[str]:
     """A family's "ours" against the other methods of its family: speed-ups, equal PSNR, targets.
     With several families each section names the family it judges."""
@@ -626,6 +644,13 @@ def write_report(results: dict, out: Path) -> None:
             "Peak memory is the process's peak RSS on a CPU (runtime, scene and weights included) "
             "and `torch.cuda.max_memory_allocated` on a GPU; activations are the bytes autograd "
             "keeps for one main-network step (workers/memory.py).",
+            "",
+            "## The tracked curve at equal main steps",
+            "",
+            tracked_table(runs, main, labels),
+            "",
+            "The tracked validation views' PSNR interpolated between evaluations (n/a: the run "
+            "stopped before that step).",
             "",
         ]
     for block in results.get("families") or [results]:

@@ -61,6 +61,25 @@ def fake_run(variant, seed, curve, **summary):
     }
 
 
+def test_the_tracked_curve_is_read_at_equal_main_steps():
+    from bench.analysis import psnr_at_main_step, tracked_by_step
+
+    def run(variant, seed, points):
+        curve = [{"phase": "occupancy", "phase_step": 0, "val_psnr": 9.0}]
+        curve += [{"phase": "main", "phase_step": s, "val_psnr": v} for s, v in points]
+        return {"variant": variant, "seed": seed, "curve": curve}
+
+    a0 = run("a", 0, [(500, 20.0), (1500, 22.0), (4500, 25.0)])
+    a1 = run("a", 1, [(800, 21.0), (2000, 24.0)])
+    assert psnr_at_main_step(a0, 1000) == 21.0  # halfway from 500 to 1500
+    assert psnr_at_main_step(a0, 4000) == 24.5
+    assert psnr_at_main_step(a0, 8000) is None and psnr_at_main_step(a0, 100) is None
+    at = tracked_by_step([a0, a1])["a"]
+    assert at[1000] == (pytest.approx(21.25), pytest.approx(0.3535534, rel=1e-5))
+    assert at[4000] == (24.5, None)  # seed 1 stopped before step 4,000
+    assert at[8000] == (None, None)
+
+
 def test_equal_psnr_speedups_and_targets_from_curves():
     runs = [
         fake_run(
