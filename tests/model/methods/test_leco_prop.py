@@ -176,7 +176,9 @@ def test_the_control_arm_asks_o_nothing_and_samples_the_whole_segment(tiny_scene
 
 
 @pytest.mark.parametrize("method", ["leco-prop", "ngp-leco-prop"])
-def test_each_leco_prop_trains_through_leco_train(method, tiny_scene, tmp_path, capsys):
+def test_each_leco_prop_trains_renders_and_exports_through_the_cli(
+    method, tiny_scene, tmp_path, capsys
+):
     out = tmp_path / "run"
     args = ["train", "--scene", str(tiny_scene.root), "--method", method, "--profile", "smoke"]
     args += ["--out", str(out), "--backend", "local", "--set", "main_steps=12"]
@@ -189,6 +191,19 @@ def test_each_leco_prop_trains_through_leco_train(method, tiny_scene, tmp_path, 
     assert main(["model", "info", "--method", method, "--profile", "smoke", "--json"]) == 0
     components = json.loads(capsys.readouterr().out)["components"]
     assert components["proposal_networks"] > 0 and components["occupancy_network"] > 0
+    # a finished run renders a video along a camera path and exports O's occupancy and its points
+    from workers.render.video import probe
+
+    video = tmp_path / "orbit.mp4"
+    render = ["render", "--run", str(out), "--frames", "2", "--size", "32x24", "--fps", "4"]
+    assert main(render + ["--out", str(video)]) == 0
+    assert probe(video)["frames"] == 2 and probe(video)["width"] == 32
+    for what, name in (("occupancy", "occupancy.ply"), ("pointcloud", "pointcloud.ply")):
+        folder = tmp_path / what
+        export = ["export", what, "--run", str(out), "--out", str(folder), "--stride", "4"]
+        assert main(export + ["--min-opacity", "0", "--resolution", "16"]) == 0
+        assert (folder / name).stat().st_size > 100
+    capsys.readouterr()
 
 
 def test_a_killed_leco_prop_run_resumes_from_its_checkpoint(tiny_scene, tmp_path):
