@@ -7,7 +7,8 @@ set -euo pipefail
 work="${1:-$(mktemp -d)}"
 leco=".venv/bin/python -m cli"   # the checkout in the working directory, not the editable install
 [ -d "$work/tiny-0" ] || $leco scene synth --preset tiny --seed 0 --out "$work/tiny-0" >/dev/null
-for method in ${METHODS:-leco switch grid prop leco-prop ngp ngp-leco ngp-prop ngp-leco-prop}; do
+for method in leco switch grid prop leco-prop ngp ngp-leco ngp-prop ngp-leco-prop; do
+  case " ${METHODS:-$method} " in *" $method "*) ;; *) continue ;; esac
   rm -rf "$work/run-$method"
   $leco train --scene "$work/tiny-0" --method "$method" --profile smoke --backend local \
     --out "$work/run-$method" >/dev/null 2>&1
