@@ -24,7 +24,7 @@ from model.methods.base import Networks, Step, SweepPoint
 from model.methods.leco.guided_render import phase1_placement_loss
 from model.methods.leco.method import LeCOMethod
 from model.methods.leco.phase1 import occupancy_step
-from model.methods.main_phase import MainRender, main_loss
+from model.methods.main_phase import MainRender
 from model.methods.prop import ProposalMethod
 from model.render.samples import PackedSamples
 from model.render.volume import Rendered, batched_weights
@@ -61,24 +61,7 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
             )
         learn = self.schedule.due(step.phase_step)
         render, levels, edges = self.draw(models, step.rays, step.generator, step.phase_step, learn)
-        loss, parts = main_loss(
-            render,
-            step.rays,
-            self.profile.balance_weight,
-            self.profile.guided.coarse_samples,
-            self.distortion_weight(),
-        )
-        hits = int((step.rays.far > step.rays.near).sum())
-        parts["proposal_samples_per_ray"] = (
-            float(sum(self.profile.prop.samples)) * hits / max(len(step.rays), 1)
-        )
-        # only the proposals get this gradient: the main weights are detached inside
-        if learn and hits:
-            l_prop = interlevel_loss(edges, render.rendered.weights, levels)
-            loss = loss + self.profile.prop.loss_weight * l_prop
-            parts["interlevel_loss"] = float(l_prop.detach())
-            parts["loss"] = float(loss.detach())
-        return loss, parts
+        return self.loss_with_proposals(render, step.rays, levels, edges, learn)
 
     def render_main(
         self,

@@ -114,18 +114,31 @@ class ProposalMethod(Method):
                 models, step.rays.subset(hits), step.generator, step.phase_step
             )
         render = self.render_on(models, step.rays, hits, edges, step.generator)
+        return self.loss_with_proposals(render, step.rays, levels, edges, learn)
+
+    def loss_with_proposals(
+        self,
+        render: MainRender,
+        rays: RayBatch,
+        levels: list[tuple[Tensor, Tensor]],
+        edges: Tensor,
+        learn: bool,
+    ) -> tuple[Tensor, dict]:
+        """The main loss, plus the interlevel loss on a step the proposals learn (`levels` and the
+        main `edges` of the hit rays, as `propose` returns them)."""
         loss, parts = main_loss(
             render,
-            step.rays,
+            rays,
             self.profile.balance_weight,
             self.profile.guided.coarse_samples,
             self.distortion_weight(),
         )
+        hits = len(edges)
         parts["proposal_samples_per_ray"] = (
-            float(sum(self.profile.prop.samples)) * len(hits) / max(len(step.rays), 1)
+            float(sum(self.profile.prop.samples)) * hits / max(len(rays), 1)
         )
         # only the proposals get this gradient: the main weights are detached inside
-        if learn and len(hits):
+        if learn and hits:
             l_prop = interlevel_loss(edges, render.rendered.weights, levels)
             loss = loss + self.profile.prop.loss_weight * l_prop
             parts["interlevel_loss"] = float(l_prop.detach())
