@@ -330,6 +330,7 @@ def test_bench_smoke_on_the_tiny_city(tiny_scene, tmp_path, capsys, monkeypatch)
         "switch",
         "grid",
         "prop",
+        "leco-prop",
         "leco-homogeneous",
         "leco-no-density-loss",
         "grid-256",
@@ -419,16 +420,18 @@ def test_bench_smoke_on_the_tiny_city(tiny_scene, tmp_path, capsys, monkeypatch)
     capsys.readouterr()
     assert bench("--scene", str(tiny_scene.root), "--out", str(out), "--sweep") == 0
     # the defaults are the middle points
-    assert capsys.readouterr().err.count("finished earlier, reusing") == 4
+    assert capsys.readouterr().err.count("finished earlier, reusing") == 5
     results = json.loads((out / "results.json").read_text())
     swept = {r["variant"]: r["summary"] for r in results["runs"] if r.get("sweep")}
     # sweep points are not compared methods
-    assert len(swept) == 9 and list(results["speedups"]) == ["switch", "grid", "prop"]
+    assert len(swept) == 11
+    assert list(results["speedups"]) == ["switch", "grid", "prop", "leco-prop"]
     spr = lambda name: (swept.get(name) or runs[name]["summary"])["samples_per_ray"]
     assert spr("switch-sweep-lean") < spr("switch") < spr("switch-sweep-rich")
     assert spr("grid-sweep-lean") < spr("grid") < spr("grid-sweep-rich")
     assert spr("leco-sweep-lean") < spr("leco") < spr("leco-sweep-rich")
     assert spr("prop-sweep-lean") < spr("prop") < spr("prop-sweep-rich")
+    assert spr("leco-prop-sweep-lean") < spr("leco-prop") < spr("leco-prop-sweep-rich")
     assert {"speed_vs_error", "sweep_psnr_vs_time"} <= set(results["figures"])
     report = (out / "report.md").read_text()
     assert "## Speed against error" in report and "| S-NeRF* (vanilla) (default) |" in report
