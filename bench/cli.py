@@ -18,8 +18,13 @@ def bench_command(args: argparse.Namespace) -> int:
         return suite_command(args)
     if not args.scene:
         raise SystemExit("leco bench: name a scene (--scene DIR) or a suite (--suite NAME)")
-    if args.scenes:
-        raise SystemExit("leco bench: --scenes narrows a suite; with --scene, drop it")
+    for flag, value in (
+        ("--scenes", args.scenes),
+        ("--commit", args.commit),
+        ("--records", args.records),
+    ):
+        if value:
+            raise SystemExit(f"leco bench: {flag} goes with --suite; with --scene, drop it")
     from model.methods import family_of, with_role
 
     if args.methods is None:
@@ -195,7 +200,15 @@ def suite_command(args: argparse.Namespace) -> int:
             None if args.seeds is None else parse_seeds(args.seeds),
             [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None,
         )
-        summary = run_suite(suite, Path(args.out), args.set or [], suite_command_line(args), log)
+        summary = run_suite(
+            suite,
+            Path(args.out),
+            args.set or [],
+            suite_command_line(args),
+            log,
+            rev=args.commit or "HEAD",
+            records=Path(args.records) if args.records else None,
+        )
     except ValueError as error:
         raise SystemExit(f"leco bench: {error}") from None
     except LecoError as error:
@@ -212,6 +225,8 @@ def suite_command_line(args: argparse.Namespace) -> str:
         ("--methods", args.methods),
         ("--seeds", args.seeds),
         ("--scenes", args.scenes),
+        ("--commit", args.commit),
+        ("--records", args.records),
     ):
         if value:
             words += [flag, value]
@@ -283,6 +298,16 @@ def add_commands(commands) -> None:
     )
     bench.add_argument(
         "--scenes", help="with --suite: comma-separated scene names of the suite to run"
+    )
+    bench.add_argument(
+        "--commit",
+        help="with --suite: the commit to freeze and train (default HEAD), e.g. the one a "
+        "committed records folder was made at",
+    )
+    bench.add_argument(
+        "--records",
+        help="with --suite: the folder of finished runs the tables are read from and new runs "
+        "are added to (default OUT/records); commit it to finish the suite in a later checkout",
     )
     bench.add_argument("--profile", default="cpu", help="smoke | cpu | paper (default: cpu)")
     bench.add_argument("--out", required=True, help="output folder; finished runs in it are reused")

@@ -4,8 +4,10 @@ over scenes per method.
 
 `dev` holds the scenes settings are chosen on, `held-out` the scenes a default must not get worse
 on (docs/BENCHMARKS.md, "Choosing a default"). A suite's folder holds the frozen source
-(`source/`, one commit for every run), one `leco bench` folder per scene (`scenes/NAME/`, whose
-finished runs are reused when the command is run again), `suite.json` and `report.md`.
+(`source/`, one commit for every run), one `leco bench` folder per scene and seed
+(`scenes/NAME/seedK/`, whose finished runs are reused when the command is run again), the records
+the tables are read from (`records/`, or a folder named with `--records` that a later checkout can
+continue: bench/suite_records.py), `suite.json` and `report.md`.
 """
 
 from __future__ import annotations
@@ -18,11 +20,20 @@ import sys
 import time
 import tomllib
 from pathlib import Path
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from bench.analysis import get, mean_std
 from bench.scenes import check_name, missing_reason, resolve
+from bench.suite_records import (
+    add_runs,
+    condensed,
+    open_records,
+    recorded_runs,
+    reusable,
+    spec_of,
+)
 from model.errors import Failed, InvalidInput
 
 ROOT = Path(__file__).resolve().parents[1]  # the checkout this module belongs to
@@ -136,17 +147,18 @@ def git(root: Path, *args: str) -> str:
     return done.stdout.strip()
 
 
-def freeze(out: Path, root: Path, log) -> dict:
-    """The committed code (HEAD) copied to OUT/source once, so every run of the suite trains the
-    same code while the checkout changes. A folder frozen at another commit is refused."""
-    commit = git(root, "rev-parse", "HEAD")
-    dirty = bool(git(root, "status", "--porcelain", "--untracked-files=no"))
+def freeze(out: Path, root: Path, log, rev: str = "HEAD") -> dict:
+    """The committed code (REV, HEAD unless named) copied to OUT/source once, so every run of the
+    suite trains the same code while the checkout changes. A folder frozen at another commit is
+    refused."""
+    commit = git(root, "rev-parse", "--verify", f"{rev}^{{commit}}")
+    dirty = rev == "HEAD" and bool(git(root, "status", "--porcelain", "--untracked-files=no"))
     stamp_file, source = out / "source.json", out / "source"
     if stamp_file.exists():
         stamp = json.loads(stamp_file.read_text())
         if stamp["commit"] != commit:
             raise InvalidInput(
-                f"{out} holds runs of commit {stamp['commit'][:10]}, HEAD is {commit[:10]}: a "
+                f"{out} holds runs of commit {stamp['commit'][:10]}, not {commit[:10]}: a "
                 "suite's runs come from one commit; choose another --out"
             )
         return stamp
@@ -173,10 +185,18 @@ def freeze(out: Path, root: Path, log) -> dict:
     return stamp
 
 
-def scene_command(suite: Suite, scene: SuiteScene, folder: Path, out: Path, sets: list[str]):
-    """The `leco bench` command one scene of the suite runs (from the frozen source)."""
+def scene_command(
+    suite: Suite,
+    scene: SuiteScene,
+    folder: Path,
+    out: Path,
+    sets: list[str],
+    methods: list[str],
+    seed: int,
+) -> list[str]:
+    """The `leco bench` command training METHODS at SEED on one scene (from the frozen source)."""
     words = ["bench", "--scene", str(folder), "--profile", suite.profile, "--out", str(out)]
-    words += ["--methods", ",".join(suite.methods), "--seeds", ",".join(map(str, suite.seeds))]
+    words += ["--methods", ",".join(methods), "--seeds", str(seed)]
     words += ["--eval-views", str(scene.eval_views)]
     if scene.budget_min is not None:
         words += ["--budget-min", f"{scene.budget_min:g}"]
@@ -187,31 +207,60 @@ def scene_command(suite: Suite, scene: SuiteScene, folder: Path, out: Path, sets
     return words
 
 
-def run_suite(suite: Suite, out: Path, sets: list[str], command: str, log, root: Path = ROOT):
-    """Every scene of the suite in turn from a frozen copy of HEAD, then suite.json and report.md.
-    Scenes that cannot be found or built are named before anything trains."""
+def run_suite(
+    suite: Suite,
+    out: Path,
+    sets: list[str],
+    command: str,
+    log,
+    root: Path = ROOT,
+    rev: str = "HEAD",
+    records: Path | None = None,
+):
+    """Every scene and seed of the suite in turn from a frozen copy of REV, each (scene, seed)'s
+    finished runs kept in the records folder (OUT/records unless named), then suite.json and
+    report.md from the records. Scenes that cannot be found or built are named before anything
+    trains; runs the records already hold are not trained again."""
     missing = [r for r in (missing_reason(s.name, root) for s in suite.scenes) if r]
     if missing:
         raise InvalidInput("; ".join(missing))
     # The scenes train from the frozen copy; the tables are written by this process after hours in
     # which the checkout may change: their code is imported now, as committed when the suite began.
-    from bench.report import machine  # noqa: F401
+    from bench.report import machine
     from bench.suite_report import write_report
 
-    stamp = freeze(out, root, log)
+    stamp = freeze(out, root, log, rev)
+    records = records or out / "records"
+    open_records(records, suite.name, stamp["commit"])
     source = out / "source"
     env = {**os.environ, "PYTHONPATH": str(source)}
     for scene in suite.scenes:
         folder = resolve(scene.name, root, log).resolve()
-        words = scene_command(suite, scene, folder, (out / "scenes" / scene.name).resolve(), sets)
-        log(f"[suite] {scene.name}: leco {' '.join(words)}")
-        done = subprocess.run([sys.executable, "-m", "cli.main", *words], cwd=source, env=env)
-        if done.returncode != 0:
-            raise Failed(
-                f"scene {scene.name}: leco bench exited {done.returncode}; its finished runs are "
-                "kept and the same command continues from them"
-            )
-    summary = aggregate(suite, out, stamp, command)
+        for seed in suite.seeds:
+            specs = {m: spec_of(suite, scene, seed, m, sets) for m in suite.methods}
+            have = reusable(recorded_runs(records, scene.name, seed), specs)
+            todo = [m for m in suite.methods if m not in have]
+            if not todo:
+                log(f"[suite] {scene.name} seed {seed}: every run is in {records}")
+                continue
+            bench_out = (out / "scenes" / scene.name / f"seed{seed}").resolve()
+            words = scene_command(suite, scene, folder, bench_out, sets, todo, seed)
+            log(f"[suite] {scene.name} seed {seed}: leco {' '.join(words)}")
+            done = subprocess.run([sys.executable, "-m", "cli.main", *words], cwd=source, env=env)
+            if done.returncode != 0:
+                raise Failed(
+                    f"scene {scene.name} seed {seed}: leco bench exited {done.returncode}; its "
+                    "finished runs are kept and the same command continues from them"
+                )
+            results = json.loads((bench_out / "results.json").read_text())
+            line = "leco " + " ".join(words)
+            runs = [
+                condensed(r, specs[r["variant"]], machine(), line, results["occupancy_reference"])
+                for r in results["runs"]
+                if r["variant"] in specs
+            ]
+            add_runs(records, scene.name, seed, runs)
+    summary = aggregate(suite, records, stamp, command, sets)
     (out / "suite.json").write_text(json.dumps(summary, indent=1))
     write_report(summary, out / "report.md")
     return summary
@@ -255,29 +304,36 @@ def run_row(runs: list[dict]) -> dict:
     }
 
 
-def aggregate(suite: Suite, out: Path, stamp: dict, command: str) -> dict:
+def aggregate(suite: Suite, records: Path, stamp: dict, command: str, sets: list[str]) -> dict:
     """suite.json: per scene, a row per method; and per method, the mean over the scenes."""
-    from bench.report import machine
-
-    scenes = {}
+    scenes: dict[str, dict[str, Any]] = {}
+    machines: dict[str, bool] = {}
     for scene in suite.scenes:
-        results = json.loads((out / "scenes" / scene.name / "results.json").read_text())
         by_variant: dict[str, list[dict]] = {}
-        for r in results["runs"]:
-            by_variant.setdefault(r["variant"], []).append(r)
+        for seed in suite.seeds:
+            specs = {m: spec_of(suite, scene, seed, m, sets) for m in suite.methods}
+            have = reusable(recorded_runs(records, scene.name, seed), specs)
+            for name in suite.methods:
+                by_variant.setdefault(name, []).append(have[name])
+        runs = [r for rs in by_variant.values() for r in rs]
+        for r in runs:
+            machines[machine_line(r["machine"])] = True
         scenes[scene.name] = {
             "budget_min": scene.budget_min,
-            "occupancy_reference": results["occupancy_reference"],
-            "command": results["command"],
-            "rows": {name: run_row(runs) for name, runs in by_variant.items()},
+            "occupancy_reference": "; ".join(dict.fromkeys(r["occupancy_reference"] for r in runs)),
+            "commands": list(dict.fromkeys(r["command"] for r in runs)),
+            "trained_on": sorted(
+                {f"{r['trained_on']}, {machine_line(r['machine'])}" for r in runs}
+            ),
+            "rows": {name: run_row(rs) for name, rs in by_variant.items()},
         }
     methods = {}
     for name in suite.methods:
-        psnrs = [s["rows"][name]["psnr"] for s in scenes.values() if name in s["rows"]]
-        ranks = [rank_of(s["rows"], name) for s in scenes.values() if name in s["rows"]]
+        psnrs = [s["rows"][name]["psnr"] for s in scenes.values()]
+        ranks = [rank_of(s["rows"], name) for s in scenes.values()]
         methods[name] = {
-            "label": next(s["rows"][name]["label"] for s in scenes.values() if name in s["rows"]),
-            "mean_psnr": mean_std(psnrs)[0] if len(psnrs) == len(scenes) else None,
+            "label": next(s["rows"][name]["label"] for s in scenes.values()),
+            "mean_psnr": mean_std(psnrs)[0] if None not in psnrs else None,
             "scenes": len(psnrs),
             "mean_rank": mean_std([r for r in ranks if r is not None])[0],
             "best_on": [n for n, s in scenes.items() if rank_of(s["rows"], name) == 1],
@@ -287,11 +343,17 @@ def aggregate(suite: Suite, out: Path, stamp: dict, command: str) -> dict:
         "commit": stamp["commit"],
         "dirty_checkout": stamp["dirty_checkout"],
         "command": command,
-        "machine": machine(),
+        "records": str(records),
+        "machines": list(machines),
         "finished_at": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
         "scenes": scenes,
         "methods": methods,
     }
+
+
+def machine_line(m: dict) -> str:
+    gpu = f", {m['gpu']}" if m.get("gpu") else ""
+    return f"{m['cpu']}, {m['cores']} cores{gpu}; torch {m['torch']}"
 
 
 def rank_of(rows: dict, name: str) -> int | None:

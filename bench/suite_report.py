@@ -71,7 +71,7 @@ def scene_table(scene: dict) -> str:
 
 
 def write_report(summary: dict, path: Path) -> None:
-    suite, m = summary["suite"], summary["machine"]
+    suite = summary["suite"]
     parts = [
         f"# Suite `{suite['name']}`",
         "",
@@ -80,9 +80,8 @@ def write_report(summary: dict, path: Path) -> None:
         f"- commit {summary['commit'][:10]} (a frozen copy"
         + (", the checkout had uncommitted changes" if summary["dirty_checkout"] else "")
         + f"); profile `{suite['profile']}`; seeds {', '.join(map(str, suite['seeds']))}",
-        f"- machine: {m['cpu']}, {m['cores']} cores{', ' + m['gpu'] if m.get('gpu') else ''}; "
-        f"torch {m['torch']}; {summary['finished_at']}",
-        f"- command: `{summary['command']}`",
+        f"- machine: {'; or '.join(summary['machines'])}; written {summary['finished_at']}",
+        f"- command: `{summary['command']}`; records: `{summary['records']}`",
         "- PSNR, SSIM and LPIPS on the validation views at the end of the budget, mean over the "
         "seeds; occupancy against the scene's ground truth where it has one. The tracked column "
         "is the validation PSNR during training (a few views): its best and when, and where the "
@@ -99,7 +98,9 @@ def write_report(summary: dict, path: Path) -> None:
             f"## {name}",
             "",
             (f"{budget:g} minutes per run" if budget else "the profile's step counts")
-            + f"; occupancy reference: {scene['occupancy_reference']}.",
+            + f"; occupancy reference: {scene['occupancy_reference']}. Trained "
+            + "; ".join(scene["trained_on"])
+            + ".",
             "",
             scene_table(scene),
             "",

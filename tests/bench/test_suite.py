@@ -4,13 +4,23 @@ to end at the smoke profile from a frozen copy."""
 
 import json
 import re
+import shutil
 
 import pytest
 
 from bench.scenes import DATASETS, SYNTHETIC, check_name, folder, missing_reason
 from bench.suite import Suite, available, freeze, load_suite, narrowed, rank_of
+from bench.suite_records import (
+    add_runs,
+    condensed,
+    open_records,
+    record_path,
+    recorded_runs,
+    reusable,
+    spec_of,
+)
 from cli.main import main
-from model.errors import InvalidInput
+from model.errors import Failed, InvalidInput
 from model.scenes.synthetic import PRESETS
 from tests.helpers import ROOT
 
@@ -116,6 +126,63 @@ def test_a_suite_folder_keeps_the_commit_it_was_frozen_at(tmp_path):
         freeze(tmp_path, ROOT, print)
 
 
+def test_a_suite_can_freeze_a_named_commit_and_refuses_one_that_is_not(tmp_path):
+    head = freeze(tmp_path / "a", ROOT, print)["commit"]
+    named = freeze(tmp_path / "b", ROOT, print, head[:12])
+    assert named["commit"] == head  # the full hash is kept
+    assert named["dirty_checkout"] is False  # a named commit is what it is, whatever the checkout
+    with pytest.raises(Failed, match="rev-parse"):
+        freeze(tmp_path / "c", ROOT, print, "no-such-commit")
+
+
+def toy_run(variant: str, seed: int, psnr: float) -> dict:
+    curve = [
+        {"step": 10, "phase": "main", "psnr": 12.0},
+        {"step": 20, "phase": "main", "wall_time_s": 30.0, "val_psnr": psnr},
+    ]
+    return {
+        "variant": variant,
+        "method": variant.split("+")[0],
+        "label": variant,
+        "seed": seed,
+        "summary": {"val": {"psnr": psnr}},
+        "curve": curve,
+    }
+
+
+def test_records_keep_one_suite_at_one_commit_and_give_back_only_runs_of_the_asked_spec(tmp_path):
+    suite = load_suite("held-out")
+    scene = suite.scenes[0]
+    records = tmp_path / "records"
+    open_records(records, "held-out", "a" * 40)
+    open_records(records, "held-out", "a" * 40)  # the same suite and commit: taken again
+    with pytest.raises(InvalidInput, match="holds runs of suite held-out at commit bbbbbbbbbb"):
+        open_records(records, "held-out", "b" * 40)
+    with pytest.raises(InvalidInput, match="not dev at"):
+        open_records(records, "dev", "a" * 40)
+
+    spec = lambda method, sets=(): spec_of(suite, scene, 1, method, list(sets))
+    machine = {"cpu": "toy", "cores": 2, "torch": "x"}
+    runs = [
+        condensed(toy_run(m, 1, 20.0 + i), spec(m), machine, "leco bench ...", "exact")
+        for i, m in enumerate(["leco", "prop"])
+    ]
+    assert [p["step"] for p in runs[0]["curve"]] == [20]  # tracked validations only
+    add_runs(records, scene.name, 1, runs)
+    assert recorded_runs(records, scene.name, 0) == []  # another seed: nothing recorded
+    asked = {"leco": spec("leco"), "prop": spec("prop", ["guided.dilate=2"]), "grid": spec("grid")}
+    assert set(reusable(recorded_runs(records, scene.name, 1), asked)) == {"leco"}
+    # a run trained again replaces the recorded one of its method, and keeps the others
+    add_runs(records, scene.name, 1, [{**runs[0], "summary": {"val": {"psnr": 25.0}}}])
+    kept = {
+        r["variant"]: r["summary"]["val"]["psnr"] for r in recorded_runs(records, scene.name, 1)
+    }
+    assert kept == {"leco": 25.0, "prop": 21.0}
+    record_path(records, scene.name, 1).write_text("{")
+    with pytest.raises(InvalidInput, match="not a suite record"):
+        recorded_runs(records, scene.name, 1)
+
+
 def test_rank_counts_the_rows_ahead():
     rows = {"a": {"psnr": 20.0}, "b": {"psnr": 22.0}, "c": {"psnr": None}, "d": {"psnr": 21.0}}
     assert [rank_of(rows, n) for n in "abcd"] == [3, 1, None, 2]
@@ -160,3 +227,18 @@ def test_a_suite_runs_end_to_end_at_the_smoke_profile(tmp_path, monkeypatch, cap
     assert main(["bench", "--suite", path, "--out", str(out)]) == 0
     again = json.loads((out / "suite.json").read_text())
     assert {n: s["rows"]["leco"]["psnr"] for n, s in again["scenes"].items()} == first
+    # another checkout continues from committed records at the commit they were made at: a third
+    # method trains, the recorded ones do not
+    records = tmp_path / "committed-records"
+    shutil.copytree(out / "records", records)
+    capsys.readouterr()
+    words = ["bench", "--suite", path, "--out", str(tmp_path / "later"), "--records", str(records)]
+    words += ["--commit", summary["commit"], "--methods", "leco,switch,prop", "--scenes", "tiny-0"]
+    assert main(words) == 0
+    log = capsys.readouterr().err
+    # the suite asks its one `leco bench` for the method the records lack, and for nothing else
+    assert log.count("[suite] tiny-0 seed 0: leco bench") == 1 and "--methods prop " in log
+    later = json.loads((tmp_path / "later" / "suite.json").read_text())
+    assert later["scenes"]["tiny-0"]["rows"]["leco"]["psnr"] == first["tiny-0"]
+    assert set(later["scenes"]["tiny-0"]["rows"]) == {"leco", "switch", "prop"}
+    assert {r["variant"] for r in recorded_runs(records, "tiny-0", 0)} == {"leco", "switch", "prop"}
