@@ -26,7 +26,7 @@ test: $(STAMP)
 	$(BIN)/ruff check model workers service bench cli tests
 	$(BIN)/ruff format --check model workers service bench cli tests
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q --durations=15
+	$(BIN)/python -m pytest -q --durations=40
 
 clean:
 	rm -rf $(VENV) scenes runs leco-data .pytest_cache
