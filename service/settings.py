@@ -33,7 +33,8 @@ class Settings(BaseModel):
     scene_queue: int = Field(4, ge=0)
     # Upload bodies are received before a registration takes a place above: at most this many at
     # once (more: 429), each cut off (408) when it sends nothing for upload_idle_s or, past its
-    # first upload_idle_s, averages under upload_min_bytes_per_s.
+    # first upload_idle_s, averages under upload_min_bytes_per_s. Every other request body (JSON)
+    # is cut off by the same two deadlines (service/api/gate.py).
     upload_receivers: int = Field(8, ge=1)
     # ... of which one client address may hold this many
     upload_receivers_per_client: int = Field(2, ge=1)
@@ -44,6 +45,9 @@ class Settings(BaseModel):
     # connections beyond max_connections are closed as they arrive.
     header_timeout_s: float = Field(10.0, gt=0, le=3600)
     max_connections: int = Field(2048, ge=16, le=1_000_000)
+    # /v1 requests one bearer token may have unfinished at once (more: 429), so one client cannot
+    # take every connection and worker thread (service/api/gate.py)
+    max_requests_per_token: int = Field(256, ge=1, le=1_000_000)
     # The dashboard viewer's renders (POST /v1/jobs/{id}/view): processes rendering at once, and
     # requests that may wait for one (more: 429). One process keeps the last few jobs' networks
     # loaded.
@@ -151,6 +155,7 @@ class Settings(BaseModel):
             ("upload_receivers_per_client", "LECO_UPLOAD_RECEIVERS_PER_CLIENT"),
             ("upload_min_bytes_per_s", "LECO_UPLOAD_MIN_BYTES_PER_S"),
             ("header_timeout_s", "LECO_HEADER_TIMEOUT_S"),
+            ("max_requests_per_token", "LECO_MAX_REQUESTS_PER_TOKEN"),
             ("max_connections", "LECO_MAX_CONNECTIONS"),
         ):
             if env.get(name):

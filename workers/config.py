@@ -14,6 +14,7 @@ from pydantic import (
     ConfigDict,
     Field,
     PrivateAttr,
+    StrictInt,
     ValidationError,
     field_validator,
     model_validator,
@@ -51,7 +52,7 @@ class TrainConfig(BaseModel):
         description='profile settings by dotted key, e.g. {"occupancy.steps": 200} '
         "(`leco settings` lists them)",
     )
-    workers: int = Field(
+    workers: StrictInt = Field(
         1,
         ge=1,
         le=MAX_WORKERS,
@@ -65,8 +66,8 @@ class TrainConfig(BaseModel):
         description="wall-clock budget for the whole run (both phases), in minutes; None: the "
         "profile's steps",
     )
-    seed: int = Field(0, ge=0, le=2**31 - 1, description="seeds weights, rays and samples")
-    downscale: int | None = Field(
+    seed: StrictInt = Field(0, ge=0, le=2**31 - 1, description="seeds weights, rays and samples")
+    downscale: StrictInt | None = Field(
         None,
         ge=1,
         le=64,
@@ -74,13 +75,13 @@ class TrainConfig(BaseModel):
         "alike (None: the scene's own scale; for LLFF its smallest images_N folder); the paper "
         "uses 4 on Mega-NeRF scenes",
     )
-    checkpoint_every: int = Field(
+    checkpoint_every: StrictInt = Field(
         200, ge=1, le=MAX_STEPS, description="steps between checkpoints (a restart resumes there)"
     )
-    metrics_every: int = Field(
+    metrics_every: StrictInt = Field(
         10, ge=1, le=MAX_STEPS, description="steps between rows of the metrics log"
     )
-    val_every: int | None = Field(
+    val_every: StrictInt | None = Field(
         None,
         ge=10,
         le=MAX_STEPS,
@@ -93,10 +94,10 @@ class TrainConfig(BaseModel):
         description="validation PSNR/SSIM (and occupancy metrics while one is learned) every this "
         "many seconds of training time and at each phase's end; not counted as training time",
     )
-    eval_views: int = Field(
+    eval_views: StrictInt = Field(
         4, ge=1, le=1000, description="validation views each periodic evaluation renders"
     )
-    val_appearance_steps: int = Field(
+    val_appearance_steps: StrictInt = Field(
         32,
         ge=0,
         le=1000,
@@ -104,13 +105,13 @@ class TrainConfig(BaseModel):
         "left halves for this many steps with the networks frozen (0: the training embeddings' "
         "mean)",
     )
-    max_failures: int = Field(
+    max_failures: StrictInt = Field(
         3,
         ge=0,
         le=100,
         description="worker-group restarts Ray Train may make from the last checkpoint",
     )
-    max_nonfinite_steps: int = Field(
+    max_nonfinite_steps: StrictInt = Field(
         20,
         ge=1,
         le=10_000,

@@ -21,6 +21,7 @@ from service.api import (
     artifacts,
     camera_paths,
     dashboard,
+    docs,
     health,
     job_kinds,
     jobs,
@@ -54,6 +55,9 @@ log = logging.getLogger("leco.api")
 # The HTTP status of each kind of error (model/errors.py), and the kinds worth retrying.
 STATUSES = {"invalid": 422, "conflict": 409, "busy": 429, "unavailable": 503, "failed": 500}
 RETRY_KINDS = ("busy", "unavailable")
+# /metrics labels come from fixed sets: any other method a client sends counts as "other", a path no
+# route matches as "unmatched", so requests cannot add labels (series) without bound
+HTTP_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
 
 
 class RequestStats:
@@ -79,9 +83,8 @@ class RequestStats:
             await self.app(scope, receive, send_status)
         finally:
             route = scope.get("route")
-            self.stats["count"][
-                (scope["method"], getattr(route, "path", "unmatched"), str(status))
-            ] += 1
+            method = scope["method"] if scope["method"] in HTTP_METHODS else "other"
+            self.stats["count"][(method, getattr(route, "path", "unmatched"), str(status))] += 1
             self.stats["seconds"] += time.perf_counter() - started
 
 
@@ -99,6 +102,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         title="LeCO-NeRF Service",
         version="1",
         lifespan=lifespan,
+        # FastAPI's pages load Swagger UI and ReDoc from a CDN; ours serves them itself (docs.py)
+        docs_url=None,
+        redoc_url=None,
         description="Register scenes, submit LeCO-NeRF / Switch-NeRF / occupancy-grid training "
         "jobs, follow their metrics, download their artifacts.",
     )
@@ -122,6 +128,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(v1)
     app.include_router(health.router)
     app.include_router(dashboard.router)
+    app.include_router(docs.router)
 
     app.add_middleware(Gatekeeper)  # token, then body size, before any route reads the body
     app.add_middleware(SecurityHeaders)

@@ -7,6 +7,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.responses import FileResponse, Response
 from sqlalchemy import select
 
+from service.api.conditional import none_match_fails
 from service.api.deps import RowId, not_found, settings_of
 from service.api.jobs import get_job
 from service.api.links import artifact_links, links
@@ -88,7 +89,7 @@ def download(
 ) -> Response:
     meta = find_artifact(settings, artifact_id)
     etag = f'"{meta["sha256"]}"'
-    if etag in [t.strip() for t in request.headers.get("if-none-match", "").split(",")]:
+    if none_match_fails(request.headers.get("if-none-match"), etag):
         return Response(status_code=304, headers={"ETag": etag})
     try:
         path = ArtifactStore(settings.db_url, settings.artifacts).verified_path(meta)

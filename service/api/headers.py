@@ -1,7 +1,8 @@
 """Security headers on every answer: no MIME sniffing, no framing (clickjacking), no referrer; and
 on the dashboard a Content-Security-Policy that allows only its own files, so an injected `<script>`
 or `onerror=` in any text it shows cannot run (it has no inline script; charts set inline styles).
-Pictures and videos it fetched with the token are shown through blob: URLs (img-src, media-src)."""
+Pictures and videos it fetched with the token are shown through blob: URLs (img-src, media-src).
+The API docs page (/docs) runs under the same policy: its scripts are served from this origin."""
 
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ class SecurityHeaders:
             return await self.app(scope, receive, send)
         extra = COMMON + (
             [(b"content-security-policy", DASHBOARD_CSP)]
-            if scope["path"].startswith("/dashboard")
+            if scope["path"].startswith(("/dashboard", "/docs"))
             else []
         )
 

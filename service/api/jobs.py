@@ -18,6 +18,7 @@ from model.memory_estimate import RUNTIME_BYTES, describe, estimate_peak_bytes
 from model.scenes.folders import folder_factor
 from service import queue
 from service.api.deps import MAX_INT, RowId, SettingsDep, not_found, poll_cache_of
+from service.api.feasibility import check_feasible
 from service.api.links import (
     cancelled_job_links,
     deleted_job_links,
@@ -40,6 +41,16 @@ from workers.config import TrainConfig
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 # an in-flight key older than this belonged to a request that died
 STALE_IN_FLIGHT = timedelta(minutes=5)
+# an Idempotency-Key is answered for this long after its first request, then forgotten
+KEY_TTL = timedelta(hours=24)
+KEY_HEADER = Header(
+    None,
+    min_length=1,
+    max_length=255,
+    pattern=r"^[\x21-\x7e]+$",
+    description="1-255 visible ASCII characters, scoped to the bearer token that sends it; the "
+    "answer is replayed for 24 hours",
+)
 
 
 def job_out(session: Session, job: Job) -> JobOut:
@@ -193,7 +204,9 @@ def create_job(
     with reading(settings.db_url) as session:  # the estimate runs outside the write transaction
         scene = find_scene(session, body.scene)
         info = {} if scene is None else (scene.info or {})
-    check_downscale(cfg, scene.name if scene is not None else "", info.get("image_folder_factors"))
+    name = scene.name if scene is not None else ""
+    check_downscale(cfg, name, info.get("image_folder_factors"))
+    check_feasible(cfg, settings, name, info)
     check_resources(cfg, settings, info.get("cameras") or 1000)
     with transaction(settings.db_url) as session:
         scene = find_scene(session, body.scene)
@@ -227,18 +240,22 @@ def record_answer(session: Session, key: str, status: int, payload: dict) -> Non
     responses={
         **links(201, submitted_job_links()),
         409: {"description": "a request with this Idempotency-Key is still in flight"},
-        422: {"description": "invalid body, or the Idempotency-Key was used with another body"},
+        410: {"description": "the job this Idempotency-Key created was deleted"},
+        422: {
+            "description": "invalid body, an invalid Idempotency-Key, or one used with another body"
+        },
     },
 )
 def submit(
     body: JobRequest,
     request: Request,
     settings: SettingsDep,
-    idempotency_key: str | None = Header(None, max_length=255),
+    idempotency_key: str | None = KEY_HEADER,
 ) -> JSONResponse:
     if idempotency_key is None:
         status, payload = create_job_or_error(body, settings)
         return submitted(request, status, payload)
+    idempotency_key = stored_key(request.headers.get("authorization", ""), idempotency_key)
     digest = hashlib.sha256(
         json.dumps(body.model_dump(mode="json"), sort_keys=True).encode()
     ).hexdigest()
@@ -277,11 +294,23 @@ def create_job_or_error(
         return error.status_code, {"detail": error.detail}
 
 
+def stored_key(authorization: str, key: str) -> str:
+    """The key as stored: hashed with the bearer token that sent it, so two clients' keys never
+    meet (and a key's answer is never shown to another token)."""
+    token = authorization.partition(" ")[2].strip()
+    return hashlib.sha256(f"{token}\n{key}".encode()).hexdigest()
+
+
 def begin_idempotent(settings: Settings, key: str, digest: str) -> JSONResponse | None:
-    """Records the key as in flight (None: go on), or answers for it: the stored response, 422 for
-    another body, 409 while the first request is still in flight."""
+    """Records the key as in flight (None: go on), or answers for it: the job it created as it is
+    now (410 once deleted), the stored refusal, 422 for another body, 409 while the first request
+    is still in flight. Keys older than KEY_TTL are forgotten first."""
     try:
         with transaction(settings.db_url) as session:
+            session.execute(
+                delete(IdempotencyKey).where(IdempotencyKey.created_at < utcnow() - KEY_TTL),
+                execution_options={"synchronize_session": False},
+            )
             row = session.get(IdempotencyKey, key)
             if (
                 row is not None
@@ -325,7 +354,15 @@ def begin_idempotent(settings: Settings, key: str, digest: str) -> JSONResponse 
         )
     if row.status_code is None:  # record_answer sets it together with state 'done'
         raise RuntimeError(f"Idempotency-Key {key!r} is done but has no stored answer")
-    return JSONResponse(row.response, row.status_code, headers={"Idempotent-Replayed": "true"})
+    replayed = {"Idempotent-Replayed": "true"}
+    if row.status_code != 201 or row.response is None:
+        return JSONResponse(row.response, row.status_code, headers=replayed)
+    with reading(settings.db_url) as session:  # the job it created, as it is now
+        job = session.get(Job, row.response["id"])
+        if job is None:
+            detail = f"job {row.response['id']}, created by this Idempotency-Key, was deleted"
+            return JSONResponse({"detail": detail}, 410, headers=replayed)
+        return JSONResponse(jsonable_encoder(job_out(session, job)), 201, headers=replayed)
 
 
 @router.get(

@@ -6,7 +6,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, field_validator
 
 from workers.config import TrainConfig
 
@@ -30,7 +30,7 @@ class SyntheticSceneRequest(BaseModel):
 
     name: str | None = Field(None, pattern=NAME, description="default: <preset>-<seed>")
     preset: Literal["tiny", "city", "village", "large"] = "city"
-    seed: int = Field(0, ge=0, le=2**31 - 1)
+    seed: StrictInt = Field(0, ge=0, le=2**31 - 1)
 
     @field_validator("name")
     @classmethod
@@ -57,8 +57,8 @@ class SceneOut(BaseModel):
 class JobRequest(TrainConfig):
     """A job: the scene (id or name) and the training config. Unknown fields are refused."""
 
-    scene: Annotated[int, Field(ge=1, le=2**31 - 1)] | Annotated[str, Field(pattern=NAME)] = Field(
-        description="scene id or name"
+    scene: Annotated[StrictInt, Field(ge=1, le=2**31 - 1)] | Annotated[str, Field(pattern=NAME)] = (
+        Field(description="scene id or name")
     )
 
     def train_config(self) -> TrainConfig:

@@ -3,6 +3,7 @@ dependencies, health checks, the shared volume, the read-only LPIPS weights, shm
 from .env) and that every command it runs exists in the project; the Dockerfiles' pins and sources;
 the KubeRay manifests' GPU workers, shared storage and LPIPS weights."""
 
+import ipaddress
 import re
 import shlex
 import shutil
@@ -157,10 +158,16 @@ def test_clients_reach_the_api_through_nginx_only(compose):
     deploy/README.md promise."""
     services = compose["services"]
     assert "ports" not in services["api"] and services["api"]["expose"] == ["8765"]
-    # ... so the API may trust every X-Forwarded-For it sees: its per-client limits then count real
-    # clients
-    assert services["api"]["command"][-2:] == ["--trusted-proxies", "*"]
+    # ... and takes X-Forwarded-For only from the proxy's fixed address on a network the two share
+    # with nobody else: no other container can name the client its per-client limits count
     proxy = services["proxy"]
+    address = proxy["networks"]["edge"]["ipv4_address"]
+    assert services["api"]["command"][-2:] == ["--trusted-proxies", address]
+    assert ipaddress.ip_address(address) in ipaddress.ip_network(
+        compose["networks"]["edge"]["ipam"]["config"][0]["subnet"]
+    )
+    on_edge = [n for n, s in services.items() if "edge" in (s.get("networks") or [])]
+    assert sorted(on_edge) == ["api", "proxy"] and "edge" in services["api"]["networks"]
     assert re.fullmatch(r"nginx:\d+\.\d+\.\d+-bookworm", proxy["image"])  # pinned
     assert proxy["ports"] == [f"{env_example().get('LECO_PORT', '8765')}:8080"]
     assert proxy["environment"]["LECO_API_UPSTREAM"] == "api:8765"

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, Field, ValidationInfo, field_validator
+from pydantic import BaseModel, Field, StrictInt, ValidationInfo, field_validator
 
 from workers.render.camera_paths.base import MAX_FRAMES, STRICT, Camera, PathKind
 from workers.render.camera_paths.orbit import OrbitPath
@@ -37,13 +37,13 @@ class RenderConfig(BaseModel):
 
     model_config = STRICT
 
-    width: int = Field(320, ge=16, le=MAX_SIDE, description="frame width in pixels (even)")
-    height: int = Field(240, ge=16, le=MAX_SIDE, description="frame height in pixels (even)")
-    frames: int = Field(
+    width: StrictInt = Field(320, ge=16, le=MAX_SIDE, description="frame width in pixels (even)")
+    height: StrictInt = Field(240, ge=16, le=MAX_SIDE, description="frame height in pixels (even)")
+    frames: StrictInt = Field(
         120, ge=2, le=MAX_FRAMES, description="of a generated path; a user path has one per camera"
     )
     fps: float = Field(24.0, ge=1, le=60, description="frames per second of the video")
-    appearance: Literal["mean"] | Annotated[int, Field(ge=0, le=2**31 - 1)] = Field(
+    appearance: Literal["mean"] | Annotated[StrictInt, Field(ge=0, le=2**31 - 1)] = Field(
         "mean",
         description="'mean' of the training views' appearance embeddings, or a training image's "
         "index",
@@ -115,9 +115,9 @@ class ViewRequest(BaseModel):
         description="the camera's frame: the normalised world (the dashboard's) or the dataset's "
         "own",
     )
-    width: int = Field(160, ge=8, le=MAX_VIEW_SIDE, description="image width in pixels")
-    height: int = Field(120, ge=8, le=MAX_VIEW_SIDE, description="image height in pixels")
-    appearance: Literal["mean"] | Annotated[int, Field(ge=0, le=2**31 - 1)] = Field(
+    width: StrictInt = Field(160, ge=8, le=MAX_VIEW_SIDE, description="image width in pixels")
+    height: StrictInt = Field(120, ge=8, le=MAX_VIEW_SIDE, description="image height in pixels")
+    appearance: Literal["mean"] | Annotated[StrictInt, Field(ge=0, le=2**31 - 1)] = Field(
         "mean",
         description="'mean' of the training views' appearance embeddings, or a training image's "
         "index",
@@ -143,13 +143,17 @@ class ExportConfig(BaseModel):
     )
     # pointcloud: expected-depth points of training and validation pixels whose rays are nearly
     # opaque
-    stride: int = Field(1, ge=1, le=64, description="every stride-th pixel along rows and columns")
+    stride: StrictInt = Field(
+        1, ge=1, le=64, description="every stride-th pixel along rows and columns"
+    )
     min_opacity: float = Field(
         0.9, ge=0, le=1, description="a ray's foreground opacity a point needs"
     )
-    max_points: int = Field(
+    max_points: StrictInt = Field(
         1_000_000, ge=1, le=20_000_000, description="seeded subsample beyond this"
     )
     # occupancy: the cells of a regular grid over the foreground box that the method's occupancy
     # keeps
-    resolution: int = Field(128, ge=8, le=512, description="occupancy: cells per side of the grid")
+    resolution: StrictInt = Field(
+        128, ge=8, le=512, description="occupancy: cells per side of the grid"
+    )

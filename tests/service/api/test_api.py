@@ -5,11 +5,13 @@ integrity), auth, health."""
 import io
 import tarfile
 import threading
+from datetime import timedelta
 
 import pytest
 from fastapi.testclient import TestClient
 
 from service import queue
+from service.api.jobs import KEY_TTL, stored_key
 from service.db import transaction
 from service.jobs.kinds import TRAIN
 from service.jobs.submit import submit
@@ -327,12 +329,50 @@ def test_idempotency_key_replays_refuses_and_waits(api):
     with transaction(api.settings.db_url) as session:  # a first request still in flight
         session.add(
             IdempotencyKey(
-                key="k3", request_hash=_digest(body), state="in_flight", created_at=utcnow()
+                key=stored_key(f"Bearer {TOKEN}", "k3"),
+                request_hash=_digest(body),
+                state="in_flight",
+                created_at=utcnow(),
             )
         )
     busy = api.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k3"})
     assert busy.status_code == 409 and "still in flight" in busy.json()["detail"]
     assert api.get("/v1/jobs").json()["total"] == 1  # one job for all of that
+
+
+def test_idempotency_keys_are_checked_scoped_to_their_token_answer_the_job_now_and_expire(
+    service_settings,
+):
+    settings = Settings(**{**service_settings.model_dump(), "api_tokens": (TOKEN, "token-two")})
+    with api_client(settings, TOKEN) as api, api_client(settings, "token-two") as two:
+        scene = synthetic_scene(api)
+        body = {"scene": scene["id"], "method": "grid", "profile": "smoke"}
+        for bad in ("", "a key", "k\xe9".encode("latin-1"), "k" * 256):
+            refused = api.post("/v1/jobs", json=body, headers={"Idempotency-Key": bad})
+            assert refused.status_code == 422, bad
+            assert refused.json()["detail"][0]["loc"] == ["header", "idempotency-key"]
+        assert api.get("/v1/jobs").json()["total"] == 0
+        first = api.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k1"}).json()
+        # another token's k1 is its own key: a job of its own, and no view of the first answer
+        other = two.post(
+            "/v1/jobs", json={**body, "method": "switch"}, headers={"Idempotency-Key": "k1"}
+        )
+        assert other.status_code == 201 and other.json()["id"] != first["id"]
+        # a replay answers the job as it is now: cancelled, then deleted
+        api.post(f"/v1/jobs/{first['id']}/cancel")
+        again = api.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k1"})
+        assert again.status_code == 201 and again.headers["idempotent-replayed"] == "true"
+        assert again.json()["id"] == first["id"] and again.json()["state"] == "cancelled"
+        assert api.delete(f"/v1/jobs/{first['id']}").status_code == 204
+        gone = api.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k1"})
+        assert gone.status_code == 410 and "was deleted" in gone.json()["detail"]
+        # a day later the key is forgotten: the same request creates a job again
+        with transaction(settings.db_url) as session:
+            row = session.get(IdempotencyKey, stored_key(f"Bearer {TOKEN}", "k1"))
+            row.created_at = utcnow() - KEY_TTL - timedelta(minutes=1)
+        fresh = api.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k1"})
+        assert fresh.status_code == 201 and "idempotent-replayed" not in fresh.headers
+        assert fresh.json()["id"] not in (first["id"], other.json()["id"])
 
 
 def _digest(body):
@@ -476,7 +516,15 @@ def test_artifact_download_etag_range_and_integrity(api):
         len(data)
     )
     assert full.headers["content-type"] == "application/octet-stream"
-    assert api.get(url, headers={"If-None-Match": full.headers["etag"]}).status_code == 304
+    for header in (
+        full.headers["etag"],
+        "*",
+        f"W/{full.headers['etag']}",
+        f'"x", {full.headers["etag"]}',
+    ):
+        assert api.get(url, headers={"If-None-Match": header}).status_code == 304, header
+    assert api.head(url, headers={"If-None-Match": "*"}).status_code == 304
+    assert api.get(url, headers={"If-None-Match": '"other"'}).status_code == 200
     part = api.get(url, headers={"Range": "bytes=100-199"})
     assert part.status_code == 206 and part.content == data[100:200]
     assert part.headers["content-range"] == f"bytes 100-199/{len(data)}"
@@ -511,6 +559,15 @@ def test_every_v1_route_needs_the_token_and_health_does_not(api):
     assert ready["database"] == "up" and api.settings.db_url.split("://")[-1] not in str(ready)
     metrics = anonymous.get("/metrics").text
     assert 'leco_jobs{state="queued"} 0' in metrics and "leco_http_requests_total" in metrics
+    # a flood of invented method names and paths adds no series: they fold into one label each
+    for i in range(50):
+        anonymous.request(f"M{i:03d}{'X' * 2000}", f"/nowhere/{i}")
+    before = anonymous.get("/metrics").text.count("leco_http_requests_total{")
+    for i in range(50, 100):
+        anonymous.request(f"M{i:03d}{'X' * 2000}", f"/nowhere/{i}")
+    after = anonymous.get("/metrics").text
+    assert after.count("leco_http_requests_total{") == before and "XXXX" not in after
+    assert 'method="other",route="unmatched"' in after
     openapi = anonymous.get("/openapi.json").json()
     assert "/v1/jobs/{job_id}/metrics" in openapi["paths"]
 

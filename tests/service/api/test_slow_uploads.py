@@ -163,3 +163,60 @@ def test_a_trickling_body_is_refused_and_a_steady_one_is_received_whole():
     with pytest.raises(HTTPException) as big:
         receive([b"x" * 6000] * 2, gap_s=0.0)
     assert big.value.status_code == 413
+
+
+def test_a_json_body_that_trickles_is_cut_off_and_the_server_answers_others(server):
+    """A job request whose body stops after 11 of 200 bytes is answered 408 after upload_idle_s
+    (1.5 s here), and the connection closed; meanwhile other requests are answered."""
+    port, _ = server
+    sock = socket.create_connection(("127.0.0.1", port))
+    try:
+        sock.sendall(
+            f"POST /v1/jobs HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {TOKEN}\r\n"
+            'Content-Type: application/json\r\nContent-Length: 200\r\n\r\n{"scene": 1'.encode()
+        )
+        started = time.monotonic()
+        health = httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=5)
+        assert health.status_code == 200
+        sock.settimeout(10)
+        answer = sock.recv(4096)
+        assert int(answer.split(b"\r\n", 1)[0].split()[1]) == 408
+        assert b"sent nothing for 1.5 s after 11 bytes" in answer
+        assert 1.2 < time.monotonic() - started < 6
+    finally:
+        sock.close()
+
+
+def trickling_job_request(port: int, token: str) -> socket.socket:
+    sock = socket.create_connection(("127.0.0.1", port))
+    sock.sendall(
+        f"POST /v1/jobs HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
+        "Content-Type: application/json\r\nContent-Length: 200\r\n\r\n{".encode()
+    )
+    return sock
+
+
+def test_one_token_holds_at_most_its_share_of_unfinished_requests(service_settings):
+    settings = Settings(
+        **{
+            **service_settings.model_dump(),
+            "api_tokens": (TOKEN, "other-token"),
+            "upload_idle_s": 1.5,
+            "max_requests_per_token": 2,
+        }
+    )
+    with uvicorn_in_thread(create_app(settings), log_level="warning") as port:
+        held = [trickling_job_request(port, TOKEN) for _ in range(2)]
+        try:
+            time.sleep(0.3)
+            url = f"http://127.0.0.1:{port}/v1/jobs"
+            third = httpx.get(url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=5)
+            assert third.status_code == 429 and "2 requests unfinished" in third.text
+            other = httpx.get(url, headers={"Authorization": "Bearer other-token"}, timeout=5)
+            assert other.status_code == 200  # another token is not held up
+            assert [status_of(s, 10) for s in held] == [408, 408]
+            again = httpx.get(url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=5)
+            assert again.status_code == 200  # their places came back
+        finally:
+            for sock in held:
+                sock.close()

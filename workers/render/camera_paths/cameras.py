@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import Field, ValidationInfo, field_validator
+from pydantic import Field, StrictInt, ValidationInfo, field_validator
 
 from workers.render.camera_paths.base import MAX_FRAMES, Camera, PathKind
 
@@ -20,13 +20,13 @@ class CamerasPath(PathKind):
     frame: Literal["source", "world"] = Field(
         "source", description="the cameras' frame: the dataset's own or the normalised world"
     )
-    width: int | None = Field(
+    width: StrictInt | None = Field(
         None,
         ge=1,
         le=8192,
         description="the size the intrinsics are given at (default: the render's)",
     )
-    height: int | None = Field(
+    height: StrictInt | None = Field(
         None, ge=1, le=8192, description="the height the intrinsics are given at"
     )
     interpolate: bool = Field(

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, field_validator
 
 from workers.render.camera_paths.base import MAX_FRAMES, Camera, Finite, PathKind
 
@@ -34,10 +34,10 @@ class NerfstudioPath(PathKind):
     camera_type: Literal["perspective"] = Field(
         "perspective", description="the one camera model read"
     )
-    render_width: int | None = Field(
+    render_width: StrictInt | None = Field(
         None, ge=1, le=8192, description="its size (default: the render's)"
     )
-    render_height: int | None = Field(
+    render_height: StrictInt | None = Field(
         None, ge=1, le=8192, description="its size (default: the render's)"
     )
     camera_path: list[NerfstudioFrame] = Field(
