@@ -156,7 +156,7 @@ def test_records_keep_one_suite_at_one_commit_and_give_back_only_runs_of_the_ask
     records = tmp_path / "records"
     open_records(records, "held-out", "a" * 40)
     open_records(records, "held-out", "a" * 40)  # the same suite and commit: taken again
-    with pytest.raises(InvalidInput, match="holds runs of suite held-out at commit bbbbbbbbbb"):
+    with pytest.raises(InvalidInput, match="at commit aaaaaaaaaa, not held-out at bbbbbbbbbb"):
         open_records(records, "held-out", "b" * 40)
     with pytest.raises(InvalidInput, match="not dev at"):
         open_records(records, "dev", "a" * 40)
