@@ -16,6 +16,13 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
+# A job trained, rendered or faulted end to end through the service runs on one database: the code
+# it exercises is the same on both, and what the database itself does (claims, leases, outages,
+# every query of the API and the queue) is tested on both. SQLite is `make run`'s; PostgreSQL is
+# deployed, where several dispatchers share the queue (the lease tests run there).
+ON_SQLITE = pytest.mark.parametrize("database_url", ["sqlite"], indirect=True)
+ON_POSTGRESQL = pytest.mark.parametrize("database_url", ["postgresql"], indirect=True)
+
 
 @contextmanager
 def api_client(settings, token: str | None = None) -> Iterator:

@@ -28,7 +28,7 @@ from bench.report import family_sections, paper_tables
 from bench.variants import RUNGS
 from cli.main import main
 from model.evaluation.occupancy import evaluate_occupancy_exact
-from tests.helpers import ROOT
+from tests.helpers import ON_POSTGRESQL, ROOT
 from workers.memory import SavedTensorBytes
 
 
@@ -480,7 +480,9 @@ def test_bench_on_lego_scores_occupancy_against_the_vanilla_models_depth(tmp_pat
             shutil.copy(lego_dir / (f["file_path"] + ".png"), root / split)
         (root / f"transforms_{split}.json").write_text(json.dumps({**data, "frames": frames}))
     out = tmp_path / "bench"
-    assert bench("--scene", str(root), "--out", str(out)) == 0
+    # the reference (switch), a learned occupancy and an estimator's: every method with an occupancy
+    # is scored by the same code
+    assert bench("--scene", str(root), "--out", str(out), "--methods", "switch,leco,grid") == 0
     results = json.loads((out / "results.json").read_text())
     assert results["occupancy_reference"].startswith(
         "depth maps of the validation views rendered by the trained"
@@ -555,10 +557,10 @@ def test_a_killed_bench_stops_the_run_it_was_waiting_on(tiny_scene, tmp_path):
             os.kill(pid, signal.SIGKILL)
 
 
-# On PostgreSQL only, to keep the suite within its 25 minutes: the harness is the same on both
-# databases, every other service test runs on SQLite too, and docs/LOAD.md measures both.
+# On PostgreSQL only (tests/helpers.py ON_POSTGRESQL): the harness is the same on both databases
+# and docs/LOAD.md measures both.
 @pytest.mark.slow
-@pytest.mark.parametrize("database_url", ["postgresql"], indirect=True)
+@ON_POSTGRESQL
 def test_loadtest_polls_a_training_job_without_errors(database_url, tmp_path):
     from bench.load import run_loadtest
 

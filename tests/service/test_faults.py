@@ -22,6 +22,7 @@ from service.settings import Settings
 from service.store import ArtifactStore
 from service.tables import Artifact
 from tests.helpers import (
+    ON_SQLITE,
     PG_ADMIN,
     drop_postgres_database,
     fresh_postgres_database,
@@ -143,6 +144,7 @@ def tiny_disk(tmp_path):
     subprocess.run(["umount", "-l", str(mount)], check=False)
 
 
+@ON_SQLITE
 @pytest.mark.parametrize("fault", ["disk full", "unwritable"])
 def test_a_failing_artifact_root_fails_the_job_with_that_reason(
     fault, service_settings, tmp_path, request
@@ -182,6 +184,7 @@ def test_a_failing_artifact_root_fails_the_job_with_that_reason(
         api.__exit__(None, None, None)
 
 
+@ON_SQLITE
 # ----- losses that go non-finite
 # -------------------------------------------------------------------------------
 def test_repeated_non_finite_losses_fail_the_job_and_keep_its_last_good_checkpoint(

@@ -16,7 +16,15 @@ from sqlalchemy import select
 from service.db import reading
 from service.dispatcher import Dispatcher
 from service.tables import Artifact
-from tests.helpers import ROOT, api_client, ready_scene, steps_of, wait_for
+from tests.helpers import (
+    ON_POSTGRESQL,
+    ON_SQLITE,
+    ROOT,
+    api_client,
+    ready_scene,
+    steps_of,
+    wait_for,
+)
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("local_ray")]
 
@@ -84,6 +92,7 @@ def test_a_smoke_job_runs_from_submission_to_artifacts(api, dispatcher):
     assert again["id"] == job["id"] and api.get("/v1/jobs").json()["total"] == 1
 
 
+@ON_SQLITE
 def test_cancel_while_running_stops_at_a_step_boundary_and_keeps_what_it_stored(api, dispatcher):
     scene = ready_scene(api)
     body = {
@@ -109,6 +118,7 @@ def test_cancel_while_running_stops_at_a_step_boundary_and_keeps_what_it_stored(
     assert api.post(f"/v1/jobs/{job['id']}/cancel").json()["state"] == "cancelled"
 
 
+@ON_POSTGRESQL
 def test_a_killed_dispatcher_loses_its_lease_and_the_job_resumes_once(api, service_settings):
     scene = ready_scene(api)
     body = {
@@ -165,6 +175,7 @@ def test_a_killed_dispatcher_loses_its_lease_and_the_job_resumes_once(api, servi
     assert json.loads(api.get(summary["url"]).content)["steps"]["total"] == 300
 
 
+@ON_SQLITE
 def test_a_dispatcher_killed_mid_render_hands_it_back_and_one_video_is_stored(service_settings):
     """The render kind under the same fault as training: SIGKILL mid-attempt, the lease expires,
     the next attempt renders again and stores the one video."""

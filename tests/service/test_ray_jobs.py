@@ -15,7 +15,7 @@ import pytest
 
 from service.dispatcher import Dispatcher, submission_id
 from service.settings import Settings
-from tests.helpers import api_client, free_port
+from tests.helpers import ON_POSTGRESQL, api_client, free_port
 
 pytestmark = pytest.mark.slow
 BIN = Path(sys.executable).parent
@@ -62,6 +62,7 @@ def ray_head(tmp_path):
         shutil.rmtree(temp, ignore_errors=True)
 
 
+@ON_POSTGRESQL
 def test_a_job_submitted_through_the_ray_jobs_api_runs_on_the_cluster(service_settings, ray_head):
     settings = Settings(**{**service_settings.model_dump(), "ray_address": ray_head})
     with api_client(settings) as api:

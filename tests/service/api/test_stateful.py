@@ -15,7 +15,7 @@ import pytest
 import schemathesis
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
-from hypothesis import HealthCheck, Phase
+from hypothesis import HealthCheck, Phase, seed
 from hypothesis import settings as hypothesis_settings
 from sqlalchemy import func, select
 
@@ -32,6 +32,9 @@ from tests.helpers import tar_of
 TOKEN = "fuzz-token"
 UPLOAD, SUBMIT = "POST /v1/scenes/upload", "POST /v1/jobs"
 WAIT_STEPS = 15  # requests a submitted job waits before it runs (see Workflow.dispatch)
+# Seeds of the rounds of 50 scenarios (test_chained_requests_never_get_a_server_error...), in the
+# order tried. Alone, on SQLite: seeds 0 and 4 missed a rare chain, 2 followed each 8 times or more.
+ROUND_SEEDS = (2, 1, 3, 0, 4)
 READS_RUN = {"GET /v1/jobs/{job_id}/metrics", "GET /v1/jobs/{job_id}/artifacts"}
 # Links (by name, from whichever answer) that each run must have followed with an earlier answer's
 # value in place, to the status named: a stateful fuzz that never chains cannot fail. See
@@ -296,18 +299,25 @@ def test_chained_requests_never_get_a_server_error_or_a_stack_trace(service_sett
     # told.
     schema.config.phases.stateful.inference.algorithms = []
     findings = Findings()
-    state_machine(schema, settings, tiny_archive, findings).run(
-        settings=hypothesis_settings(
-            max_examples=50,
-            stateful_step_count=40,
-            deadline=None,
-            derandomize=True,
-            database=None,
-            # nothing fails inside the machine (see Findings): nothing to shrink
-            phases=[Phase.generate],
-            suppress_health_check=list(HealthCheck),
+    machine = state_machine(schema, settings, tiny_archive, findings)
+    # Rounds of 50 scenarios from fixed seeds, a further round only while a link below was never
+    # followed to its answer: which scenarios 50 draws make varies with what ran before in the
+    # process, and the rarer chains (an artifact of a job trained in the scenario) can miss in one
+    # round. Every round's answers are checked.
+    for round_seed in ROUND_SEEDS:
+        seed(round_seed)(machine).run(
+            settings=hypothesis_settings(
+                max_examples=50,
+                stateful_step_count=40,
+                deadline=None,
+                database=None,
+                # nothing fails inside the machine (see Findings): nothing to shrink
+                phases=[Phase.generate],
+                suppress_health_check=list(HealthCheck),
+            )
         )
-    )
+        if all(findings.reached(names, status) for names, status in MUST_CHAIN):
+            break
     assert not findings.problems, f"{len(findings.problems)} problems; the first:\n" + "\n".join(
         findings.problems[:3]
     )

@@ -14,7 +14,7 @@ from service.dispatcher import Dispatcher
 from service.settings import Settings
 from service.tables import Artifact
 from service.workpool import WorkPool
-from tests.helpers import api_client, wait_for
+from tests.helpers import ON_SQLITE, api_client, wait_for
 from workers.render.export import read_ply_points
 from workers.render.video import probe
 
@@ -55,6 +55,7 @@ def refused(answer, *field):
     return answer.json()["detail"]
 
 
+@ON_SQLITE
 def test_render_export_and_view_of_a_finished_job_and_a_render_across_a_dispatcher_restart(
     settings,
 ):
