@@ -1,12 +1,15 @@
 """A job's peak training memory per rank, estimated before it runs, so the API can refuse a job that
 cannot fit where it would run instead of letting a worker be OOM-killed. Parameter counts come from
 the profile's numbers (model/sizes.py, no PyTorch), so the estimate costs nothing whatever sizes a
-request asks for. Activations use the bytes autograd keeps per main-network sample, which matches
-the measured `activation_memory_mb` of the `cpu` profile within 5% for vanilla Switch-NeRF (98
-estimated vs 103 MB); a validation render holds a chunk of rays' samples at once without gradient,
-which is what sets a small run's peak. Against measured peak RSS on the city (`cpu`,
-measured 2026-11-26): vanilla 1,340 MiB estimated vs 1,507-1,529 measured, LeCO 1,123 vs 849-1,085,
-the grid 2,393 vs 1,133 (its bound keeps every march step)."""
+request asks for. Activations are the bytes autograd keeps per sample of each network a phase runs
+with gradients (the main network's, O's coarse queries, the proposal levels'; a method's memory
+model, model/methods/costs.py): within 25% of what the worst step of every phase of every method
+keeps, at two batch sizes (tests/model/test_memory_estimate.py). A march's samples scale with the
+rays' mean length in the box, which scene info records (`mean_diagonal_fraction`); a validation
+render holds a chunk of rays' samples at once without gradient, which is what sets a small run's
+peak. Against measured peak RSS on the city (`cpu`, measured 2026-11-26, before O's queries and the
+rays' length were counted): vanilla 1,340 MiB estimated vs 1,507-1,529 measured, LeCO 1,123 vs
+849-1,085, the grid 2,393 vs 1,133."""
 
 from __future__ import annotations
 
@@ -35,27 +38,36 @@ def live_bytes_per_sample(width: int) -> int:
     return 4 * (5 * width + 100)
 
 
-def estimate_peak_bytes(method: str, profile: Profile, num_images: int) -> dict:
+def estimate_peak_bytes(
+    method: str, profile: Profile, num_images: int, ray_fraction: float = 1.0
+) -> dict:
     """Per-rank peak bytes and its parts (each naming the settings that drive it): the worst phase
-    of the method's (its registry entry's memory model, model/methods/costs.py) for each part."""
+    of the method's (its registry entry's memory model, model/methods/costs.py) for each part.
+    `ray_fraction`: the mean share of the box's diagonal a training ray travels inside the box,
+    which a march's samples scale with (1: every ray along the diagonal, the most it can be)."""
     n, b = profile.network, profile.background
     phases: dict[str, PhaseMemory] = get_method(method).memory(profile, num_images)
     mlp_sample = saved_bytes_per_sample(n.width, n.expert_layers)
     mlp_behind = 4 * (2 * b.layers * b.width + 100)
     rays = profile.rays_per_device
+    samples = lambda p: p.samples_per_ray * (ray_fraction if p.marched else 1.0)
     training = {
-        k: rays
-        * (
-            p.samples_per_ray * (p.bytes_per_sample or mlp_sample)
-            + p.extra_bytes_per_ray
-            + b.samples * (p.background_bytes_per_sample or mlp_behind)
+        k: int(
+            rays
+            * (
+                samples(p) * (p.bytes_per_sample or mlp_sample)
+                + p.extra_bytes_per_ray
+                + b.samples * (p.background_bytes_per_sample or mlp_behind)
+            )
         )
         for k, p in phases.items()
     }
     render = max(
-        EVAL_CHUNK
-        * (p.render_samples_per_ray or p.samples_per_ray)
-        * (p.bytes_per_sample or live_bytes_per_sample(n.width))
+        int(
+            EVAL_CHUNK
+            * (p.render_samples_per_ray or samples(p))
+            * (p.bytes_per_sample or live_bytes_per_sample(n.width))
+        )
         for p in phases.values()
     )
     parts = {
@@ -72,6 +84,7 @@ def estimate_peak_bytes(method: str, profile: Profile, num_images: int) -> dict:
         "total": sum(parts.values()),
         "parameters": max(p.trained for p in phases.values()),
         "training_activations": max(training.values()),
+        "training_by_phase": training,
     }
 
 
@@ -80,9 +93,10 @@ DRIVERS = {
     "network.appearance_dim; for the hash-grid methods ngp.levels, ngp.log2_table_size, "
     "ngp.features",
     "activations": "rays_per_device (or a validation render's 4,096 rays) x samples per ray "
-    "(vanilla.*_samples, guided.coarse_samples x guided.split, grid.march_steps, "
-    "occupancy.samples_per_ray) x network.width x network.expert_layers (ngp.levels x "
-    "ngp.features, ngp.width for the hash-grid methods)",
+    "(vanilla.*_samples, guided.main_samples or guided.coarse_samples x guided.split, "
+    "grid.march_steps, occupancy.samples_per_ray) x network.width x network.expert_layers "
+    "(ngp.levels x ngp.features, ngp.width for the hash-grid methods), O's queries "
+    "(guided.coarse_samples x guided.queries_per_bin) and the proposal levels' (prop.samples)",
     "estimator": "grid.resolution (the occupancy grid's cells; ngp.grid.resolution x "
     "ngp.grid.levels for NGP's cascades)",
 }

@@ -26,6 +26,9 @@ class PhaseMemory:
     # and MLP-background formulas of model/memory_estimate.py)
     bytes_per_sample: int = 0
     background_bytes_per_sample: int = 0
+    # samples_per_ray is a march's steps along the box's diagonal (an occupancy grid with every cell
+    # occupied, as it starts): a ray gets them in proportion to its length inside the box
+    marched: bool = False
 
 
 @dataclass(frozen=True)
@@ -55,6 +58,23 @@ def leco_main_samples(profile: Profile) -> int:
     return g.main_samples if g.placement else g.coarse_samples * g.split
 
 
+def occupancy_query_bytes(profile: Profile) -> int:
+    """What backward keeps for one query of O (model/fields/hmoe.py OccupancyNetwork): the encoded
+    point, the shared input layer's output and, per inner layer, its output, ReLU mask and
+    LayerNorm statistics (measured 1,270 bytes at width 64, 1,344 counted)."""
+    width, inner = profile.network.width, profile.occupancy.gate_width or profile.network.width
+    return 4 * (width + 3 * inner + 80)
+
+
+def occupancy_queries_per_ray(profile: Profile) -> int:
+    """O's queries per ray in the main phase that keep their activations for backward: every
+    coarse bin's points (guided.coarse_samples x guided.queries_per_bin) while O learns online or
+    places samples (its placement loss); none when O is only read."""
+    g = profile.guided
+    learns = g.online or g.placement
+    return g.coarse_samples * g.queries_per_bin if learns else 0
+
+
 def leco(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
     main = main_phase(profile, num_images, leco_main_samples(profile))
     samples = profile.occupancy.samples_per_ray
@@ -66,6 +86,7 @@ def leco(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
             frozen=sizes.occupancy_network(profile),
             samples_per_ray=main.samples_per_ray,
             render_samples_per_ray=max(main.samples_per_ray, samples),
+            extra_bytes_per_ray=occupancy_queries_per_ray(profile) * occupancy_query_bytes(profile),
         ),
     }
 
@@ -79,6 +100,7 @@ def grid(profile: Profile, num_images: int, g: GridConfig | None = None) -> dict
             samples_per_ray=main.samples_per_ray,
             # float values + occupied bits
             extra_bytes=5 * g.levels * g.resolution**3,
+            marched=True,
         )
     }
 
@@ -110,8 +132,10 @@ def proposal_parameters(profile: Profile) -> int:
 def prop(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
     p, width = profile.prop, proposal_width(profile)
     main = main_phase(profile, num_images, p.main_samples)
-    # What backward keeps per proposal sample: each layer's input and ReLU mask, and the encoding.
-    per_ray = sum(p.samples) * 4 * (2 * p.layers * width + 100)
+    # What backward keeps per proposal sample: the encoding and its sines' inputs, each layer's
+    # output (its ReLU's, the next layer's input), the density's logit.
+    encoded = 3 + 6 * profile.network.xyz_frequencies
+    per_ray = sum(p.samples) * 4 * (2 * encoded + p.layers * width + 2)
     return {
         "main": PhaseMemory(
             trained=main.trained + proposal_parameters(profile),
@@ -123,12 +147,12 @@ def prop(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
 
 def leco_prop(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
     """LeCO's phase 1, then S+Prop's main phase with O beside it, trained while it learns online:
-    its queries' activations (one coarse bin point each, an MLP of O's width, as a proposal's are
-    counted) on top of the proposal levels'."""
+    its queries' activations on top of the proposal levels'."""
     phases, main = leco(profile, num_images), prop(profile, num_images)["main"]
-    n, g = profile.network, profile.guided
-    inner = profile.occupancy.gate_width or n.width
-    o_per_ray = g.coarse_samples * g.queries_per_bin * 4 * (2 * 3 * inner + 100)
+    g = profile.guided
+    o_per_ray = (
+        g.coarse_samples * g.queries_per_bin * occupancy_query_bytes(profile) if g.online else 0
+    )
     o = sizes.occupancy_network(profile)
     phase1 = phases["occupancy"]
     if profile.leco_prop.prop_in_phase1:  # the proposals already learn beside the HMoE
@@ -150,10 +174,12 @@ def leco_prop(profile: Profile, num_images: int) -> dict[str, PhaseMemory]:
 
 
 def hash_grid_bytes_per_sample(levels: int, features: int, width: int) -> int:
-    """What backward keeps for one sample through a HashField (model/fields/ngp.py): each level's 8
-    corner rows (int64) and trilinear weights, the gathered features, and the MLPs' inputs and ReLU
-    masks (about eight width-sized tensors with the SH and appearance inputs)."""
-    return levels * 8 * (8 + 4 + 4 * features) + 4 * (8 * width + 100)
+    """What backward keeps for one sample through a HashField (model/fields/ngp.py): per level its
+    corners' rows and trilinear weights and the gathered features, then the MLPs' inputs and
+    activations. Fitted to what autograd keeps (2026-11-29, `cpu` profile, per sample at the
+    margin): 2,000 bytes at 8 levels, 2 features, width 64; 2,832 at 16 levels; 2,064 at 4
+    features; 2,768 at width 128, which this formula gives exactly."""
+    return levels * (96 + 4 * features) + 4 * (3 * width + 100)
 
 
 def on_hash_grids(phases: dict[str, PhaseMemory], profile: Profile, num_images: int) -> dict:

@@ -24,8 +24,14 @@ def ray_segment_stats(scene: Scene, max_rays: int = 20_000, seed: int = 0) -> di
     pixels = torch.randint(0, len(table), (min(max_rays, len(table)),), generator=g)
     _, _, _, near, far = table.geometry(pixels, scene.bounds.aabb)  # no pixel is decoded
     hit = far > near
+    diagonal = float((scene.bounds.aabb[1] - scene.bounds.aabb[0]).norm())
+    stats = {
+        "rays_sampled": len(pixels),
+        "fraction_hitting_foreground": float(hit.float().mean()),
+        # what a march's samples per ray scale with (the memory estimate's ray_fraction)
+        "mean_diagonal_fraction": float((far - near).clamp(min=0).mean()) / diagonal,
+    }
     near, far = near[hit], far[hit]
-    stats = {"rays_sampled": len(pixels), "fraction_hitting_foreground": float(hit.float().mean())}
     if len(near):
         stats.update(
             near_median=float(near.median()),

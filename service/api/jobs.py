@@ -116,10 +116,13 @@ def rays_per_step(job: Job) -> int | None:
     return kind.rays_per_step(kind.config_of(job.config))
 
 
-def check_resources(cfg: TrainConfig, settings: Settings, num_images: int) -> None:
+def check_resources(
+    cfg: TrainConfig, settings: Settings, num_images: int, ray_fraction: float = 1.0
+) -> None:
     """Refuse, with 422 naming the fields, a job that cannot run where it would: more workers or
     GPUs than there are, or a peak memory (model/memory_estimate.py) over the slot's RAM or a GPU's
-    memory."""
+    memory. `ray_fraction`: the scene's mean_diagonal_fraction (1 for a scene registered before it
+    was recorded: the most a march can take)."""
     problems = []
 
     def problem(field: str, msg: str) -> None:
@@ -156,7 +159,7 @@ def check_resources(cfg: TrainConfig, settings: Settings, num_images: int) -> No
             problem("use_gpu", "use_gpu asked for, but this service's local Ray has no GPU")
         else:
             gpu_memory = torch.cuda.get_device_properties(0).total_memory
-    estimate = estimate_peak_bytes(cfg.method, cfg.resolved_profile(), num_images)
+    estimate = estimate_peak_bytes(cfg.method, cfg.resolved_profile(), num_images, ray_fraction)
     per_rank, mib = estimate["total"], lambda b: f"{b / 2**20:,.0f} MiB"
     if gpu_memory is not None and per_rank - RUNTIME_BYTES > gpu_memory:
         problem(
@@ -207,7 +210,10 @@ def create_job(
     name = scene.name if scene is not None else ""
     check_downscale(cfg, name, info.get("image_folder_factors"))
     check_feasible(cfg, settings, name, info)
-    check_resources(cfg, settings, info.get("cameras") or 1000)
+    rays = (info.get("bounds") or {}).get("rays") or {}
+    check_resources(
+        cfg, settings, info.get("cameras") or 1000, rays.get("mean_diagonal_fraction", 1.0)
+    )
     with transaction(settings.db_url) as session:
         scene = find_scene(session, body.scene)
         if scene is None:

@@ -716,6 +716,16 @@ def test_a_job_that_cannot_fit_its_slot_is_refused_with_the_estimate(api):
         and "network.width" in problem["msg"]
         and "MiB" in problem["msg"]
     )
+    # O asked at 16 points of 4,096 bins of 8,192 rays, with gradients: about 20 GiB whatever the
+    # main samples (this was accepted while the estimate counted the main samples only)
+    asked = submit(
+        overrides={
+            "rays_per_device": 8192,
+            "guided.coarse_samples": 4096,
+            "guided.queries_per_bin": 16,
+        }
+    )
+    assert asked.status_code == 422 and "guided.coarse_samples" in asked.text, asked.text
     api.app.state.settings = Settings(**{**api.settings.model_dump(), "slot_memory_mb": 1500})
     assert submit().status_code == 201  # one cpu-profile rank: about 1.1 GiB
     two = submit(workers=2)
