@@ -85,6 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     from bench.cli import add_commands as add_bench_commands
     from bench.load import add_commands as add_load_commands
+    from bench.memory import add_commands as add_memory_commands
     from bench.render_speed import add_commands as add_render_bench_commands
     from bench.scale import add_commands as add_scale_commands
     from cli.render import add_commands as add_render_commands
@@ -100,6 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_bench_commands(commands)
     add_load_commands(commands)
     add_scale_commands(commands)
+    add_memory_commands(commands)
     add_render_bench_commands(commands)
     add_results_commands(commands)
     return parser
