@@ -14,6 +14,8 @@ normalised world the networks live in maps to that frame (world = (axes @ source
 from __future__ import annotations
 
 import json
+import shutil
+from collections.abc import Iterable, Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -49,6 +51,13 @@ def transform(scene: Scene) -> dict:
     }
 
 
+PLY_XYZ = [
+    "property double x",
+    "property double y",
+    "property double z",
+]
+
+
 def write_ply(path: Path, points: np.ndarray, colours: np.ndarray | None = None) -> None:
     """Binary PLY, float64 positions (source coordinates can be large: UTM metres), optional uint8
     colours."""
@@ -57,9 +66,7 @@ def write_ply(path: Path, points: np.ndarray, colours: np.ndarray | None = None)
         "ply",
         "format binary_little_endian 1.0",
         f"element vertex {len(points)}",
-        "property double x",
-        "property double y",
-        "property double z",
+        *PLY_XYZ,
     ]
     if colours is not None:
         fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
@@ -165,26 +172,57 @@ def cameras_json(scene: Scene) -> dict:
     }
 
 
-def occupancy_cells(trained: Trained, resolution: int) -> tuple[np.ndarray, float]:
-    """Centres (source frame) of the grid cells over the foreground box the method's occupancy
-    keeps, and the cell's side in source units."""
+CHUNK = 1 << 18  # grid cells asked of the occupancy at once
+
+
+def occupancy_cells(trained: Trained, resolution: int) -> Iterator[np.ndarray]:
+    """Centres (source frame, float64) of the grid cells over the foreground box that the method's
+    occupancy keeps, a chunk at a time. Centres are made from their flat index (i slowest, as a
+    meshgrid "ij" lists them): the whole grid at resolution 512 is 134 million centres."""
     occupied = trained.method.final_occupancy(trained.models)
     if occupied is None:
         raise ValueError(
             f"method {trained.cfg.method!r} learns no occupancy: there is none to export"
         )
     aabb = trained.scene.bounds.aabb.double()
-    axes = [torch.linspace(0, 1, resolution + 1, dtype=torch.float64)[:-1] + 0.5 / resolution] * 3
-    grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
-    centres = aabb[0] + grid * (aabb[1] - aabb[0])
-    kept = []
+    cells = resolution**3
     with torch.no_grad():
-        for s in range(0, len(centres), 1 << 18):
-            chunk = centres[s : s + (1 << 18)]
-            kept.append(chunk[occupied(chunk.float().to(trained.device)).cpu()])
-    world = torch.cat(kept)
-    side = float((aabb[1] - aabb[0]).max()) / resolution * trained.scene.normalization.scale
-    return trained.scene.normalization.to_source(world).numpy(), side
+        for start in range(0, cells, CHUNK):
+            index = torch.arange(start, min(start + CHUNK, cells))
+            ijk = torch.stack(
+                [index // resolution**2, (index // resolution) % resolution, index % resolution], -1
+            )
+            chunk = aabb[0] + (ijk.double() + 0.5) / resolution * (aabb[1] - aabb[0])
+            kept = chunk[occupied(chunk.float().to(trained.device)).cpu()]
+            yield trained.scene.normalization.to_source(kept).numpy()
+
+
+def cell_side(trained: Trained, resolution: int) -> float:
+    """A grid cell's side in source units."""
+    aabb = trained.scene.bounds.aabb.double()
+    return float((aabb[1] - aabb[0]).max()) / resolution * trained.scene.normalization.scale
+
+
+def write_ply_chunks(path: Path, chunks: Iterable[np.ndarray]) -> int:
+    """The binary PLY of write_ply (no colours) from points that come a chunk at a time, in the
+    memory of one chunk: the vertices go to a file beside it, then the header (which counts them)
+    and the vertices into the PLY. Returns the number of points."""
+    body, tmp = path.with_suffix(".vertices"), path.with_suffix(".partial")
+    count = 0
+    try:
+        with body.open("wb") as f:
+            for points in chunks:
+                f.write(np.ascontiguousarray(points, dtype="<f8").tobytes())
+                count += len(points)
+        header = ["ply", "format binary_little_endian 1.0", f"element vertex {count}", *PLY_XYZ]
+        with tmp.open("wb") as out, body.open("rb") as f:
+            out.write(("\n".join(header) + "\nend_header\n").encode())
+            shutil.copyfileobj(f, out, 1 << 22)
+        tmp.replace(path)
+    finally:
+        body.unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
+    return count
 
 
 def export(
@@ -210,9 +248,10 @@ def export(
         tmp.replace(target)
         info.update(cameras=trained.scene.num_images)
     else:
-        cells, side = occupancy_cells(trained, cfg.resolution)
-        write_ply(target, cells)
-        info.update(cells=len(cells), resolution=cfg.resolution, cell_side=side)
+        cells = write_ply_chunks(target, occupancy_cells(trained, cfg.resolution))
+        info.update(
+            cells=cells, resolution=cfg.resolution, cell_side=cell_side(trained, cfg.resolution)
+        )
     (out_dir / TRANSFORM).write_text(json.dumps(transform(trained.scene), indent=1))
     (out_dir / "export.json").write_text(json.dumps(info, indent=1))
     return info

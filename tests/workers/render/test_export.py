@@ -69,6 +69,32 @@ def test_fern_exports_its_cameras_and_points_in_its_own_frame(fern_dir, tmp_path
     check_points_in_source_box(untrained(scene), tmp_path)
 
 
+def test_occupancy_cells_are_the_grids_kept_centres_in_order_a_chunk_at_a_time(
+    tiny_scene, monkeypatch, tmp_path
+):
+    """Centres made a chunk at a time from their flat index: the same cells, in the same order, as
+    the whole grid built at once (which at resolution 512 is gigabytes of centres)."""
+    from workers.render import export as export_module
+
+    trained = untrained(tiny_scene, "grid")
+    # a chunk that does not divide the grid: the last chunk is partial
+    monkeypatch.setattr(export_module, "CHUNK", 1000)
+    cells = np.concatenate(list(export_module.occupancy_cells(trained, 24)))
+    aabb = tiny_scene.bounds.aabb.double()
+    axes = [torch.linspace(0, 1, 25, dtype=torch.float64)[:-1] + 0.5 / 24] * 3
+    grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+    centres = aabb[0] + grid * (aabb[1] - aabb[0])
+    occupied = trained.method.final_occupancy(trained.models)
+    expected = tiny_scene.normalization.to_source(centres[occupied(centres.float())]).numpy()
+    assert len(cells) == len(expected) > 0 and np.allclose(cells, expected)
+    # written a chunk at a time: the same points as the PLY of the whole array
+    assert export_module.write_ply_chunks(
+        tmp_path / "occupancy.ply", iter(np.array_split(cells, 7))
+    )
+    assert np.array_equal(read_ply_points(tmp_path / "occupancy.ply"), cells)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["occupancy.ply"]  # no temporary left
+
+
 def test_an_occupancy_export_needs_a_method_that_learns_one(tiny_scene, tmp_path):
     with pytest.raises(ValueError, match="learns no occupancy"):
         export(untrained(tiny_scene), ExportConfig(what="occupancy", resolution=8), tmp_path)
