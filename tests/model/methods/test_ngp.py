@@ -192,7 +192,8 @@ def test_a_killed_ngp_leco_run_resumes_from_its_checkpoint(tiny_scene, tmp_path)
 def test_ngp_leco_trains_through_the_api_and_a_dispatcher(service_settings):
     from service.dispatcher import Dispatcher
 
-    settings = service_settings.model_copy(update={"backend": "local"})
+    # a job's slot of 24,000 MB, whatever this machine's RAM
+    settings = service_settings.model_copy(update={"backend": "local", "slot_memory_mb": 24_000})
     with api_client(settings) as api:
         listed = {m["name"]: m for m in api.get("/v1/methods").json()["items"]}
         assert listed["ngp-leco"]["phases"] == ["occupancy", "main"]
@@ -201,7 +202,12 @@ def test_ngp_leco_trains_through_the_api_and_a_dispatcher(service_settings):
             time.sleep(0.2)
             scene = api.get(f"/v1/scenes/{scene['id']}").json()
         body = {"scene": scene["id"], "method": "ngp-leco", "profile": "smoke"}
-        too_big = {**body, "profile": "paper", "overrides": {"ngp.log2_table_size": 24}}
+        # 2^24 rows of 8 features at 16 levels: about 30 GiB with Adam's state and a step's samples
+        too_big = {
+            **body,
+            "profile": "paper",
+            "overrides": {"ngp.log2_table_size": 24, "ngp.features": 8},
+        }
         refused = api.post("/v1/jobs", json=too_big)
         assert refused.status_code == 422 and "ngp.log2_table_size" in refused.text
         job = api.post("/v1/jobs", json={**body, "overrides": {"main_steps": 10}})
