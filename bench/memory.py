@@ -34,7 +34,19 @@ def one_run(scene: Path, run_dir: Path, method: str, profile: str, rays: int, st
         overrides={"rays_per_device": rays, **phase_steps},
     )
     run_training(cfg, scene, run_dir, backend="local")
-    return {"peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    return {"peak_rss_mb": peak_rss_mb()}
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident set. /proc's VmHWM belongs to the address space exec made;
+    getrusage's ru_maxrss also keeps the parent's peak at the fork (a child of a 10 GB process
+    starts at 10 GB)."""
+    status = Path("/proc/self/status")
+    if status.exists():
+        for line in status.read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def estimate_mb(scene: Path, method: str, profile: str, rays: int) -> float:
