@@ -7,9 +7,8 @@ model, model/methods/costs.py): within 25% of what the worst step of every phase
 keeps, at two batch sizes (tests/model/test_memory_estimate.py). A march's samples scale with the
 rays' mean length in the box, which scene info records (`mean_diagonal_fraction`); a validation
 render holds a chunk of rays' samples at once without gradient, which is what sets a small run's
-peak. Against measured peak RSS on the city (`cpu`, measured 2026-11-26, before O's queries and the
-rays' length were counted): vanilla 1,340 MiB estimated vs 1,507-1,529 measured, LeCO 1,123 vs
-849-1,085, the grid 2,393 vs 1,133."""
+peak. `leco bench-memory` sets each method's measured peak RSS beside the total (docs/BENCHMARKS.md
+has the numbers)."""
 
 from __future__ import annotations
 
