@@ -49,17 +49,22 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def estimate_mb(scene: Path, method: str, profile: str, rays: int) -> float:
-    from model.memory_estimate import estimate_peak_bytes
+def scene_shape(scene: Path) -> tuple[int, float]:
+    """What the estimate reads off a scene: its images and its rays' mean share of the box's
+    diagonal (as scene info records it for the API)."""
     from model.scenes import load_scene
     from model.scenes.info import ray_segment_stats
-    from workers.config import TrainConfig
 
     loaded = load_scene(scene)
-    fraction = ray_segment_stats(loaded)["mean_diagonal_fraction"]
+    return loaded.num_images, ray_segment_stats(loaded)["mean_diagonal_fraction"]
+
+
+def estimate_mb(shape: tuple[int, float], method: str, profile: str, rays: int) -> float:
+    from model.memory_estimate import estimate_peak_bytes
+    from workers.config import TrainConfig
+
     cfg = TrainConfig(method=method, profile=profile, overrides={"rays_per_device": rays})
-    estimate = estimate_peak_bytes(method, cfg.resolved_profile(), loaded.num_images, fraction)
-    return estimate["total"] / 2**20
+    return estimate_peak_bytes(method, cfg.resolved_profile(), *shape)["total"] / 2**20
 
 
 def memory_command(args: argparse.Namespace) -> int:
@@ -68,6 +73,7 @@ def memory_command(args: argparse.Namespace) -> int:
     methods = args.methods.split(",") if args.methods else list(METHODS)
     sizes = [int(x) for x in args.rays.split(",")]
     scene = Path(args.scene).resolve()
+    shape = scene_shape(scene)
     rows = []
     print(f"{'method':15s} {'rays':>6s} {'estimate MiB':>13s} {'peak RSS MiB':>13s} {'ratio':>6s}")
     for method in methods:
@@ -83,7 +89,7 @@ def memory_command(args: argparse.Namespace) -> int:
                 print(child.stderr[-2000:], file=sys.stderr)
                 return 1
             peak = json.loads(child.stdout.strip().splitlines()[-1])["peak_rss_mb"]
-            estimate = estimate_mb(scene, method, args.profile, rays)
+            estimate = estimate_mb(shape, method, args.profile, rays)
             rows.append(
                 {"method": method, "rays": rays, "estimate_mb": estimate, "peak_rss_mb": peak}
             )
