@@ -2,7 +2,9 @@
 batch size asked, one process trains a few steps of each phase on a scene (the local backend, one
 rank, its final evaluation included) and reports its peak RSS; the table beside it gives the
 estimate the API would refuse the job by (model/memory_estimate.py, with the scene's ray length)
-and the ratio. The target: no peak above the estimate by more than 25%."""
+and the ratio. The target: no peak above the estimate by more than 25%. With `--frames WxH,...`
+it measures instead what a render or an export holds for one frame of each size (a process a
+frame): the peak against `estimate_frames_bytes`, and the bytes a pixel costs between the sizes."""
 
 from __future__ import annotations
 
@@ -37,6 +39,46 @@ def one_run(scene: Path, run_dir: Path, method: str, profile: str, rays: int, st
     return {"peak_rss_mb": peak_rss_mb()}
 
 
+def one_frame(scene: Path, method: str, profile: str, width: int, height: int) -> dict:
+    """In this process: one frame of `width` x `height` through a method's networks (as built:
+    the samplers take their full budget), kept as a render and an export keep it (colours as bytes,
+    the depth range, every pixel's surface point); the peak RSS."""
+    from dataclasses import replace
+
+    import torch
+
+    from model.scenes import load_scene
+    from workers.config import TrainConfig
+    from workers.models import build_models
+    from workers.render.frames import appearance_row, render_frame
+    from workers.renderer import depth_range, to_uint8
+    from workers.trained import Trained
+
+    loaded = load_scene(scene)
+    cfg = TrainConfig(method=method, profile=profile)
+    spec = cfg.method_for_run()
+    device = torch.device("cpu")
+    models = build_models(spec, loaded.num_images, loaded.bounds.aabb, 0)
+    spec.start_phase(models, "main", True, device, lambda text: None)  # its sampler, as built
+    trained = Trained(cfg, loaded, spec, models.eval(), device)
+    cameras = loaded.splits["val"].cameras
+    scale = torch.tensor([width, height, width, height]) / torch.stack(
+        [cameras.width, cameras.height, cameras.width, cameras.height], -1
+    )
+    n = len(cameras)
+    sized = replace(
+        cameras,
+        intrinsics=cameras.intrinsics * scale,
+        width=torch.full((n,), width),
+        height=torch.full((n,), height),
+    )
+    frame = render_frame(trained, sized, 0, appearance_row(trained, "mean"))
+    to_uint8(frame.rgb).numpy()
+    depth_range(frame)
+    frame.surface_points(0.0)
+    return {"peak_rss_mb": peak_rss_mb()}
+
+
 def peak_rss_mb() -> float:
     """This process's peak resident set. /proc's VmHWM belongs to the address space exec made;
     getrusage's ru_maxrss also keeps the parent's peak at the fork (a child of a 10 GB process
@@ -67,10 +109,69 @@ def estimate_mb(shape: tuple[int, float], method: str, profile: str, rays: int) 
     return estimate_peak_bytes(method, cfg.resolved_profile(), *shape)["total"] / 2**20
 
 
+def frames_command(args: argparse.Namespace, methods: list[str], scene: Path) -> int:
+    from model.memory_estimate import FRAME_BYTES_PER_PIXEL, estimate_frames_bytes
+    from workers.config import TrainConfig
+
+    images = scene_shape(scene)[0]
+    sizes = [tuple(int(x) for x in size.split("x")) for size in args.frames.split(",")]
+    rows = []
+    print(
+        f"{'method':15s} {'frame':>10s} {'estimate MiB':>13s} {'peak RSS MiB':>13s} "
+        f"{'ratio':>6s} {'bytes/pixel':>12s}"
+    )
+    for method in methods:
+        profile = TrainConfig(method=method, profile=args.profile).resolved_profile()
+        previous = None
+        for width, height in sizes:
+            child = subprocess.run(
+                [sys.executable, "-m", "bench.memory", "--one-frame", str(scene)]
+                + [method, args.profile, str(width), str(height)],
+                capture_output=True,
+                text=True,
+            )
+            if child.returncode != 0:
+                print(child.stderr[-2000:], file=sys.stderr)
+                return 1
+            peak = json.loads(child.stdout.strip().splitlines()[-1])["peak_rss_mb"]
+            pixels = width * height
+            estimate = estimate_frames_bytes(method, profile, images, pixels)["total"] / 2**20
+            slope = (
+                (peak - previous[1]) * 2**20 / (pixels - previous[0])
+                if previous and pixels != previous[0]
+                else None
+            )
+            previous = (pixels, peak)
+            rows.append(
+                {
+                    "method": method,
+                    "width": width,
+                    "height": height,
+                    "estimate_mb": estimate,
+                    "peak_rss_mb": peak,
+                    "bytes_per_pixel": slope,
+                }
+            )
+            print(
+                f"{method:15s} {f'{width}x{height}':>10s} {estimate:13,.0f} {peak:13,.0f} "
+                f"{peak / estimate:6.2f} {'' if slope is None else f'{slope:12,.0f}'}"
+            )
+    over = [r for r in rows if r["peak_rss_mb"] > TARGET * r["estimate_mb"]]
+    print(
+        f"{len(rows) - len(over)} of {len(rows)} within the estimate + {TARGET - 1:.0%} "
+        f"(the estimate counts {FRAME_BYTES_PER_PIXEL} bytes a pixel)"
+    )
+    if args.out:
+        Path(args.out).write_text(json.dumps(rows, indent=1) + "\n")
+    return 0 if not over else 1
+
+
 def memory_command(args: argparse.Namespace) -> int:
     from model.methods import METHODS
 
     methods = args.methods.split(",") if args.methods else list(METHODS)
+    if args.frames:
+        return frames_command(args, methods, Path(args.scene).resolve())
     sizes = [int(x) for x in args.rays.split(",")]
     scene = Path(args.scene).resolve()
     shape = scene_shape(scene)
@@ -110,11 +211,17 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     memory.add_argument("--profile", default="cpu", help="smoke | cpu | paper (default: cpu)")
     memory.add_argument("--rays", default="256,1024", help="rays_per_device values to measure")
     memory.add_argument("--steps", type=int, default=20, help="steps of each phase per run")
+    memory.add_argument(
+        "--frames", default="", help="WxH,... : measure a frame of each size instead of training"
+    )
     memory.add_argument("--out", default=None, help="also write the rows as JSON here")
     memory.set_defaults(func=memory_command)
 
 
 if __name__ == "__main__":
+    if sys.argv[1:2] == ["--one-frame"]:
+        scene, method, profile, width, height = sys.argv[2:7]
+        print(json.dumps(one_frame(Path(scene), method, profile, int(width), int(height))))
     if sys.argv[1:2] == ["--one"]:
         scene, run_dir, method, profile, rays, steps = sys.argv[2:8]
         record = one_run(Path(scene), Path(run_dir), method, profile, int(rays), int(steps))

@@ -87,6 +87,47 @@ def estimate_peak_bytes(
     }
 
 
+# A finished run's frames (a render's, an export's views): rendered FRAME_CHUNK rays at a time
+# without gradient (workers/render/frames.py CHUNK), with the whole frame's rays, outputs and their
+# conversions held at once, and the allocator's growth over a frame's chunks: FRAME_BYTES_PER_PIXEL
+# is the most a pixel was measured to cost, vanilla's (`leco bench-memory --frames`: 116-519 bytes
+# over the methods, docs/BENCHMARKS.md).
+FRAME_CHUNK = 8192
+FRAME_BYTES_PER_PIXEL = 520
+# a point cloud's kept points: float64 position, colour, sampling key and order, twice while a
+# view's points merge with the kept ones (workers/render/export.py Subsample)
+POINT_BYTES = 2 * (24 + 3 + 8 + 8)
+
+
+def estimate_frames_bytes(
+    method: str, profile: Profile, num_images: int, pixels: int, points: int = 0
+) -> dict:
+    """Peak bytes of rendering frames of `pixels` pixels each with a finished run's networks, as a
+    render or an export does, and of keeping `points` points of a point cloud: the weights alone,
+    one chunk's samples without gradient, the frame's per-pixel tensors, the points."""
+    n = profile.network
+    phases: dict[str, PhaseMemory] = get_method(method).memory(profile, num_images)
+    chunk = max(
+        int(
+            FRAME_CHUNK
+            * (p.render_samples_per_ray or p.samples_per_ray)
+            * (p.bytes_per_sample or live_bytes_per_sample(n.width))
+        )
+        for p in phases.values()
+    )
+    parts = {
+        "parameters": max(
+            (p.trained + p.frozen) * FROZEN_BYTES_PER_PARAMETER for p in phases.values()
+        ),
+        "activations": chunk,
+        "estimator": max(p.extra_bytes for p in phases.values()),
+        "frame": pixels * FRAME_BYTES_PER_PIXEL,
+        "points": points * POINT_BYTES,
+        "runtime": RUNTIME_BYTES,
+    }
+    return {"parts": parts, "total": sum(parts.values())}
+
+
 DRIVERS = {
     "parameters": "network.width, network.num_experts, network.expert_layers, "
     "network.appearance_dim; for the hash-grid methods ngp.levels, ngp.log2_table_size, "
@@ -98,6 +139,9 @@ DRIVERS = {
     "(guided.coarse_samples x guided.queries_per_bin) and the proposal levels' (prop.samples)",
     "estimator": "grid.resolution (the occupancy grid's cells; ngp.grid.resolution x "
     "ngp.grid.levels for NGP's cascades)",
+    "frame": "a frame's pixels: width x height of a render, a view's over stride squared of an "
+    "export",
+    "points": "an export's max_points (or every kept pixel of every view, when fewer)",
 }
 
 

@@ -2,8 +2,10 @@
 job runs, and puts jobs whose lease expired (a dead dispatcher or worker) back in the queue.
 
 Two ways to run a claimed job:
-- embedded (no Ray Jobs address): `execute` in a thread of this process, on the local Ray this
-  process started (`ensure_ray`, called from the main thread);
+- embedded (no Ray Jobs address): `execute` in a thread of this process, whose training runs in the
+  local Ray's worker processes (`ensure_ray`, called from the main thread); on the local backend
+  (`LECO_BACKEND=local`, training in the caller) the attempt runs in a child process instead
+  (service/jobs/process.py), so that a run out of memory fails its job and not this process;
 - cluster (`LECO_RAY_JOBS_ADDRESS`, e.g. http://ray-head:8265): a Ray job `python -m service.execute
   ...` submitted through the Ray Jobs API with the deterministic submission id
   `leco-job-<id>-attempt-<n>`; the dispatcher follows it and heartbeats. A re-claimed job first
@@ -23,6 +25,7 @@ from typing import TYPE_CHECKING
 
 from service import queue
 from service.jobs.attempt import execute
+from service.jobs.process import run_in_child
 from service.settings import Settings
 
 if TYPE_CHECKING:
@@ -141,6 +144,8 @@ class Dispatcher:
         try:
             if self.settings.ray_address:
                 state = self._run_on_cluster(job_id, attempt, done)
+            elif self.settings.backend == "local" and self.settings.local_in_child:
+                state = run_in_child(self.settings, job_id, attempt)
             else:
                 state = execute(self.settings, job_id, attempt)
             log.info("job %s attempt %s: %s", job_id, attempt, state)

@@ -67,6 +67,9 @@ class Settings(BaseModel):
     poll_cache_s: float = Field(0.5, ge=0)
     # local: one in-process worker without Ray (debugging, quick tests)
     backend: Literal["ray", "local"] = "ray"
+    # local backend: each attempt in a child process, so a run out of memory fails its job and not
+    # the API (off: in the dispatcher's thread, for a debugger or a method registered in-process)
+    local_in_child: bool = True
     # Where a job runs, for the API's memory check: the RAM one job may use (local: all its ranks
     # together; cluster: one rank's worker), default this machine's RAM; in cluster mode the most
     # workers and GPUs a job may ask for (unset GPUs: not checked).
@@ -141,6 +144,7 @@ class Settings(BaseModel):
             ("max_attempts", "LECO_MAX_ATTEMPTS"),
             ("local_cpus", "LECO_LOCAL_CPUS"),
             ("backend", "LECO_BACKEND"),
+            ("local_in_child", "LECO_LOCAL_IN_CHILD"),
             ("poll_cache_s", "LECO_POLL_CACHE_S"),
             ("slot_memory_mb", "LECO_SLOT_MEMORY_MB"),
             ("cluster_max_workers", "LECO_CLUSTER_MAX_WORKERS"),

@@ -66,6 +66,24 @@ def wait_for(api, job_id: int, done: Callable[[dict], bool], timeout: float = 24
     raise AssertionError(f"job {job_id} never got there: {job}")
 
 
+def attempt_processes(job_id: int, attempt: int | None = None) -> list[int]:
+    """Pids of the child processes running the job's attempt (`python -m service.execute`), found
+    in /proc."""
+    wanted = {"--job-id": str(job_id)}
+    if attempt is not None:
+        wanted["--attempt"] = str(attempt)
+    pids = []
+    for entry in Path("/proc").iterdir():
+        try:
+            words = (entry / "cmdline").read_bytes().decode().split("\0")
+        except (OSError, ValueError):  # not a process, or gone meanwhile
+            continue
+        given = dict(zip(words, words[1:]))
+        if "service.execute" in words and all(given.get(k) == v for k, v in wanted.items()):
+            pids.append(int(entry.name))
+    return pids
+
+
 def steps_of(api, job_id: int, phase: str, name: str = "loss") -> list[int]:
     """The steps at which the job stored metric `name` in `phase`."""
     params = {"phase": phase, "name": name}

@@ -10,23 +10,29 @@ from service.settings import Settings
 from workers.config import TrainConfig
 
 
-def training_pixels_at_most(info: dict, downscale: int | None) -> int | None:
-    """An upper bound on the pixels of the training split at the job's downscale, from the sizes the
-    scene row records (None when the row has none). Sizes are recorded at the scene's own scale;
-    a job's factor applies to the full images, each side floored as the loader does."""
-    split = (info.get("splits") or {}).get("train")
-    if not split or not split.get("image_sizes"):
+def largest_image_pixels(info: dict, split: str, downscale: int | None) -> int | None:
+    """An upper bound on the pixels of the split's largest image at a job's downscale, from the
+    sizes the scene row records (None when the row has none). Sizes are recorded at the scene's own
+    scale; a job's factor applies to the full images, each side floored as the loader does."""
+    sizes = ((info.get("splits") or {}).get(split) or {}).get("image_sizes")
+    if not sizes:
         return None
     base = info.get("downscale") or 1
     largest = 0
-    for size in split["image_sizes"]:
+    for size in sizes:
         width, height = (int(x) for x in size.split("x"))
         if downscale is not None:
             # the full image is at most (side + 1) * base - 1 pixels on a side
             width = max(1, ((width + 1) * base - 1) // downscale)
             height = max(1, ((height + 1) * base - 1) // downscale)
         largest = max(largest, width * height)
-    return split["images"] * largest
+    return largest
+
+
+def training_pixels_at_most(info: dict, downscale: int | None) -> int | None:
+    """An upper bound on the pixels of the training split at the job's downscale."""
+    largest = largest_image_pixels(info, "train", downscale)
+    return None if largest is None else info["splits"]["train"]["images"] * largest
 
 
 def check_feasible(cfg: TrainConfig, settings: Settings, scene_name: str, info: dict) -> None:

@@ -17,16 +17,27 @@ from pydantic import BaseModel
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from model.memory_estimate import describe
 from service.api.deps import RowId, SettingsDep, not_found, poll_cache_of
+from service.api.feasibility import largest_image_pixels
 from service.api.jobs import job_out
 from service.api.schemas import JobList, JobOut
 from service.db import reading, transaction
-from service.jobs.kinds import KINDS, JobKind, Parent, Refused, check_appearance, get_kind
+from service.jobs.kinds import (
+    KINDS,
+    JobKind,
+    Memory,
+    Parent,
+    Refused,
+    check_appearance,
+    get_kind,
+)
 from service.jobs.submit import submit
 from service.settings import Settings
 from service.tables import Job, Scene
 from service.view_worker import render_view
 from service.workpool import Busy
+from workers.config import TrainConfig
 from workers.render.schemas import ViewRequest
 
 VIEW_CACHE = 64  # PNGs kept per API process, by (job, request)
@@ -65,7 +76,29 @@ def parent_info(session: Session, job: Job) -> Parent:
     splits = info.get("splits", {})  # a point cloud is made of the training and validation views
     images = int(splits.get("train", {}).get("images") or info.get("cameras") or 0)
     views = sum(int(splits.get(n, {}).get("images", 0)) for n in ("train", "val")) or 1
-    return Parent(job_id=job.id, method=job.method, images=images, views=views)
+    try:
+        config: TrainConfig | None = TrainConfig.model_validate(job.config)
+    except ValueError:  # a job stored under an older schema: its memory is not estimated
+        config = None
+    downscale = config.downscale if config is not None else None
+    largest = max(
+        (largest_image_pixels(info, name, downscale) or 0 for name in ("train", "val")), default=0
+    )
+    return Parent(job.id, job.method, images, views, config, largest)
+
+
+def check_memory(memory: Memory | None, settings: Settings, job_id: int) -> None:
+    """422 when the job's estimated peak exceeds the memory a job gets here."""
+    if memory is None:
+        return
+    need, slot = memory.estimate["total"], settings.slot_memory_mb * 2**20
+    if need > slot:
+        mib = lambda b: f"{b / 2**20:,.0f} MiB"
+        raise refuse(
+            ["body", memory.field],
+            f"a job made of job {job_id} this way needs about {mib(need)} and a job here gets "
+            f"{mib(slot)}: {describe(memory.estimate)}",
+        )
 
 
 def submit_child(
@@ -78,6 +111,7 @@ def submit_child(
             kind.check(cfg, info)
         except Refused as refused:
             raise refuse(["body", refused.field], str(refused)) from None
+        check_memory(kind.memory(cfg, info), settings, job_id)
         job = submit(session, kind, parent.scene_id, cfg, parent, info)
         session.flush()
         payload = jsonable_encoder(job_out(session, job))

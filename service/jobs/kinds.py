@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Callable
 from pydantic import BaseModel
 
 from model.errors import InvalidInput
+from model.memory_estimate import estimate_frames_bytes
 from model.methods import get_method
 from workers.config import TrainConfig
 from workers.render.schemas import EXPORT_PHASE, RENDER_PHASE, ExportConfig, RenderConfig
@@ -38,6 +39,17 @@ class Parent:
     method: str  # its method
     images: int  # its scene's training images
     views: int  # its scene's training and validation views
+    config: TrainConfig | None = None  # its config (its profile sizes the networks)
+    largest_view: int = 0  # pixels of its scene's largest training or validation view, as trained
+
+
+@dataclass(frozen=True)
+class Memory:
+    """A job's estimated peak bytes (model/memory_estimate.py), with the request's field that
+    drives it most: the API refuses the job when it exceeds the slot's memory."""
+
+    field: str
+    estimate: dict  # {"parts": ..., "total": ...}
 
 
 @dataclass(frozen=True)
@@ -57,6 +69,8 @@ class JobKind:
     route: str | None = None
     trains: bool = False  # its finished jobs hold networks that other kinds and views are made of
     check: Callable[[BaseModel, Parent], None] = lambda cfg, parent: None  # raises Refused
+    # its peak memory, for the API's check against the slot (None: not estimated)
+    memory: Callable[[BaseModel, Parent], Memory | None] = lambda cfg, parent: None
     description: str = ""  # of its submit route, in the OpenAPI document
     # its 422s
     refusals: str = "the job has not succeeded or is not a training job; an invalid body"
@@ -127,6 +141,32 @@ def appearance_exists(cfg: BaseModel, parent: Parent) -> None:
     check_appearance(cfg.appearance, parent.images)
 
 
+def frames_memory(parent: Parent, field: str, pixels: int, points: int = 0) -> Memory | None:
+    if parent.config is None:
+        return None
+    cfg = parent.config
+    estimate = estimate_frames_bytes(
+        cfg.method, cfg.resolved_profile(), parent.images or 1, pixels, points
+    )
+    return Memory(field, estimate)
+
+
+def render_memory(cfg: BaseModel, parent: Parent) -> Memory | None:
+    assert isinstance(cfg, RenderConfig)
+    return frames_memory(parent, "width", cfg.width * cfg.height)
+
+
+def export_memory(cfg: BaseModel, parent: Parent) -> Memory | None:
+    """A point cloud renders every view at its stride and keeps up to max_points; the cameras and
+    the occupancy (queried a chunk of cells at a time) need no more than the networks."""
+    assert isinstance(cfg, ExportConfig)
+    if cfg.what != "pointcloud":
+        return frames_memory(parent, "what", 0)
+    pixels = -(-parent.largest_view // cfg.stride**2)
+    points = min(cfg.max_points, pixels * parent.views)
+    return frames_memory(parent, "stride", pixels, points)
+
+
 def export_phases(cfg: BaseModel, parent: Parent | None) -> list[tuple[str, int]]:
     assert isinstance(cfg, ExportConfig) and parent is not None
     return [(EXPORT_PHASE, parent.views if cfg.what == "pointcloud" else 1)]
@@ -163,6 +203,7 @@ register(
         frame_rays,
         route="renders",
         check=appearance_exists,
+        memory=render_memory,
         description="A video of a finished training job along a camera path: a render job, queued "
         "and run by a dispatcher (progress, cancel and artifacts as for any job: "
         "`video.mp4`, `video.poster.png`, ...).",
@@ -178,6 +219,7 @@ register(
         export_phases,
         route="exports",
         check=occupancy_exists,
+        memory=export_memory,
         description="Geometry of a finished training job in the dataset's own frame and units: an "
         "export job whose artifacts are the file (pointcloud.ply, cameras.json or "
         "occupancy.ply), transform.json and export.json.",

@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 
 import pytest
 from sqlalchemy import select
@@ -21,6 +22,7 @@ from tests.helpers import (
     ON_SQLITE,
     ROOT,
     api_client,
+    attempt_processes,
     ready_scene,
     steps_of,
     wait_for,
@@ -211,8 +213,13 @@ def test_a_dispatcher_killed_mid_render_hands_it_back_and_one_video_is_stored(se
         )
         try:
             killed_at = wait_for(api, job_id, lambda j: j["step"] >= 2)["step"]
+            assert attempt_processes(job_id, 1)  # the render runs in the dispatcher's child
             os.kill(first.pid, signal.SIGKILL)
             first.wait(10)
+            gone_by = time.monotonic() + 10  # it dies with its dispatcher (parent-death signal)
+            while attempt_processes(job_id, 1) and time.monotonic() < gone_by:
+                time.sleep(0.1)
+            assert attempt_processes(job_id, 1) == []
         finally:
             try:
                 os.killpg(first.pid, signal.SIGKILL)

@@ -113,11 +113,44 @@ def stride_cameras(views: Views, stride: int) -> Cameras:
     return replace(cameras, intrinsics=intrinsics, width=width, height=height)
 
 
+class Subsample:
+    """At most `size` of the points offered, a uniform seeded choice without replacement, in the
+    memory of `size` points and one batch: each point draws a random key and the `size` smallest
+    keys are kept (a bottom-k sample), merged batch by batch. Points come out in the order they
+    were offered."""
+
+    def __init__(self, size: int, seed: int = 0):
+        self.size, self.rng = size, np.random.default_rng(seed)
+        self.offered = 0
+        self.keys = np.zeros(0)
+        self.order = np.zeros(0, np.int64)
+        self.points = np.zeros((0, 3))
+        self.colours = np.zeros((0, 3), np.uint8)
+
+    def offer(self, points: np.ndarray, colours: np.ndarray) -> None:
+        keys = self.rng.random(len(points))
+        order = np.arange(self.offered, self.offered + len(points))
+        self.offered += len(points)
+        self.keys = np.concatenate([self.keys, keys])
+        self.order = np.concatenate([self.order, order])
+        self.points = np.concatenate([self.points, points])
+        self.colours = np.concatenate([self.colours, colours])
+        if len(self.keys) > self.size:
+            keep = np.argpartition(self.keys, self.size - 1)[: self.size]
+            self.keys, self.order = self.keys[keep], self.order[keep]
+            self.points, self.colours = self.points[keep], self.colours[keep]
+
+    def result(self) -> tuple[np.ndarray, np.ndarray]:
+        ordered = np.argsort(self.order, kind="stable")
+        return self.points[ordered], self.colours[ordered]
+
+
 def point_cloud(
     trained: Trained, cfg: ExportConfig, store: RunStore | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(points in the source frame (N, 3) float64, colours (N, 3) uint8)."""
-    scene, points, colours = trained.scene, [], []
+    """(points in the source frame (N, 3) float64, colours (N, 3) uint8): at most
+    `cfg.max_points`, kept in that memory however many views and pixels the scene has."""
+    scene, kept = trained.scene, Subsample(cfg.max_points)
     mean = appearance_row(trained, "mean")
     views_list = [(name, scene.splits[name]) for name in ("train", "val") if name in scene.splits]
     total, done = sum(len(v) for _, v in views_list), 0
@@ -128,22 +161,17 @@ def point_cloud(
             check_stop(store)
             frame = render_frame(trained, cameras, i, row)
             world, keep = frame.surface_points(cfg.min_opacity)
-            points.append(scene.normalization.to_source(world).numpy())
-            colours.append((frame.rgb[keep] * 255).round().clamp(0, 255).byte().numpy())
+            kept.offer(
+                scene.normalization.to_source(world).numpy(),
+                (frame.rgb[keep] * 255).round().clamp(0, 255).byte().numpy(),
+            )
             done += 1
             if store is not None:
                 store.write(
                     done,
                     {"phase": EXPORT_PHASE, "phase_step": done, "views_done": done, "views": total},
                 )
-    all_points = np.concatenate(points) if points else np.zeros((0, 3))
-    all_colours = np.concatenate(colours) if colours else np.zeros((0, 3), np.uint8)
-    if len(all_points) > cfg.max_points:
-        pick = np.sort(
-            np.random.default_rng(0).choice(len(all_points), cfg.max_points, replace=False)
-        )
-        all_points, all_colours = all_points[pick], all_colours[pick]
-    return all_points, all_colours
+    return kept.result()
 
 
 def cameras_json(scene: Scene) -> dict:

@@ -145,7 +145,8 @@ def test_a_registered_toy_method_trains_through_leco_train(toy, tiny_scene, tmp_
 def test_a_registered_toy_method_trains_through_the_api(toy, service_settings):
     from service.dispatcher import Dispatcher
 
-    settings = service_settings.model_copy(update={"backend": "local"})
+    # registered in this process only: trained in the dispatcher's thread, not a child process
+    settings = service_settings.model_copy(update={"backend": "local", "local_in_child": False})
     with api_client(settings) as api:
         listed = {m["name"]: m for m in api.get("/v1/methods").json()["items"]}
         assert listed[toy.name] == {

@@ -82,7 +82,8 @@ def a_finished_training_job(settings) -> int:
 
 
 def test_a_registered_toy_kind_runs_through_the_api_and_a_dispatcher(toy, service_settings):
-    settings = service_settings.model_copy(update={"backend": "local"})
+    # registered in this process only: run in the dispatcher's thread, not a child process
+    settings = service_settings.model_copy(update={"backend": "local", "local_in_child": False})
     parent = a_finished_training_job(settings)
     with api_client(settings) as api:
         kinds = {k["name"]: k for k in api.get("/v1/job-kinds").json()["items"]}

@@ -11,7 +11,13 @@ import torch
 from model.scenes import load_scene
 from workers.config import TrainConfig
 from workers.models import build_models
-from workers.render.export import cameras_json, export, read_ply_points, transform
+from workers.render.export import (
+    Subsample,
+    cameras_json,
+    export,
+    read_ply_points,
+    transform,
+)
 from workers.render.schemas import ExportConfig
 from workers.trained import Trained
 
@@ -129,3 +135,26 @@ def test_the_point_cloud_of_the_synthetic_city_lies_on_its_true_surfaces(tmp_pat
         f"{grid_cell:.2f} m, ground-truth cell {truth_cell:.2f} m, {len(points)} points"
     )
     assert median < grid_cell
+
+
+def test_a_point_clouds_subsample_is_uniform_ordered_and_held_in_its_own_size():
+    """A point cloud keeps at most max_points in that memory however many views offer points: each
+    batch's share of the sample is its share of the points, and the points keep their order."""
+    kept, held = Subsample(1000, seed=0), []
+    sizes = [2000, 500, 3000, 4500]
+    start = 0
+    for size in sizes:
+        index = np.arange(start, start + size)
+        kept.offer(np.stack([index, index, index], 1).astype(float), np.zeros((size, 3), np.uint8))
+        held.append(len(kept.keys))
+        start += size
+    assert held == [1000, 1000, 1000, 1000]
+    points, colours = kept.result()
+    index = points[:, 0].astype(int)
+    assert len(index) == 1000 and len(np.unique(index)) == 1000 and colours.shape == (1000, 3)
+    assert (np.diff(index) > 0).all()  # the order they were offered in
+    first = (index < 2000).mean()
+    assert first == pytest.approx(0.2, abs=0.03)  # 2,000 of the 10,000 offered
+    few = Subsample(1000, seed=0)
+    few.offer(np.arange(9.0).reshape(3, 3), np.zeros((3, 3), np.uint8))
+    assert few.result()[0].tolist() == np.arange(9.0).reshape(3, 3).tolist()
