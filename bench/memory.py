@@ -122,7 +122,7 @@ def frames_command(args: argparse.Namespace, methods: list[str], scene: Path) ->
     )
     for method in methods:
         profile = TrainConfig(method=method, profile=args.profile).resolved_profile()
-        previous = None
+        previous: tuple[int, float] | None = None
         for width, height in sizes:
             child = subprocess.run(
                 [sys.executable, "-m", "bench.memory", "--one-frame", str(scene)]
@@ -136,7 +136,7 @@ def frames_command(args: argparse.Namespace, methods: list[str], scene: Path) ->
             peak = json.loads(child.stdout.strip().splitlines()[-1])["peak_rss_mb"]
             pixels = width * height
             estimate = estimate_frames_bytes(method, profile, images, pixels)["total"] / 2**20
-            slope = (
+            slope: float | None = (
                 (peak - previous[1]) * 2**20 / (pixels - previous[0])
                 if previous and pixels != previous[0]
                 else None

@@ -25,10 +25,10 @@ def test_bench_memory_frames_measures_what_a_pixel_of_a_frame_costs(tiny_scene, 
     within the estimate's count (model/memory_estimate.py)."""
     out = tmp_path / "frames.json"
     words = ["bench-memory", "--scene", str(tiny_scene.root), "--methods", "switch"]
-    words += ["--profile", "smoke", "--frames", "320x240,1280x960", "--out", str(out)]
+    words += ["--profile", "smoke", "--frames", "160x120,800x600", "--out", str(out)]
     assert main(words) == 0
     small, large = json.loads(out.read_text())
-    assert (small["width"], large["width"]) == (320, 1280) and small["bytes_per_pixel"] is None
+    assert (small["width"], large["width"]) == (160, 800) and small["bytes_per_pixel"] is None
     for row in (small, large):
         assert 200 < row["peak_rss_mb"] < 1.25 * row["estimate_mb"]
     assert 50 < large["bytes_per_pixel"] < 1.25 * FRAME_BYTES_PER_PIXEL

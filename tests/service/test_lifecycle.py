@@ -45,6 +45,8 @@ def dispatcher(service_settings):
     running.stop(wait=True)
 
 
+# on PostgreSQL the same path runs through `leco submit` in tests/service/test_topology.py
+@ON_SQLITE
 def test_a_smoke_job_runs_from_submission_to_artifacts(api, dispatcher):
     scene = ready_scene(api)
     body = {
