@@ -109,6 +109,18 @@ def estimate_mb(shape: tuple[int, float], method: str, profile: str, rays: int) 
     return estimate_peak_bytes(method, cfg.resolved_profile(), *shape)["total"] / 2**20
 
 
+def child_peak(*words: str) -> float | None:
+    """`python -m bench.memory WORDS` in a fresh process: its peak RSS (MiB), or None (its error
+    printed) when it failed."""
+    child = subprocess.run(
+        [sys.executable, "-m", "bench.memory", *words], capture_output=True, text=True
+    )
+    if child.returncode != 0:
+        print(child.stderr[-2000:], file=sys.stderr)
+        return None
+    return json.loads(child.stdout.strip().splitlines()[-1])["peak_rss_mb"]
+
+
 def frames_command(args: argparse.Namespace, methods: list[str], scene: Path) -> int:
     from model.memory_estimate import FRAME_BYTES_PER_PIXEL, estimate_frames_bytes
     from workers.config import TrainConfig
@@ -124,16 +136,11 @@ def frames_command(args: argparse.Namespace, methods: list[str], scene: Path) ->
         profile = TrainConfig(method=method, profile=args.profile).resolved_profile()
         previous: tuple[int, float] | None = None
         for width, height in sizes:
-            child = subprocess.run(
-                [sys.executable, "-m", "bench.memory", "--one-frame", str(scene)]
-                + [method, args.profile, str(width), str(height)],
-                capture_output=True,
-                text=True,
+            peak = child_peak(
+                "--one-frame", str(scene), method, args.profile, str(width), str(height)
             )
-            if child.returncode != 0:
-                print(child.stderr[-2000:], file=sys.stderr)
+            if peak is None:
                 return 1
-            peak = json.loads(child.stdout.strip().splitlines()[-1])["peak_rss_mb"]
             pixels = width * height
             estimate = estimate_frames_bytes(method, profile, images, pixels)["total"] / 2**20
             slope: float | None = (
@@ -175,21 +182,16 @@ def memory_command(args: argparse.Namespace) -> int:
     sizes = [int(x) for x in args.rays.split(",")]
     scene = Path(args.scene).resolve()
     shape = scene_shape(scene)
-    rows = []
+    rows: list[dict] = []
     print(f"{'method':15s} {'rays':>6s} {'estimate MiB':>13s} {'peak RSS MiB':>13s} {'ratio':>6s}")
     for method in methods:
         for rays in sizes:
             with tempfile.TemporaryDirectory(prefix="leco-memory-") as tmp:
-                child = subprocess.run(
-                    [sys.executable, "-m", "bench.memory", "--one", str(scene), tmp]
-                    + [method, args.profile, str(rays), str(args.steps)],
-                    capture_output=True,
-                    text=True,
+                peak = child_peak(
+                    "--one", str(scene), tmp, method, args.profile, str(rays), str(args.steps)
                 )
-            if child.returncode != 0:
-                print(child.stderr[-2000:], file=sys.stderr)
+            if peak is None:
                 return 1
-            peak = json.loads(child.stdout.strip().splitlines()[-1])["peak_rss_mb"]
             estimate = estimate_mb(shape, method, args.profile, rays)
             rows.append(
                 {"method": method, "rays": rays, "estimate_mb": estimate, "peak_rss_mb": peak}
