@@ -15,31 +15,44 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from workers.config import TrainConfig
 
 TARGET = 1.25  # a measured peak may exceed the estimate by this factor at most
 
 
-def one_run(scene: Path, run_dir: Path, method: str, profile: str, rays: int, steps: int) -> dict:
-    """In this process: `steps` steps of every phase, then the run's evaluation; the peak RSS."""
+def run_config(
+    method: str, profile: str, rays: int, steps: int, overrides: dict | None = None
+) -> TrainConfig:
+    """The config of a measured run: `overrides` (--set) on the profile, then the batch size and
+    `steps` steps of every phase (--rays and --steps win over --set)."""
     from model.methods import get_method
     from workers.config import TrainConfig
-    from workers.train.run import run_training
 
     # each phase's step count, under the setting its method reads it from
     spec = get_method(method)
     phase_steps = {spec.own_key(key): steps for _, key in spec.phase_steps}
-    cfg = TrainConfig(
+    return TrainConfig(
         method=method,
         profile=profile,
         checkpoint_every=10 * steps,
         metrics_every=steps,
-        overrides={"rays_per_device": rays, **phase_steps},
+        overrides={**(overrides or {}), "rays_per_device": rays, **phase_steps},
     )
+
+
+def one_run(scene: Path, run_dir: Path, cfg: TrainConfig) -> dict:
+    """In this process: the run `cfg` (run_config: a few steps of every phase), then its
+    evaluation; the peak RSS."""
+    from workers.train.run import run_training
+
     run_training(cfg, scene, run_dir, backend="local")
     return {"peak_rss_mb": peak_rss_mb()}
 
 
-def one_frame(scene: Path, method: str, profile: str, width: int, height: int) -> dict:
+def one_frame(scene: Path, cfg: TrainConfig, width: int, height: int) -> dict:
     """In this process: one frame of `width` x `height` through a method's networks (as built:
     the samplers take their full budget), kept as a render and an export keep it (colours as bytes,
     the depth range, every pixel's surface point); the peak RSS."""
@@ -48,14 +61,12 @@ def one_frame(scene: Path, method: str, profile: str, width: int, height: int) -
     import torch
 
     from model.scenes import load_scene
-    from workers.config import TrainConfig
     from workers.models import build_models
     from workers.render.frames import appearance_row, render_frame
     from workers.renderer import depth_range, to_uint8
     from workers.trained import Trained
 
     loaded = load_scene(scene)
-    cfg = TrainConfig(method=method, profile=profile)
     spec = cfg.method_for_run()
     device = torch.device("cpu")
     models = build_models(spec, loaded.num_images, loaded.bounds.aabb, 0)
@@ -101,12 +112,10 @@ def scene_shape(scene: Path) -> tuple[int, float]:
     return loaded.num_images, ray_segment_stats(loaded)["mean_diagonal_fraction"]
 
 
-def estimate_mb(shape: tuple[int, float], method: str, profile: str, rays: int) -> float:
+def estimate_mb(shape: tuple[int, float], cfg: TrainConfig) -> float:
     from model.memory_estimate import estimate_peak_bytes
-    from workers.config import TrainConfig
 
-    cfg = TrainConfig(method=method, profile=profile, overrides={"rays_per_device": rays})
-    return estimate_peak_bytes(method, cfg.resolved_profile(), *shape)["total"] / 2**20
+    return estimate_peak_bytes(cfg.method, cfg.resolved_profile(), *shape)["total"] / 2**20
 
 
 def child_peak(*words: str) -> float | None:
@@ -121,7 +130,9 @@ def child_peak(*words: str) -> float | None:
     return json.loads(child.stdout.strip().splitlines()[-1])["peak_rss_mb"]
 
 
-def frames_command(args: argparse.Namespace, methods: list[str], scene: Path) -> int:
+def frames_command(
+    args: argparse.Namespace, methods: list[str], scene: Path, overrides: dict
+) -> int:
     from model.memory_estimate import FRAME_BYTES_PER_PIXEL, estimate_frames_bytes
     from workers.config import TrainConfig
 
@@ -133,11 +144,12 @@ def frames_command(args: argparse.Namespace, methods: list[str], scene: Path) ->
         f"{'ratio':>6s} {'bytes/pixel':>12s}"
     )
     for method in methods:
-        profile = TrainConfig(method=method, profile=args.profile).resolved_profile()
+        cfg = TrainConfig(method=method, profile=args.profile, overrides=overrides)
+        profile = cfg.resolved_profile()
         previous: tuple[int, float] | None = None
         for width, height in sizes:
             peak = child_peak(
-                "--one-frame", str(scene), method, args.profile, str(width), str(height)
+                "--one-frame", str(scene), cfg.model_dump_json(), str(width), str(height)
             )
             if peak is None:
                 return 1
@@ -174,11 +186,20 @@ def frames_command(args: argparse.Namespace, methods: list[str], scene: Path) ->
 
 
 def memory_command(args: argparse.Namespace) -> int:
+    from pydantic import ValidationError
+
     from model.methods import METHODS
+    from workers.config import TrainConfig, parse_overrides
 
     methods = args.methods.split(",") if args.methods else list(METHODS)
+    try:
+        overrides = parse_overrides(args.set or [])
+        for method in methods:  # a bad key or value fails here, before any run
+            TrainConfig(method=method, profile=args.profile, overrides=overrides).resolved_profile()
+    except (ValueError, ValidationError) as error:
+        raise SystemExit(f"leco bench-memory: {error}") from None
     if args.frames:
-        return frames_command(args, methods, Path(args.scene).resolve())
+        return frames_command(args, methods, Path(args.scene).resolve(), overrides)
     sizes = [int(x) for x in args.rays.split(",")]
     scene = Path(args.scene).resolve()
     shape = scene_shape(scene)
@@ -186,13 +207,12 @@ def memory_command(args: argparse.Namespace) -> int:
     print(f"{'method':15s} {'rays':>6s} {'estimate MiB':>13s} {'peak RSS MiB':>13s} {'ratio':>6s}")
     for method in methods:
         for rays in sizes:
+            cfg = run_config(method, args.profile, rays, args.steps, overrides)
             with tempfile.TemporaryDirectory(prefix="leco-memory-") as tmp:
-                peak = child_peak(
-                    "--one", str(scene), tmp, method, args.profile, str(rays), str(args.steps)
-                )
+                peak = child_peak("--one", str(scene), tmp, cfg.model_dump_json())
             if peak is None:
                 return 1
-            estimate = estimate_mb(shape, method, args.profile, rays)
+            estimate = estimate_mb(shape, cfg)
             rows.append(
                 {"method": method, "rays": rays, "estimate_mb": estimate, "peak_rss_mb": peak}
             )
@@ -216,15 +236,31 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     memory.add_argument(
         "--frames", default="", help="WxH,... : measure a frame of each size instead of training"
     )
+    memory.add_argument(
+        "--set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="override a profile setting in every run and its estimate, as `leco train --set` "
+        "(repeatable; rays_per_device and the phases' steps come from --rays and --steps)",
+    )
     memory.add_argument("--out", default=None, help="also write the rows as JSON here")
     memory.set_defaults(func=memory_command)
 
 
+def child_main(argv: list[str]) -> dict:
+    """A measuring child (child_peak's words): the run or frame of the config it is given, as JSON
+    (the parent's TrainConfig, --set included)."""
+    from workers.config import TrainConfig
+
+    if argv[:1] == ["--one-frame"]:
+        scene, config, width, height = argv[1:5]
+        cfg = TrainConfig.model_validate_json(config)
+        return one_frame(Path(scene), cfg, int(width), int(height))
+    if argv[:1] == ["--one"]:
+        scene, run_dir, config = argv[1:4]
+        return one_run(Path(scene), Path(run_dir), TrainConfig.model_validate_json(config))
+    raise SystemExit(f"bench.memory: expected --one or --one-frame, got {argv[:1]}")
+
+
 if __name__ == "__main__":
-    if sys.argv[1:2] == ["--one-frame"]:
-        scene, method, profile, width, height = sys.argv[2:7]
-        print(json.dumps(one_frame(Path(scene), method, profile, int(width), int(height))))
-    if sys.argv[1:2] == ["--one"]:
-        scene, run_dir, method, profile, rays, steps = sys.argv[2:8]
-        record = one_run(Path(scene), Path(run_dir), method, profile, int(rays), int(steps))
-        print(json.dumps(record))
+    print(json.dumps(child_main(sys.argv[1:])))

@@ -84,7 +84,8 @@ def start_ray(settings: Settings) -> None:
         return
     from workers.train.run import ensure_ray
 
-    ensure_ray(settings.local_cpus)  # here, in the main thread: Ray installs signal handlers
+    # here, in the main thread: Ray installs signal handlers
+    ensure_ray(settings.local_cpus, settings.local_gpus)
 
 
 def releasing_server(config: uvicorn.Config, on_exit: Callable[[], None] | None) -> uvicorn.Server:

@@ -61,6 +61,10 @@ class Settings(BaseModel):
     max_attempts: int = Field(3, ge=1)  # claims of one job before an expired lease fails it
     # the embedded Ray's CPUs: the most workers a job gets
     local_cpus: int = Field(max(2, os.cpu_count() or 2), ge=1)
+    # the GPUs of this machine's backend (the embedded Ray's, the local backend's): the most GPU
+    # workers a local job gets (None: those the NVIDIA driver lists, as CUDA_VISIBLE_DEVICES narrows
+    # them; service/api/feasibility.py)
+    local_gpus: int | None = Field(None, ge=0)
     # checkpoint artifacts kept per job (older ones are deleted)
     keep_checkpoints: int = Field(2, ge=1)
     # how old a polled job view or metrics answer may be (0: no cache)
@@ -143,6 +147,7 @@ class Settings(BaseModel):
             ("db_retry_s", "LECO_DB_RETRY_S"),
             ("max_attempts", "LECO_MAX_ATTEMPTS"),
             ("local_cpus", "LECO_LOCAL_CPUS"),
+            ("local_gpus", "LECO_LOCAL_GPUS"),
             ("backend", "LECO_BACKEND"),
             ("local_in_child", "LECO_LOCAL_IN_CHILD"),
             ("poll_cache_s", "LECO_POLL_CACHE_S"),

@@ -7,7 +7,9 @@ trains."""
 from __future__ import annotations
 
 import json
-from typing import TYPE_CHECKING, Any
+import types
+from functools import lru_cache
+from typing import TYPE_CHECKING, Any, Literal, Union, get_args, get_origin
 
 from pydantic import (
     BaseModel,
@@ -15,6 +17,7 @@ from pydantic import (
     Field,
     PrivateAttr,
     StrictInt,
+    TypeAdapter,
     ValidationError,
     field_validator,
     model_validator,
@@ -168,7 +171,7 @@ class TrainConfig(BaseModel):
                     f"section, {section}; set {spec.own_key(key)!r} instead"
                 )
             node, name = setting_node(data, key)
-            node[name] = value
+            node[name] = strict_value(key, value)
         try:
             profile = Profile.model_validate(data)
         except ValidationError as error:
@@ -206,6 +209,60 @@ def setting_node(data: dict, key: str) -> tuple[dict, str]:
     if parts[-1] not in node or isinstance(node[parts[-1]], dict):
         raise ValueError(f"override {key!r}: no such setting in the profile{near(key)}")
     return node, parts[-1]
+
+
+def strict_value(key: str, value: Any) -> Any:
+    """An override's value checked against its setting's type without coercion, as the API's own
+    fields are (StrictInt): lax parsing read `true` or `"2"` as the integer 1 or 2. An integer is a
+    number too; a list stands for a tuple (JSON has no tuples). The profile checks the bounds."""
+    annotation = setting_annotation(key)
+    try:
+        return adapter(annotation).validate_python(
+            tuple(value) if isinstance(value, list) else value, strict=True
+        )
+    except ValidationError:
+        raise ValueError(
+            f"override {key!r}: expected {expected(annotation)}, got {described(value)}"
+        ) from None
+
+
+def setting_annotation(key: str) -> Any:
+    """The type of the profile setting at a dotted key (setting_node has checked it is one)."""
+    annotation: Any = Profile
+    for part in key.split("."):  # each part but the last names a section: a model
+        annotation = annotation.model_fields[part].annotation
+    return annotation
+
+
+@lru_cache(maxsize=None)
+def adapter(annotation: Any) -> TypeAdapter:
+    return TypeAdapter(annotation)
+
+
+def expected(annotation: Any) -> str:
+    """What a setting of this type takes, in JSON's words."""
+    args = get_args(annotation)
+    if get_origin(annotation) in (Union, types.UnionType):
+        return " or ".join(expected(a) for a in args if a is not type(None)) + " or null"
+    if get_origin(annotation) is Literal:
+        return "one of " + ", ".join(json.dumps(a) for a in args)
+    if get_origin(annotation) is tuple:
+        return "a list of " + {int: "integers", float: "numbers"}.get(args[0], "values")
+    names = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+    return names.get(annotation, str(annotation))
+
+
+def described(value: Any) -> str:
+    """A client's value by its JSON type, and itself where short (error details stay bounded)."""
+    if value is None:
+        return "null"
+    kinds = {bool: "a boolean", int: "an integer", float: "a decimal number", str: "a string"}
+    kind = {**kinds, list: "a list", tuple: "a list", dict: "an object"}.get(type(value), "a value")
+    try:
+        shown = json.dumps(value)
+    except (TypeError, ValueError):  # not JSON (a Python caller's object)
+        return kind
+    return f"{kind} ({shown})" if len(shown) <= 40 else kind
 
 
 def near(key: str) -> str:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections import Counter
+
 import torch
 
 from model.scenes.bounds import COVERAGE_RATIO, FAR_FACTOR, MARGIN
@@ -48,12 +50,16 @@ def describe(scene: Scene) -> dict:
     aabb_source = bounds.aabb.double() * norm.scale + norm.origin.double()
     splits = {}
     for name, views in scene.splits.items():
-        sizes = sorted(
-            {(int(w), int(h)) for w, h in zip(views.cameras.width, views.cameras.height)}
+        counts = Counter(
+            (int(w), int(h)) for w, h in zip(views.cameras.width, views.cameras.height)
         )
+        sizes = sorted(counts)
         splits[name] = {
             "images": len(views),
             "image_sizes": [f"{w}x{h}" for w, h in sizes],
+            # images of each size: the API's exact pixel count at any downscale
+            # (service/api/feasibility.py)
+            "images_by_size": {f"{w}x{h}": counts[(w, h)] for w, h in sizes},
             "focal_px": [
                 round(float(views.cameras.intrinsics[:, 0].min()), 3),
                 round(float(views.cameras.intrinsics[:, 0].max()), 3),

@@ -18,7 +18,7 @@ from model.memory_estimate import RUNTIME_BYTES, describe, estimate_peak_bytes
 from model.scenes.folders import folder_factor
 from service import queue
 from service.api.deps import MAX_INT, RowId, SettingsDep, not_found, poll_cache_of
-from service.api.feasibility import check_feasible
+from service.api.feasibility import check_feasible, local_gpus, scene_sizes
 from service.api.links import (
     cancelled_job_links,
     deleted_job_links,
@@ -41,15 +41,17 @@ from workers.config import TrainConfig
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 # an in-flight key older than this belonged to a request that died
 STALE_IN_FLIGHT = timedelta(minutes=5)
-# an Idempotency-Key is answered for this long after its first request, then forgotten
+# an Idempotency-Key that created a job is answered for this long, then forgotten (a refused
+# request keeps no key: submit)
 KEY_TTL = timedelta(hours=24)
 KEY_HEADER = Header(
     None,
     min_length=1,
     max_length=255,
     pattern=r"^[\x21-\x7e]+$",
-    description="1-255 visible ASCII characters, scoped to the bearer token that sends it; the "
-    "answer is replayed for 24 hours",
+    description="1-255 visible ASCII characters, scoped to the bearer token that sends it; the job "
+    "it created is answered for 24 hours (a refused request keeps nothing: sent again, it is "
+    "checked again)",
 )
 
 
@@ -108,19 +110,23 @@ def job_out(session: Session, job: Job) -> JobOut:
 
 
 def rays_per_step(job: Job) -> int | None:
-    """Rays one step of the job renders or trains (its ETA); None where steps differ, or for a kind
-    no longer registered."""
+    """Rays one step of the job renders or trains (its ETA); None where steps differ, for a kind
+    no longer registered, or for a config stored under an older schema."""
     if job.kind not in KINDS:
         return None
     kind = get_kind(job.kind)
-    return kind.rays_per_step(kind.config_of(job.config))
+    try:
+        config = kind.config_of(job.config)
+    except ValueError:  # e.g. an override `"2"` for an integer, taken before overrides were strict
+        return None
+    return kind.rays_per_step(config)
 
 
 def check_resources(
     cfg: TrainConfig, settings: Settings, num_images: int, ray_fraction: float = 1.0
 ) -> None:
-    """Refuse, with 422 naming the fields, a job that cannot run where it would: more workers or
-    GPUs than there are, or a peak memory (model/memory_estimate.py) over the slot's RAM or a GPU's
+    """Refuse, with 422 naming the fields, a job that cannot run where it would: more workers than
+    there are, or a peak memory (model/memory_estimate.py) over the slot's RAM or a GPU's
     memory. `ray_fraction`: the scene's mean_diagonal_fraction (1 for a scene registered before it
     was recorded: the most a march can take)."""
     problems = []
@@ -142,22 +148,11 @@ def check_resources(
             "CPUs",
         )
     gpu_memory = None
-    if (
-        cfg.use_gpu
-        and cluster
-        and settings.cluster_gpus is not None
-        and cfg.workers > settings.cluster_gpus
-    ):
-        problem(
-            "use_gpu",
-            f"{cfg.workers} GPU workers asked for; this cluster has {settings.cluster_gpus} GPUs",
-        )
-    if cfg.use_gpu and not cluster:
+    # GPUs against the workers: check_feasible (service/api/feasibility.py), before this
+    if cfg.use_gpu and not cluster and local_gpus(settings) > 0:
         import torch
 
-        if not torch.cuda.is_available():
-            problem("use_gpu", "use_gpu asked for, but this service's local Ray has no GPU")
-        else:
+        if torch.cuda.is_available():
             gpu_memory = torch.cuda.get_device_properties(0).total_memory
     estimate = estimate_peak_bytes(cfg.method, cfg.resolved_profile(), num_images, ray_fraction)
     per_rank, mib = estimate["total"], lambda b: f"{b / 2**20:,.0f} MiB"
@@ -206,7 +201,7 @@ def create_job(
     cfg = body.train_config()
     with reading(settings.db_url) as session:  # the estimate runs outside the write transaction
         scene = find_scene(session, body.scene)
-        info = {} if scene is None else (scene.info or {})
+        info = scene_sizes(scene)  # a generating synthetic scene's from its preset
     name = scene.name if scene is not None else ""
     check_downscale(cfg, name, info.get("image_folder_factors"))
     check_feasible(cfg, settings, name, info)
@@ -271,17 +266,22 @@ def submit(
     try:
         status, payload = create_job_or_error(body, settings, idempotency_key)
     except BaseException:
-        # an unexpected failure: let the client retry with this key
-        with transaction(settings.db_url) as session:
-            session.execute(
-                delete(IdempotencyKey).where(IdempotencyKey.key == idempotency_key),
-                execution_options={"synchronize_session": False},
-            )
+        forget_key(settings, idempotency_key)  # an unexpected failure: the client may retry
         raise
-    if status != 201:  # refused: no job was written, so the answer is recorded on its own
-        with transaction(settings.db_url) as session:
-            record_answer(session, idempotency_key, status, payload)
+    if status != 201:
+        # Refused: nothing was written, and the same request sent again is checked again, which
+        # answers the same while what it depends on is unchanged. So its key is not kept: the rows
+        # grow with the jobs made, not with the rate of refused requests.
+        forget_key(settings, idempotency_key)
     return submitted(request, status, payload)
+
+
+def forget_key(settings: Settings, key: str) -> None:
+    with transaction(settings.db_url) as session:
+        session.execute(
+            delete(IdempotencyKey).where(IdempotencyKey.key == key),
+            execution_options={"synchronize_session": False},
+        )
 
 
 def submitted(request: Request, status: int, payload: dict) -> JSONResponse:
@@ -309,8 +309,8 @@ def stored_key(authorization: str, key: str) -> str:
 
 def begin_idempotent(settings: Settings, key: str, digest: str) -> JSONResponse | None:
     """Records the key as in flight (None: go on), or answers for it: the job it created as it is
-    now (410 once deleted), the stored refusal, 422 for another body, 409 while the first request
-    is still in flight. Keys older than KEY_TTL are forgotten first."""
+    now (410 once deleted), 422 for another body, 409 while the first request is still in flight.
+    Keys older than KEY_TTL are forgotten first."""
     try:
         with transaction(settings.db_url) as session:
             session.execute(
@@ -361,6 +361,7 @@ def begin_idempotent(settings: Settings, key: str, digest: str) -> JSONResponse 
     if row.status_code is None:  # record_answer sets it together with state 'done'
         raise RuntimeError(f"Idempotency-Key {key!r} is done but has no stored answer")
     replayed = {"Idempotent-Replayed": "true"}
+    # a refusal stored by an earlier version (refusals are no longer kept): gone after KEY_TTL
     if row.status_code != 201 or row.response is None:
         return JSONResponse(row.response, row.status_code, headers=replayed)
     with reading(settings.db_url) as session:  # the job it created, as it is now

@@ -31,6 +31,7 @@ from service.jobs.kinds import (
     Refused,
     check_appearance,
     get_kind,
+    view_memory,
 )
 from service.jobs.submit import submit
 from service.settings import Settings
@@ -218,22 +219,24 @@ VIEW_RESPONSES: dict[int | str, dict] = {
     },
     422: {
         "description": "the job has not succeeded; a camera that is not a rotation; a preview too "
-        "large"
+        "large (over 640x480, or over the memory a job gets here)"
     },
     429: {"description": "the view renderers are busy: retry after Retry-After seconds"},
 }
 
 
 def view(job_id: RowId, body: ViewRequest, request: Request, settings: SettingsDep) -> Response:
-    """One camera of a finished training job rendered to PNG (a preview: at most 640x480), by the
-    method's own sampler, in one of the view pool's processes; repeated requests are answered from a
-    small cache."""
+    """One camera of a finished training job rendered to PNG (a preview: at most 640x480, and
+    within the memory a job gets, estimated as a render's frame is), by the method's own sampler, in
+    one of the view pool's processes; repeated requests are answered from a small cache."""
     with reading(settings.db_url) as session:
         job = finished_training_job(session, job_id)
+        parent = parent_info(session, job)
         try:
-            check_appearance(body.appearance, parent_info(session, job).images)
+            check_appearance(body.appearance, parent.images)
         except Refused as refused:
             raise refuse(["body", refused.field], str(refused)) from None
+    check_memory(view_memory(body, parent), settings, job_id)
     key = hashlib.sha256(
         json.dumps([job_id, body.model_dump(mode="json")], sort_keys=True).encode()
     ).hexdigest()

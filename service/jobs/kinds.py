@@ -16,7 +16,13 @@ from model.errors import InvalidInput
 from model.memory_estimate import estimate_frames_bytes
 from model.methods import get_method
 from workers.config import TrainConfig
-from workers.render.schemas import EXPORT_PHASE, RENDER_PHASE, ExportConfig, RenderConfig
+from workers.render.schemas import (
+    EXPORT_PHASE,
+    RENDER_PHASE,
+    ExportConfig,
+    RenderConfig,
+    ViewRequest,
+)
 
 if TYPE_CHECKING:
     from service.jobs.context import Attempt
@@ -153,6 +159,12 @@ def frames_memory(parent: Parent, field: str, pixels: int, points: int = 0) -> M
 
 def render_memory(cfg: BaseModel, parent: Parent) -> Memory | None:
     assert isinstance(cfg, RenderConfig)
+    return frames_memory(parent, "width", cfg.width * cfg.height)
+
+
+def view_memory(cfg: BaseModel, parent: Parent) -> Memory | None:
+    """A view (POST /v1/jobs/{id}/view) is one frame, estimated as a render's is."""
+    assert isinstance(cfg, ViewRequest)
     return frames_memory(parent, "width", cfg.width * cfg.height)
 
 

@@ -115,7 +115,9 @@ def train_loop_per_worker(config: dict) -> None:
     end_cleanly(run, run_dir)
 
 
-def ensure_ray(num_cpus: int) -> None:
+def ensure_ray(num_cpus: int, num_gpus: int | None = None) -> None:
+    """A Ray for this process: the cluster RAY_ADDRESS names, else a local one of `num_cpus` CPUs
+    and `num_gpus` GPUs (None: the GPUs Ray finds)."""
     import ray
 
     if ray.is_initialized():
@@ -126,7 +128,7 @@ def ensure_ray(num_cpus: int) -> None:
         ray.init(address=os.environ["RAY_ADDRESS"])
     else:
         os.environ.setdefault("RAY_AUTH_MODE", "disabled")
-        ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
+        ray.init(num_cpus=num_cpus, num_gpus=num_gpus, include_dashboard=False, log_to_driver=False)
 
 
 def fit_with_ray(

@@ -35,6 +35,28 @@ class CityPreset:
     def as_dict(self) -> dict:
         return asdict(self)
 
+    def split_of(self, view: int) -> str:
+        """The split of the view at this position in capture order (every val_every-th is held
+        out, from the middle of the first run)."""
+        return "val" if view % self.val_every == self.val_every // 2 else "train"
+
+    def split_info(self) -> dict:
+        """Each split's images and their sizes, as scene info (model/scenes/info.py) records them
+        once the scene is generated: what the API checks a job against while it generates."""
+        counts = {"train": 0, "val": 0}
+        for view in range(self.views):
+            counts[self.split_of(view)] += 1
+        size = f"{self.width}x{self.height}"
+        return {
+            "downscale": 1,
+            "cameras": self.views,
+            "splits": {
+                name: {"images": n, "image_sizes": [size], "images_by_size": {size: n}}
+                for name, n in counts.items()
+                if n
+            },
+        }
+
 
 PRESETS = {
     "tiny": CityPreset(

@@ -140,7 +140,7 @@ def write_scene(tmp: Path, preset: CityPreset, seed: int) -> dict:
             i = r * preset.crops_per_render + k
             if i >= preset.views:
                 break
-            split = "val" if i % preset.val_every == preset.val_every // 2 else "train"
+            split = preset.split_of(i)
             counts[split] += 1
             name = f"{i:06d}"
             window = (slice(dy, dy + preset.height), slice(dx, dx + preset.width))

@@ -322,10 +322,19 @@ def test_idempotency_key_replays_refuses_and_waits(api):
     assert again.json() == first.json() and again.headers["idempotent-replayed"] == "true"
     other = api.post("/v1/jobs", json={**body, "method": "grid"}, headers={"Idempotency-Key": "k1"})
     assert other.status_code == 422 and "different request body" in str(other.json()["detail"])
+    # A refused request keeps no key (rows would grow with the rate of refusals, for a day): sent
+    # again, it is checked again and answered the same; its key is free for a request that runs.
     missing = {"scene": 999, "method": "leco"}
-    assert api.post("/v1/jobs", json=missing, headers={"Idempotency-Key": "k2"}).status_code == 404
-    # replayed
-    assert api.post("/v1/jobs", json=missing, headers={"Idempotency-Key": "k2"}).status_code == 404
+    refused = [
+        api.post("/v1/jobs", json=missing, headers={"Idempotency-Key": f"r{i}"}) for i in range(20)
+    ]
+    assert {answer.status_code for answer in refused} == {404}
+    assert stored_keys(api.settings) == 1  # k1's, which made a job
+    again = api.post("/v1/jobs", json=missing, headers={"Idempotency-Key": "r0"})
+    assert again.status_code == 404 and again.json() == refused[0].json()
+    assert "idempotent-replayed" not in again.headers
+    made = api.post("/v1/jobs", json={**body, "seed": 1}, headers={"Idempotency-Key": "r0"})
+    assert made.status_code == 201 and stored_keys(api.settings) == 2
     with transaction(api.settings.db_url) as session:  # a first request still in flight
         session.add(
             IdempotencyKey(
@@ -337,7 +346,14 @@ def test_idempotency_key_replays_refuses_and_waits(api):
         )
     busy = api.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k3"})
     assert busy.status_code == 409 and "still in flight" in busy.json()["detail"]
-    assert api.get("/v1/jobs").json()["total"] == 1  # one job for all of that
+    assert api.get("/v1/jobs").json()["total"] == 2  # k1's and r0's, for all of that
+
+
+def stored_keys(settings) -> int:
+    from sqlalchemy import func, select
+
+    with transaction(settings.db_url) as session:
+        return session.scalar(select(func.count()).select_from(IdempotencyKey))
 
 
 def test_idempotency_keys_are_checked_scoped_to_their_token_answer_the_job_now_and_expire(

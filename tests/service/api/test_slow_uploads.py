@@ -10,7 +10,7 @@ import pytest
 
 from service.api.app import create_app
 from service.settings import Settings
-from tests.helpers import uvicorn_in_thread
+from tests.helpers import ON_SQLITE, uvicorn_in_thread
 
 TOKEN = "slow-token"
 
@@ -33,12 +33,16 @@ def server(service_settings):
         yield port, app
 
 
-def slow_upload(port: int, name: str) -> socket.socket:
-    """Headers and the body's first bytes of a 1 MB upload; the rest never comes."""
-    sock = socket.create_connection(("127.0.0.1", port))
+def slow_upload(
+    port: int, name: str, source: str = "127.0.0.1", forwarded_for: str | None = None
+) -> socket.socket:
+    """Headers and the body's first bytes of a 1 MB upload, from the loopback address `source` and
+    with an X-Forwarded-For when given; the rest never comes."""
+    sock = socket.create_connection(("127.0.0.1", port), source_address=(source, 0))
+    forwarded = f"X-Forwarded-For: {forwarded_for}\r\n" if forwarded_for else ""
     sock.sendall(
         f"POST /v1/scenes/upload?name={name} HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer "
-        f"{TOKEN}\r\nContent-Type: application/octet-stream\r\n"
+        f"{TOKEN}\r\nContent-Type: application/octet-stream\r\n{forwarded}"
         "Content-Length: 1000000\r\n\r\n".encode()
         + b"x" * 100
     )
@@ -114,6 +118,60 @@ def test_one_client_may_hold_only_so_many_receiving_slots(service_settings):
         assert slots_back(app.state.upload_slots)
 
 
+def counted(slots, clients: dict, within_s: float = 5.0) -> dict:
+    """The receiving slots' count by client once it is `clients` (or after `within_s`)."""
+    deadline = time.monotonic() + within_s
+    while slots.by_client != clients and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return dict(slots.by_client)
+
+
+@ON_SQLITE
+def test_a_forwarded_address_is_counted_only_from_a_trusted_proxy(service_settings):
+    """`leco serve --trusted-proxies` (127.0.0.1 by default) names the peers whose X-Forwarded-For
+    names the client. Another peer (127.0.0.2 here) writing one is counted as itself by the
+    per-client cap: a second upload under another forwarded name is still its second (429). The
+    trusted proxy's forwarded clients are counted apart."""
+    import argparse
+
+    from cli.serve import add_commands
+
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers())
+    trusted = parser.parse_args(["serve"]).trusted_proxies
+    assert trusted == "127.0.0.1"
+    settings = Settings(
+        **{
+            **service_settings.model_dump(),
+            "api_tokens": (TOKEN,),
+            "upload_receivers": 4,
+            "upload_receivers_per_client": 1,
+            "upload_idle_s": 10.0,  # no upload is cut off before the counts are read
+        }
+    )
+    app = create_app(settings)
+    slots = app.state.upload_slots
+    # what `leco serve` gives uvicorn (cli/serve.py)
+    config = {"proxy_headers": True, "forwarded_allow_ips": trusted}
+    with uvicorn_in_thread(app, log_level="warning", **config) as port:
+        spoofed = slow_upload(port, "spoofed", source="127.0.0.2", forwarded_for="203.0.113.1")
+        held = [spoofed]
+        try:
+            assert counted(slots, {"127.0.0.2": 1}) == {"127.0.0.2": 1}
+            again = slow_upload(port, "again", source="127.0.0.2", forwarded_for="203.0.113.2")
+            held.append(again)
+            assert status_of(again, timeout=5) == 429
+            held += [
+                slow_upload(port, f"proxied-{i}", forwarded_for=f"198.51.100.{i}") for i in (1, 2)
+            ]
+            clients = {"127.0.0.2": 1, "198.51.100.1": 1, "198.51.100.2": 1}
+            assert counted(slots, clients) == clients
+        finally:
+            for sock in held:
+                sock.close()
+        assert slots_back(slots)
+
+
 def test_the_per_client_cap_counts_each_address_apart_and_the_total_still_binds():
     from fastapi import HTTPException
 
@@ -183,6 +241,40 @@ def test_a_json_body_that_trickles_is_cut_off_and_the_server_answers_others(serv
         assert int(answer.split(b"\r\n", 1)[0].split()[1]) == 408
         assert b"sent nothing for 1.5 s after 11 bytes" in answer
         assert 1.2 < time.monotonic() - started < 6
+    finally:
+        sock.close()
+
+
+@ON_SQLITE
+def test_a_json_body_under_the_minimum_rate_is_cut_off_and_its_connection_closed(server):
+    """A job request whose body never pauses for upload_idle_s (a byte every 0.1 s) but past its
+    first 1.5 s averages under LECO_UPLOAD_MIN_BYTES_PER_S (16 KiB/s) is answered 408 naming the
+    rate, and the server closes the connection (the rest of the body is not read)."""
+    import select
+
+    port, _ = server
+    sock = socket.create_connection(("127.0.0.1", port))
+    try:
+        sock.sendall(
+            f"POST /v1/jobs HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {TOKEN}\r\n"
+            "Content-Type: application/json\r\nContent-Length: 200\r\n\r\n{".encode()
+        )
+        started, sent = time.monotonic(), 1
+        # one byte at a time until the server answers (the 200 bytes would take 20 s)
+        while not select.select([sock], [], [], 0.1)[0] and sent < 200:
+            sock.sendall(b" ")
+            sent += 1
+        waited = time.monotonic() - started
+        sock.settimeout(10)
+        # read to the end of the stream: a connection left open would time out here
+        answer, chunk = b"", sock.recv(4096)
+        while chunk:
+            answer, chunk = answer + chunk, sock.recv(4096)
+        assert int(answer.split(b"\r\n", 1)[0].split()[1]) == 408, answer
+        assert b"bytes/s; at least 16,384 are needed" in answer
+        assert b"connection: close" in answer.lower()
+        assert 1.4 < waited < 8, waited  # past the first upload_idle_s, long before the body ends
+        assert sent < 100
     finally:
         sock.close()
 

@@ -11,10 +11,10 @@ import pytest
 import torch
 from PIL import Image
 
-from model.scenes.synthetic import PRESETS, build_city, generate, raycast, writer
+from model.scenes.synthetic import PRESETS, build_city, generate, writer
 from model.scenes.synthetic.city import POLE
 from model.scenes.synthetic.geometry import CANOPY, HEDGE, TRUNK
-from model.scenes.synthetic.raycast import GROUND, SKY
+from model.scenes.synthetic.raycast import GROUND, SKY, raycast
 from model.scenes.synthetic.shading import SUN, ground_albedo, shade
 
 DRB_TO_ENU = writer.DRB_FROM_ENU.T  # a rotation: the inverse is the transpose
