@@ -88,6 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     from bench.memory import add_commands as add_memory_commands
     from bench.render_speed import add_commands as add_render_bench_commands
     from bench.scale import add_commands as add_scale_commands
+    from bench.step_profile import add_commands as add_step_commands
     from cli.render import add_commands as add_render_commands
     from cli.results import add_commands as add_results_commands
     from cli.serve import add_commands as add_service_commands
@@ -102,6 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_load_commands(commands)
     add_scale_commands(commands)
     add_memory_commands(commands)
+    add_step_commands(commands)
     add_render_bench_commands(commands)
     add_results_commands(commands)
     return parser

@@ -21,6 +21,7 @@ from model.fields.background import BackgroundField
 from model.fields.switch_nerf import SwitchNeRF
 from model.methods.costs import PhaseMemory, SweepPoint
 from model.methods.main_phase import MainRender, main_loss
+from model.methods.stages import stage
 from model.profiles import Profile
 from model.render.volume import Rendered
 from model.scenes.rays import RayBatch
@@ -221,13 +222,14 @@ class Method:
     def step(self, models: Networks, step: Step) -> tuple[Tensor, dict]:
         """One training step's loss and its parts (floats)."""
         render = self.render_main(models, step.rays, step.generator, step.phase_step)
-        return main_loss(
-            render,
-            step.rays,
-            self.profile.balance_weight,
-            self.profile.guided.coarse_samples,
-            self.distortion_weight(),
-        )
+        with stage("losses"):
+            return main_loss(
+                render,
+                step.rays,
+                self.profile.balance_weight,
+                self.profile.guided.coarse_samples,
+                self.distortion_weight(),
+            )
 
     def render_main(
         self,

@@ -12,6 +12,7 @@ from model.estimators.grid import GridEstimator
 from model.methods.base import Method, Networks, Occupied, Step, SweepPoint, mean_of
 from model.methods.main_phase import MainRender, grid_step_size, render_grid
 from model.methods.spec import setting
+from model.methods.stages import stage
 from model.profiles import GridConfig
 from model.render.volume import Rendered
 from model.scenes.rays import RayBatch
@@ -50,16 +51,17 @@ class GridMethod(Method):
         was_training = field.training
         field.eval()
         # Same generator on every rank, so the replicated grids stay identical.
-        self.grid.update(
-            step.phase_step,
-            lambda x: self.density(models, x),
-            grid_step_size(self.grid, g.march_steps),
-            g.threshold,
-            g.decay,
-            g.warmup_steps,
-            g.update_every,
-            torch.Generator().manual_seed(step.seed * 100_003 + step.phase_step),
-        )
+        with stage("sampler"):
+            self.grid.update(
+                step.phase_step,
+                lambda x: self.density(models, x),
+                grid_step_size(self.grid, g.march_steps),
+                g.threshold,
+                g.decay,
+                g.warmup_steps,
+                g.update_every,
+                torch.Generator().manual_seed(step.seed * 100_003 + step.phase_step),
+            )
         field.train(was_training)
         return super().step(models, step)
 

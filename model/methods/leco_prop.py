@@ -26,6 +26,7 @@ from model.methods.leco.method import LeCOMethod
 from model.methods.leco.phase1 import occupancy_step
 from model.methods.main_phase import MainRender
 from model.methods.prop import ProposalMethod
+from model.methods.stages import stage
 from model.render.samples import PackedSamples
 from model.render.volume import Rendered, batched_weights
 from model.scenes.rays import RayBatch
@@ -61,7 +62,8 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
             )
         learn = self.schedule.due(step.phase_step)
         render, levels, edges = self.draw(models, step.rays, step.generator, step.phase_step, learn)
-        return self.loss_with_proposals(render, step.rays, levels, edges, learn)
+        with stage("losses"):
+            return self.loss_with_proposals(render, step.rays, levels, edges, learn)
 
     def render_main(
         self,
@@ -96,7 +98,7 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
             # in the level form O's histogram is a proposal level: it learns when they do
             query.learn = keeps or (learn and bound == "level")
             learner = query if keeps and isinstance(query, OnlineOccupancy) else None
-            with torch.no_grad():
+            with stage("sampler"), torch.no_grad():
                 bins = keep_bins(
                     sub.near,
                     sub.far,
@@ -119,7 +121,7 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
                     "fallback_fraction": float(bins.lost.float().mean()),
                     "bounded_length": float(share.mean()),
                 }
-        with torch.set_grad_enabled(learn):
+        with stage("sampler"), torch.set_grad_enabled(learn):
             levels, edges = self.propose(models, sub, generator, phase_step, axis, first)
         render = self.render_on(models, rays, hits, edges, generator, axis)
         render.stats.update(stats)
@@ -130,7 +132,8 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
                 local.starts, local.ends, order.repeat_interleave(edges.shape[1] - 1)
             )
             weights = render.rendered.weights.reshape(-1)
-            render.occupancy_loss = learner.loss(local, weights, sub, g.coarse_samples)
+            with stage("losses"):
+                render.occupancy_loss = learner.loss(local, weights, sub, g.coarse_samples)
         return render, levels, edges
 
     def o_histogram(self, query: OccupancyQuery, axis: KeptAxis) -> Tensor:

@@ -23,6 +23,7 @@ from model.fields.background import BackgroundField, background_samples
 from model.fields.output import FieldOutput
 from model.fields.switch_nerf import SwitchNeRF
 from model.methods.leco.phase1 import field_on_edges, render_background
+from model.methods.stages import stage
 from model.profiles import Profile
 from model.render.accounting import step_accounting
 from model.render.front_to_back import front_to_back
@@ -64,9 +65,10 @@ def field_on_packed(
 ) -> FieldOutput | None:
     if len(samples) == 0:
         return None
-    i = samples.ray_index
-    xyz = rays.origins[i] + rays.directions[i] * samples.mids[:, None]
-    return field(xyz, rays.directions[i], rays.image_index[i])
+    with stage("field"):
+        i = samples.ray_index
+        xyz = rays.origins[i] + rays.directions[i] * samples.mids[:, None]
+        return field(xyz, rays.directions[i], rays.image_index[i])
 
 
 def field_on_packed_at(
@@ -120,7 +122,8 @@ def render_vanilla(
 ) -> MainRender:
     cfg = profile.vanilla
     behind = render_background(background, rays, profile.background.samples, generator).rgb
-    coarse = stratified_edges(rays.near, rays.far, cfg.coarse_samples, generator)
+    with stage("sampler"):
+        coarse = stratified_edges(rays.near, rays.far, cfg.coarse_samples, generator)
     if cfg.fine_samples == 0:
         rendered, out = render_batched(field, rays, coarse, behind)
         return MainRender(
@@ -128,7 +131,8 @@ def render_vanilla(
         )
     with torch.no_grad():  # coarse weights only place the fine samples
         weights = render_batched(field, rays, coarse, behind)[0].weights
-    edges = merge_edges(coarse, inverse_cdf_edges(coarse, weights, cfg.fine_samples, generator))
+    with stage("sampler"):
+        edges = merge_edges(coarse, inverse_cdf_edges(coarse, weights, cfg.fine_samples, generator))
     rendered, out = render_batched(field, rays, edges, behind)
     # Coarse points run the network twice (once without gradient to place the fine ones).
     return MainRender(
@@ -195,13 +199,15 @@ def render_grid(
     for image renders; the samples reported are then the ones that ran."""
     stats: dict[str, float] = {}
     if grid.levels > 1:
-        behind, stats["background_kept"] = render_background_cascaded(
-            background, rays, background_samples_per_ray, grid, generator
-        )
+        with stage("background"):
+            behind, stats["background_kept"] = render_background_cascaded(
+                background, rays, background_samples_per_ray, grid, generator
+            )
     else:
         behind = render_background(background, rays, background_samples_per_ray, generator).rgb
     step = grid_step_size(grid, march_steps)
-    samples = grid.sample(rays.origins, rays.directions, rays.near, rays.far, step, generator)
+    with stage("sampler"):
+        samples = grid.sample(rays.origins, rays.directions, rays.near, rays.far, step, generator)
     possible = float(((rays.far - rays.near) / step).ceil().clamp(min=0).sum())
     if early_stop_eps > 0:
         out, samples = front_to_back(

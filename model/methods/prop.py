@@ -27,6 +27,7 @@ from model.methods.base import Method, Networks, Occupied, Step, SweepPoint, mea
 from model.methods.costs import proposal_parameters, proposal_width
 from model.methods.leco.phase1 import render_background
 from model.methods.main_phase import MainRender, grid_step_size, main_loss, render_batched
+from model.methods.stages import stage
 from model.profiles import Profile
 from model.render.samples import PackedSamples, pack_edges, stratified_edges
 from model.render.volume import Rendered, batched_weights, composite_batched
@@ -42,12 +43,13 @@ def render_on_axis(
     mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
     t = axis.to_t(mids)
     r, n = t.shape
-    xyz = rays.origins[:, None] + rays.directions[:, None] * t[..., None]
-    out = field(
-        xyz.reshape(-1, 3),
-        rays.directions.repeat_interleave(n, 0),
-        rays.image_index.repeat_interleave(n, 0),
-    )
+    with stage("field"):
+        xyz = rays.origins[:, None] + rays.directions[:, None] * t[..., None]
+        out = field(
+            xyz.reshape(-1, 3),
+            rays.directions.repeat_interleave(n, 0),
+            rays.image_index.repeat_interleave(n, 0),
+        )
     rendered = composite_batched(
         out.sigma.reshape(r, n), out.rgb.reshape(r, n, 3), t, deltas, behind
     )
@@ -108,13 +110,15 @@ class ProposalMethod(Method):
 
     def step(self, models: Networks, step: Step) -> tuple[Tensor, dict]:
         learn = self.schedule.due(step.phase_step)
-        hits = self.hits(step.rays)
-        with torch.set_grad_enabled(learn):
-            levels, edges = self.propose(
-                models, step.rays.subset(hits), step.generator, step.phase_step
-            )
+        with stage("sampler"):
+            hits = self.hits(step.rays)
+            with torch.set_grad_enabled(learn):
+                levels, edges = self.propose(
+                    models, step.rays.subset(hits), step.generator, step.phase_step
+                )
         render = self.render_on(models, step.rays, hits, edges, step.generator)
-        return self.loss_with_proposals(render, step.rays, levels, edges, learn)
+        with stage("losses"):
+            return self.loss_with_proposals(render, step.rays, levels, edges, learn)
 
     def loss_with_proposals(
         self,

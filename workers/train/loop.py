@@ -21,6 +21,7 @@ import torch
 
 from model.errors import Failed
 from model.methods.base import Step
+from model.methods.stages import stage, to_device
 from model.scenes import RaySampler, load_scene
 from workers.config import TrainConfig
 from workers.memory import SavedTensorBytes
@@ -242,7 +243,8 @@ class RankRun:
         optimizer.zero_grad(set_to_none=True)
         finite = bool(torch.isfinite(loss))
         if finite:
-            loss.backward()
+            with stage("backward"):
+                loss.backward()
             finite = grads_finite(params)
         if any_rank(not finite, self.device):
             self.count_nonfinite(phase)
@@ -251,7 +253,8 @@ class RankRun:
         else:
             self.progress["nonfinite"] = 0
             average_gradients(params)
-            optimizer.step()
+            with stage("optimizer"):
+                optimizer.step()
         self.progress["phase_step"] += 1
         self.progress["step"] += 1
         self.timeline.setdefault("first_step_at", time.time())
@@ -259,7 +262,10 @@ class RankRun:
         return parts
 
     def forward(self, phase: str, progress: float) -> tuple[torch.Tensor, dict]:
-        rays = self.state.sampler.next().to(self.device)
+        with stage("ray_batch"):
+            batch = self.state.sampler.next()  # drawn on the host
+            with to_device():
+                rays = batch.to(self.device)
         generator = self.state.generator if self.profile.perturb else None
         step = Step(phase, rays, generator, progress, self.progress["phase_step"], self.cfg.seed)
         return self.method.step(self.models, step)

@@ -25,6 +25,7 @@ from model.fields.hmoe import OccupancyNetwork
 from model.fields.switch_nerf import SwitchNeRF
 from model.methods.leco.phase1 import render_background
 from model.methods.main_phase import MainRender, composite_field, cull_occluded, field_on_packed
+from model.methods.stages import stage
 from model.profiles import GuidedConfig, Profile
 from model.render.samples import PackedSamples, pack_edges, stratified_edges
 from model.render.volume import Rendered, batched_weights
@@ -124,7 +125,7 @@ def render_guided(
     behind = render_background(background, rays, profile.background.samples, generator).rgb
     hit = torch.nonzero(rays.far > rays.near)[:, 0]
     sub = rays.subset(hit)  # only rays that cross the box have bins to keep
-    with torch.no_grad():
+    with stage("sampler"), torch.no_grad():
         place = (
             Placer(profile, query, sub, anneal, generator, learn_placement) if g.placement else None
         )
@@ -148,20 +149,21 @@ def render_guided(
     out = field_on_packed(field, rays, samples)
     rendered = composite_field(out, rays, samples, behind)
     losses: list[Tensor] = []
-    if learner is not None:
-        losses.append(learner.loss(local, rendered.weights, sub, g.coarse_samples))
-    if learn_placement and query.sigma is not None and len(sub):
-        proposal = histogram(
-            query.sigma.reshape(len(sub), g.coarse_samples, -1).mean(dim=-1), draw.edges
-        )
-        losses.append(
-            g.placement_loss_weight
-            * placement_loss(proposal, local, rendered.weights, sub.near, sub.far)
-        )
-        if place is not None and place.fine is not None and len(place.fine.rows):
-            fine = place.fine
-            main = rendered.weights.reshape(len(fine.rows), g.main_samples)
-            losses.append(g.placement_loss_weight * fine_placement_loss(fine, fine.sigma, main))
+    with stage("losses"):  # O's, while it learns
+        if learner is not None:
+            losses.append(learner.loss(local, rendered.weights, sub, g.coarse_samples))
+        if learn_placement and query.sigma is not None and len(sub):
+            proposal = histogram(
+                query.sigma.reshape(len(sub), g.coarse_samples, -1).mean(dim=-1), draw.edges
+            )
+            losses.append(
+                g.placement_loss_weight
+                * placement_loss(proposal, local, rendered.weights, sub.near, sub.far)
+            )
+            if place is not None and place.fine is not None and len(place.fine.rows):
+                fine = place.fine
+                main = rendered.weights.reshape(len(fine.rows), g.main_samples)
+                losses.append(g.placement_loss_weight * fine_placement_loss(fine, fine.sigma, main))
     stats = {
         "o_kept_ratio": float(draw.occupied_bins.float().mean()) if len(sub) else 0.0,
         "fallback_fraction": float(draw.lost.float().mean()) if len(sub) else 0.0,

@@ -13,6 +13,7 @@ from model.fields.background import BackgroundField, background_samples
 from model.fields.hmoe import HMoE
 from model.fields.output import FieldOutput
 from model.methods.schedules import log_linear
+from model.methods.stages import stage
 from model.profiles import OccupancyPhaseConfig
 from model.render.losses import (
     density_loss,
@@ -29,17 +30,18 @@ from model.scenes.rays import RayBatch
 def render_background(
     background: BackgroundField, rays: RayBatch, samples: int, generator: torch.Generator | None
 ) -> Rendered:
-    t, deltas = background_samples(rays.far, samples, generator)
-    xyz = rays.origins[:, None, :] + rays.directions[:, None, :] * t[..., None]
-    r = len(rays)
-    sigma, rgb = background(
-        xyz.reshape(-1, 3),
-        rays.directions.repeat_interleave(samples, 0),
-        rays.image_index.repeat_interleave(samples, 0),
-    )
-    return composite_batched(
-        sigma.reshape(r, samples), rgb.reshape(r, samples, 3), t, deltas, sigma.new_zeros(3)
-    )
+    with stage("background"):
+        t, deltas = background_samples(rays.far, samples, generator)
+        xyz = rays.origins[:, None, :] + rays.directions[:, None, :] * t[..., None]
+        r = len(rays)
+        sigma, rgb = background(
+            xyz.reshape(-1, 3),
+            rays.directions.repeat_interleave(samples, 0),
+            rays.image_index.repeat_interleave(samples, 0),
+        )
+        return composite_batched(
+            sigma.reshape(r, samples), rgb.reshape(r, samples, 3), t, deltas, sigma.new_zeros(3)
+        )
 
 
 def field_on_edges(field, rays: RayBatch, edges: Tensor) -> tuple[FieldOutput, Tensor, Tensor]:
@@ -47,12 +49,13 @@ def field_on_edges(field, rays: RayBatch, edges: Tensor) -> tuple[FieldOutput, T
     (R, N)."""
     n = edges.shape[1] - 1
     mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
-    xyz = rays.origins[:, None] + rays.directions[:, None] * mids[..., None]
-    out = field(
-        xyz.reshape(-1, 3),
-        rays.directions.repeat_interleave(n, 0),
-        rays.image_index.repeat_interleave(n, 0),
-    )
+    with stage("field"):
+        xyz = rays.origins[:, None] + rays.directions[:, None] * mids[..., None]
+        out = field(
+            xyz.reshape(-1, 3),
+            rays.directions.repeat_interleave(n, 0),
+            rays.image_index.repeat_interleave(n, 0),
+        )
     return out, mids, deltas
 
 
