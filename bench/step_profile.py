@@ -25,7 +25,9 @@ too with `--gpu`), each inside a `bench::step` label. What it reports, per step:
   including the two inside `repeat_interleave` with a tensor of repeats and no `output_size`: its
   total and its check that no repeat is negative; `masked_select` on the CPU), `aten::nonzero`
   (also beneath `torch.where(mask)`, `argwhere`, boolean-mask indexing `x[mask]` and
-  `x[mask] = values`), `aten::masked_select`, the `unique` operators and `aten::equal`. On the
+  `x[mask] = values`), `aten::masked_select`, the `unique` operators, `aten::equal`, and the
+  `sync::host_read` label (model/methods/stages.py `host_read`: a `tolist()`, which runs no aten
+  operator on the CPU, so the code reads through it where it must read a tensor). On the
   CPU, so that the count is what CUDA would wait on: a candidate beneath host-side work of a CUDA
   run does not count (the `ray_batch` stage, drawn on the host; `Optimizer.step#...`, whose step
   counters torch.optim keeps on the host; `aten::_index_put_impl_`, whose `x[mask] = 0.0` fills
@@ -149,9 +151,9 @@ def reaches_kernel(event: FunctionEvent) -> bool:
 
 def sync_candidate(event: FunctionEvent, cuda: bool) -> bool:
     """CUDA: a SYNC_OPS call or a copy with a synchronising runtime call beneath it. CPU: a
-    SYNC_OPS call not beneath HOST_SIDE work, or a `to` beneath a `to_device` label (a copy of a
-    host tensor to the device on CUDA)."""
-    from model.methods.stages import PREFIX, TO_DEVICE
+    SYNC_OPS call not beneath HOST_SIDE work, a `to` beneath a `to_device` label (a copy of a
+    host tensor to the device on CUDA), or a `host_read` label (a tolist)."""
+    from model.methods.stages import HOST_READ, PREFIX, TO_DEVICE
 
     if cuda:
         return (event.name in SYNC_OPS or event.name == "aten::copy_") and any(
@@ -159,6 +161,8 @@ def sync_candidate(event: FunctionEvent, cuda: bool) -> bool:
         )
     if event.name == "aten::to":
         return event.cpu_parent is not None and event.cpu_parent.name == TO_DEVICE
+    if event.name == HOST_READ:  # a tolist(), which runs no operator on the CPU
+        return True
     host = (PREFIX + "ray_batch", *HOST_SIDE)
     return event.name in SYNC_OPS and not any(a.name.startswith(host) for a in ancestors(event))
 

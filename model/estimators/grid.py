@@ -26,6 +26,8 @@ class GridEstimator(Estimator):
 
     def __init__(self, aabb: Tensor, resolution: int = 128, levels: int = 1):
         self.aabb = aabb.float()
+        # read once here: the march's step size needs it every step, and a read there waits
+        self.diagonal = float((self.aabb[1] - self.aabb[0]).norm())
         self.resolution = resolution
         self.levels = levels
         self.values = torch.zeros(levels * resolution**3)

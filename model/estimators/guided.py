@@ -104,11 +104,13 @@ def keep_bins(
     generator: torch.Generator | None,
     options: BinOptions,
     scores: Callable[[], Tensor] | None = None,
+    all_hit: bool = False,
 ) -> KeptBins:
     """O keeps or drops each of `options.coarse` bins of a ray (section 3.4), then dilation and the
     fallback (BinOptions). `scores()`: the decision logits of the last `occupied` call (for the
     top-k fallback). O is asked about the rays that cross the box only: the others have no bin to
-    keep."""
+    keep. `all_hit`: the caller passes only rays that cross the box, so O is asked about every ray
+    without a mask to gather by (the same answer, no wait on the mask's size)."""
     num_coarse, queries = options.coarse, options.queries
     # coarse bins are fixed; jitter happens inside them
     edges = stratified_edges(near, far, num_coarse, None)
@@ -133,7 +135,15 @@ def keep_bins(
     hits = far > near
     occupied_bins = torch.zeros(t.shape[:2], dtype=torch.bool, device=near.device)
     score: Tensor | None = None
-    if bool(hits.any()):
+    if all_hit:
+        if len(near):
+            asked = occupied(points.reshape(-1, 3)).reshape(-1, num_coarse, queries)
+            occupied_bins = asked.any(dim=-1)
+            if options.topk > 0 and scores is not None:
+                score = scores().reshape(-1, num_coarse, queries).amax(dim=-1).float()
+        elif options.topk > 0 and scores is not None:
+            score = torch.full(t.shape[:2], -torch.inf, device=near.device)
+    elif bool(hits.any()):
         asked = occupied(points[hits].reshape(-1, 3)).reshape(-1, num_coarse, queries)
         occupied_bins[hits] = asked.any(dim=-1)
         if options.topk > 0 and scores is not None:
@@ -153,12 +163,13 @@ def draw_guided(
     options: BinOptions,
     scores: Callable[[], Tensor] | None = None,
     place: Callable[[Tensor, Tensor, Tensor], PackedSamples] | None = None,
+    all_hit: bool = False,
 ) -> GuidedDraw:
     """LeCO's guided sampling (section 3.4): O keeps or drops each of `options.coarse` bins of a
     ray (`keep_bins`), the kept ones are split (BinOptions says how). `place(rows, edges, keep)`:
     draws the samples of these rows over their kept bins instead of splitting them
-    (model/estimators/placement.py)."""
-    bins = keep_bins(near, far, origins, directions, occupied, generator, options, scores)
+    (model/estimators/placement.py). `all_hit`: as in `keep_bins`."""
+    bins = keep_bins(near, far, origins, directions, occupied, generator, options, scores, all_hit)
     edges, keep, lost, split = bins.edges, bins.keep, bins.lost, options.split
     if place is not None:
         rows = torch.nonzero(keep.any(dim=1))[:, 0]

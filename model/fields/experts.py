@@ -7,6 +7,8 @@ import math
 import torch
 from torch import Tensor, nn
 
+from model.methods.stages import host_read
+
 
 class Expert(nn.Module):
     """`layers` x Linear(W, W) + ReLU with the block input added back after layer `residual_at`
@@ -51,12 +53,32 @@ def capacity_keep(
     return keep
 
 
+def group_sizes(index: Tensor, groups: int) -> Tensor:
+    """How many entries of `index` hold each of 0 .. groups - 1: bincount's answer, without the
+    host read bincount makes to size its output."""
+    return torch.zeros(groups, dtype=torch.long, device=index.device).index_add_(
+        0, index, torch.ones_like(index)
+    )
+
+
 def dispatch(experts: nn.ModuleList, h: Tensor, index: Tensor, keep: Tensor) -> Tensor:
-    """Run each expert on exactly its points (gather, compute, scatter); dropped points stay
-    zero."""
+    """Run each expert on exactly its points (gather, compute, scatter); dropped points stay zero.
+
+    Sort and segment: one stable sort groups the points by expert (each group in its points' order,
+    so every expert multiplies the same rows in the same order as a gather per expert would) and
+    one host read of the group sizes cuts it, where a gather per expert waits on the device once
+    per expert."""
     out = h.new_zeros(h.shape[0], h.shape[1])
-    for e, expert in enumerate(experts):
-        members = torch.nonzero((index == e) & keep).squeeze(1)
-        if len(members):
-            out = out.index_copy(0, members, expert(h[members]).to(out.dtype))
+    n = len(experts)
+    group = index.masked_fill(~keep, n)  # dropped points sort last, into no expert's group
+    order = torch.argsort(group, stable=True)
+    sizes = host_read(group_sizes(group, n + 1))[:n]
+    rows = h[order[: sum(sizes)]]
+    results = [
+        expert(chunk).to(out.dtype)
+        for expert, chunk in zip(experts, rows.split(sizes))
+        if len(chunk)
+    ]
+    if results:
+        out = out.index_copy(0, order[: sum(sizes)], torch.cat(results))
     return out

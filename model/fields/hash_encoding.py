@@ -25,6 +25,8 @@ class HashEncoding(nn.Module):
     resolutions_t: Tensor
     hashed: Tensor
     sizes_t: Tensor
+    corners: Tensor
+    corner_is_high: Tensor
 
     def __init__(
         self,
@@ -50,6 +52,9 @@ class HashEncoding(nn.Module):
         self.register_buffer("sizes_t", torch.tensor(sizes), persistent=False)
         hashed = [(n + 1) ** 3 > self.table_size for n in self.resolutions]
         self.register_buffer("hashed", torch.tensor(hashed), persistent=False)
+        # on the module's device, so no call copies them there (a copy from the host waits)
+        self.register_buffer("corners", CORNERS.clone(), persistent=False)
+        self.register_buffer("corner_is_high", CORNERS.bool(), persistent=False)
 
     @property
     def out_dim(self) -> int:
@@ -75,10 +80,11 @@ class HashEncoding(nn.Module):
         # the cell's lowest corner, kept inside the grid so a point at 1 uses the last cell
         low = scaled.floor().clamp(max=self.resolutions_t.view(1, -1, 1) - 1).long()
         frac = scaled - low  # (P, L, 3) in [0, 1]
-        corners = low[:, :, None, :] + CORNERS.to(x.device)  # (P, L, 8, 3)
+        corners = low[:, :, None, :] + self.corners  # (P, L, 8, 3)
         rows = self.corner_indices(corners)  # (P, L, 8)
-        offset = CORNERS.to(x.device, x.dtype)  # trilinear weight of each corner
-        weights = torch.where(offset.bool(), frac[:, :, None, :], 1 - frac[:, :, None, :]).prod(-1)
+        # trilinear weight of each corner
+        high = self.corner_is_high
+        weights = torch.where(high, frac[:, :, None, :], 1 - frac[:, :, None, :]).prod(-1)
         values = self.table[rows]  # (P, L, 8, F)
         blended = (weights[..., None] * values).sum(2)  # (P, L, F)
         return blended.reshape(*shape, self.out_dim)

@@ -166,7 +166,11 @@ class HMoE(nn.Module):
         keep = torch.ones_like(empty)
         sigma = h.new_zeros(len(h))
         rgb = h.new_zeros(len(h), 3)
-        scene = torch.nonzero(~empty).squeeze(1)
+        # Scene points, then empty ones, each in their points' order (what two gathers by mask
+        # would give), split with one host read instead of two.
+        order = torch.argsort(empty.long(), stable=True)
+        num_scene = len(empty) - int(empty.sum())
+        scene, void = order[:num_scene], order[num_scene:]
         if len(scene):
             # Each expert's output times its gate value, so O is trained by the rendering loss too.
             out = (
@@ -180,7 +184,6 @@ class HMoE(nn.Module):
                 sigma.index_copy(0, scene, s.to(sigma.dtype)),
                 rgb.index_copy(0, scene, c.to(rgb.dtype)),
             )
-        void = torch.nonzero(empty).squeeze(1)
         if len(void):
             gate = chosen[void, None] if self.empty_gate_grad else chosen[void, None].detach()
             _, s, c = self.empty_head(self.empty_expert(h[void]) * gate)

@@ -25,6 +25,7 @@ from model.methods.leco.guided_render import phase1_placement_loss
 from model.methods.leco.method import LeCOMethod
 from model.methods.leco.phase1 import occupancy_step
 from model.methods.main_phase import MainRender
+from model.methods.parts import Parts
 from model.methods.prop import ProposalMethod
 from model.methods.stages import stage
 from model.render.samples import PackedSamples
@@ -91,7 +92,7 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
         axis: Axis | None = None
         first: tuple[Tensor, Tensor, Tensor] | None = None
         learner: OnlineOccupancy | None = None
-        stats: dict[str, float] = {}
+        stats: Parts = {}
         if bound != "off":  # the control arm asks O nothing
             query = self.main_query()
             keeps = phase_step is not None and g.online_learns(phase_step)
@@ -108,6 +109,7 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
                     generator,
                     BinOptions.of(g),
                     query.scores,
+                    all_hit=True,
                 )
             explore = self.profile.leco_prop.explore
             support = bounded(bins.keep, "mask" if bound == "level" else bound)
@@ -117,9 +119,9 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
             if len(sub):
                 share = kept.length() / (sub.far - sub.near)
                 stats = {
-                    "o_kept_ratio": float(bins.occupied_bins.float().mean()),
-                    "fallback_fraction": float(bins.lost.float().mean()),
-                    "bounded_length": float(share.mean()),
+                    "o_kept_ratio": bins.occupied_bins.float().mean(),
+                    "fallback_fraction": bins.lost.float().mean(),
+                    "bounded_length": share.mean(),
                 }
         with stage("sampler"), torch.set_grad_enabled(learn):
             levels, edges = self.propose(models, sub, generator, phase_step, axis, first)

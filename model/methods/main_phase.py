@@ -23,6 +23,7 @@ from model.fields.background import BackgroundField, background_samples
 from model.fields.output import FieldOutput
 from model.fields.switch_nerf import SwitchNeRF
 from model.methods.leco.phase1 import field_on_edges, render_background
+from model.methods.parts import Parts, psnr
 from model.methods.stages import stage
 from model.profiles import Profile
 from model.render.accounting import step_accounting
@@ -50,14 +51,14 @@ class MainRender:
     out: FieldOutput | None  # None when no ray had a foreground sample
     samples_per_ray: float  # main-network samples per ray (the cost the samplers compete on)
     # kept fraction of coarse samples (guided) or of march steps (grid)
-    occupancy_ratio: float | None
+    occupancy_ratio: float | Tensor | None
     occupancy_loss: Tensor | None = None  # O's own loss when it keeps learning (guided.online)
     # The main network's samples, packed (zero-length intervals of a batched sampler included: they
     # cost too); model/render/accounting.py counts what reached the main network from them. None:
     # not known.
     samples: PackedSamples | None = None
-    # a sampler's own figures, logged as they are
-    stats: dict[str, float] = dataclass_field(default_factory=dict)
+    # a sampler's own figures, logged as they are (tensors are read on logging steps only)
+    stats: Parts = dataclass_field(default_factory=dict)
 
 
 def field_on_packed(
@@ -159,7 +160,7 @@ def cull_occluded(field: SwitchNeRF, rays: RayBatch, samples: PackedSamples, eps
 
 def grid_step_size(grid: GridEstimator, march_steps: int) -> float:
     """nerfacc's render_step_size: the box diagonal over the number of marching steps."""
-    return float((grid.aabb[1] - grid.aabb[0]).norm()) / march_steps
+    return grid.diagonal / march_steps
 
 
 def render_background_cascaded(
@@ -168,7 +169,7 @@ def render_background_cascaded(
     samples: int,
     grid: GridEstimator,
     generator: torch.Generator | None,
-) -> tuple[Tensor, float]:
+) -> tuple[Tensor, Tensor]:
     """The background's colour with its samples culled by the grid's outer cascades (Instant-NGP
     skips empty space beyond the box too): a sample in a free cell is dropped, one beyond the
     outermost level is kept. A dropped sample had no density, so compositing the kept ones with
@@ -182,7 +183,7 @@ def render_background_cascaded(
     sigma, rgb = background(flat[keep], rays.directions[ray], rays.image_index[ray])
     t_kept, deltas_kept = t.reshape(-1)[keep], deltas.reshape(-1)[keep]
     rendered = composite_packed(sigma, rgb, t_kept, deltas_kept, ray, len(rays), sigma.new_zeros(3))
-    return rendered.rgb, float(keep.float().mean()) if len(keep) else 0.0
+    return rendered.rgb, keep.float().mean() if len(keep) else rendered.rgb.new_zeros(())
 
 
 def render_grid(
@@ -197,7 +198,7 @@ def render_grid(
 ) -> MainRender:
     """`early_stop_eps` > 0: rays stop at that transmittance (model/render/front_to_back.py),
     for image renders; the samples reported are then the ones that ran."""
-    stats: dict[str, float] = {}
+    stats: Parts = {}
     if grid.levels > 1:
         with stage("background"):
             behind, stats["background_kept"] = render_background_cascaded(
@@ -208,7 +209,7 @@ def render_grid(
     step = grid_step_size(grid, march_steps)
     with stage("sampler"):
         samples = grid.sample(rays.origins, rays.directions, rays.near, rays.far, step, generator)
-    possible = float(((rays.far - rays.near) / step).ceil().clamp(min=0).sum())
+    possible = ((rays.far - rays.near) / step).ceil().clamp(min=0).sum()
     if early_stop_eps > 0:
         out, samples = front_to_back(
             lambda i: field_on_packed_at(field, rays, samples, i),
@@ -222,7 +223,7 @@ def render_grid(
         composite_field(out, rays, samples, behind),
         out,
         len(samples) / len(rays),
-        len(samples) / max(possible, 1.0),
+        possible.new_full((), len(samples)) / possible.clamp(min=1.0),
         samples=samples,
         stats=stats,
     )
@@ -234,14 +235,15 @@ def main_loss(
     balance_weight: float,
     bins: int | None = None,
     distortion_weight: float = 0.0,
-) -> tuple[Tensor, dict]:
-    """L_r + balance_weight * balance loss (+ distortion_weight * L_dist), and the parts as floats;
-    with `bins`, what reached the main network counted on that many coarse bins per hit ray
+) -> tuple[Tensor, Parts]:
+    """L_r + balance_weight * balance loss (+ distortion_weight * L_dist), and the parts as
+    detached tensors (model/methods/parts.py: read on the steps the loop logs); with `bins`, what
+    reached the main network counted on that many coarse bins per hit ray
     (model/render/accounting.py), the same way for every method."""
     l_r = rendering_loss(render.rendered.rgb, rays.rgb)
     loss = l_r
-    parts = {
-        "rendering_loss": float(l_r.detach()),
+    parts: Parts = {
+        "rendering_loss": l_r.detach(),
         "samples_per_ray": render.samples_per_ray,
         **render.stats,
     }
@@ -251,20 +253,20 @@ def main_loss(
         assert len(weights) == len(render.samples), "weights and samples disagree"
         l_dist = distortion_loss(weights, render.samples, rays.near, rays.far, len(rays))
         loss = loss + distortion_weight * l_dist
-        parts["distortion_loss"] = float(l_dist.detach())
+        parts["distortion_loss"] = l_dist.detach()
     if bins is not None and render.samples is not None:
         parts.update(step_accounting(render.samples, rays.near, rays.far, bins))
     if render.out is not None:
         l_b = balance_loss(render.out.gate_probs, render.out.expert)
         loss = loss + balance_weight * l_b
-        parts["balance_loss"] = float(l_b.detach())
+        parts["balance_loss"] = l_b.detach()
         fractions, _ = dispatch_fractions(render.out.gate_probs.detach(), render.out.expert)
-        parts.update({f"fraction_expert_{i}": float(f) for i, f in enumerate(fractions)})
+        parts.update({f"fraction_expert_{i}": f for i, f in enumerate(fractions)})
     if render.occupancy_ratio is not None and "occupancy_ratio" not in parts:
         parts["occupancy_ratio"] = render.occupancy_ratio
     if render.occupancy_loss is not None:  # only O's parameters get its gradient
         loss = loss + render.occupancy_loss
-        parts["occupancy_online_loss"] = float(render.occupancy_loss.detach())
-    parts["loss"] = float(loss.detach())
-    parts["psnr"] = -10.0 * torch.log10(torch.tensor(max(parts["rendering_loss"], 1e-10))).item()
+        parts["occupancy_online_loss"] = render.occupancy_loss.detach()
+    parts["loss"] = loss.detach()
+    parts["psnr"] = psnr(l_r)
     return loss, parts

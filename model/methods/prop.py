@@ -27,6 +27,7 @@ from model.methods.base import Method, Networks, Occupied, Step, SweepPoint, mea
 from model.methods.costs import proposal_parameters, proposal_width
 from model.methods.leco.phase1 import render_background
 from model.methods.main_phase import MainRender, grid_step_size, main_loss, render_batched
+from model.methods.parts import Parts
 from model.methods.stages import stage
 from model.profiles import Profile
 from model.render.samples import PackedSamples, pack_edges, stratified_edges
@@ -127,7 +128,7 @@ class ProposalMethod(Method):
         levels: list[tuple[Tensor, Tensor]],
         edges: Tensor,
         learn: bool,
-    ) -> tuple[Tensor, dict]:
+    ) -> tuple[Tensor, Parts]:
         """The main loss, plus the interlevel loss on a step the proposals learn (`levels` and the
         main `edges` of the hit rays, as `propose` returns them)."""
         loss, parts = main_loss(
@@ -145,8 +146,8 @@ class ProposalMethod(Method):
         if learn and hits:
             l_prop = interlevel_loss(edges, render.rendered.weights, levels)
             loss = loss + self.profile.prop.loss_weight * l_prop
-            parts["interlevel_loss"] = float(l_prop.detach())
-            parts["loss"] = float(loss.detach())
+            parts["interlevel_loss"] = l_prop.detach()
+            parts["loss"] = loss.detach()
         return loss, parts
 
     @staticmethod

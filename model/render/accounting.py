@@ -33,18 +33,21 @@ def reached_bins(samples: PackedSamples, near: Tensor, far: Tensor, bins: int) -
 
 def step_accounting(
     samples: PackedSamples, near: Tensor, far: Tensor, bins: int
-) -> dict[str, float]:
-    """Per-step figures: the share of the hit rays' coarse bins that reach the main network
-    (`occupancy_ratio`), main samples per hit ray, and the share of rays that hit the box."""
+) -> dict[str, Tensor]:
+    """Per-step figures, as 0-dim tensors (read when logged, model/methods/parts.py): the share of
+    the hit rays' coarse bins that reach the main network (`occupancy_ratio`), main samples per hit
+    ray, and the share of rays that hit the box. All three are 0 when no ray hits the box."""
     hit = far > near
-    hits = int(hit.sum())
-    if hits == 0:
-        return {"occupancy_ratio": 0.0, "samples_per_hit_ray": 0.0, "hit_ray_fraction": 0.0}
+    hits = hit.sum()
+    per_hit = hits.clamp(min=1)  # no ray hits: every share below reads 0
     reached = reached_bins(samples, near, far, bins)
     return {
-        "occupancy_ratio": float(reached.sum()) / (hits * bins),
-        "samples_per_hit_ray": len(samples) / hits,
-        "hit_ray_fraction": hits / len(near),
+        "occupancy_ratio": reached.sum() / (per_hit * bins),
+        # a tensor over a tensor: `int / tensor` multiplies by the reciprocal, off by a rounding
+        "samples_per_hit_ray": torch.where(
+            hits > 0, hits.new_full((), len(samples)) / per_hit, 0.0
+        ),
+        "hit_ray_fraction": hits / max(len(near), 1),
     }
 
 

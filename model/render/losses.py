@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from model.fields.experts import group_sizes
 from model.render.samples import PackedSamples
 from model.render.volume import exclusive_cumsum_per_ray
 
@@ -14,7 +15,7 @@ EPS = 1e-10
 def dispatch_fractions(probs: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
     """f: fraction of points sent to each expert (not differentiable); p: mean gate value per
     expert."""
-    f = torch.bincount(index, minlength=probs.shape[1]).float() / max(len(index), 1)
+    f = group_sizes(index, probs.shape[1]).float() / max(len(index), 1)
     return f, probs.mean(dim=0) if len(probs) else probs.new_zeros(probs.shape[1])
 
 
@@ -36,7 +37,9 @@ def imbalanced_gate_loss(probs: Tensor, index: Tensor, v: float) -> Tensor:
 def density_loss(probs: Tensor, index: Tensor, sigma: Tensor) -> Tensor:
     """L_d = (|Y| / |X|) sum_X g sigma / sum_Y g sigma, sigma detached (Eq. 2). X: points sent to
     E_e, g their E_e gate; Y: points sent to scene experts, g the sum of the n scene gates. Zero
-    (with a gradient path) when X or Y is empty: there is no ratio to push down."""
+    (with a gradient path) when X or Y is empty: there is no ratio to push down. X and Y are
+    gathered (two host reads, in phase 1 only): a masked sum adds the same values in another order,
+    and phase 1's runs would no longer reproduce bit for bit."""
     n = probs.shape[1] - 1
     empty = index == n
     num_x, num_y = int(empty.sum()), int((~empty).sum())
@@ -86,21 +89,22 @@ def rendering_loss(rgb: Tensor, target: Tensor) -> Tensor:
 
 def gate_statistics(
     probs: Tensor, index: Tensor, sigma: Tensor, alpha: Tensor | None = None
-) -> dict[str, float]:
-    """The paper's Fig. 5 numbers: share of points per expert and to E_e, mean density (and alpha)
-    of E_e points against scene-expert points, and their ratio. Missing groups read as NaN, never a
-    crash."""
+) -> dict[str, Tensor]:
+    """The paper's Fig. 5 numbers, as 0-dim tensors: share of points per expert and to E_e, mean
+    density (and alpha) of E_e points against scene-expert points, and their ratio. Missing groups
+    read as NaN, never a crash."""
     n = probs.shape[1] - 1
     f, _ = dispatch_fractions(probs, index)
     empty = index == n
-    stats = {f"fraction_expert_{i}": float(f[i]) for i in range(n)}
-    stats["fraction_empty"] = float(f[n])
+    stats = {f"fraction_expert_{i}": f[i] for i in range(n)}
+    stats["fraction_empty"] = f[n]
     for name, values in (("density", sigma), ("alpha", alpha)):
         if values is None:
             continue
         values = values.detach().float()
-        e = float(values[empty].mean()) if empty.any() else float("nan")
-        s = float(values[~empty].mean()) if (~empty).any() else float("nan")
+        # masked means: 0 / 0 is NaN where a group is empty
+        e = values.masked_fill(~empty, 0.0).sum() / empty.sum()
+        s = values.masked_fill(empty, 0.0).sum() / (~empty).sum()
         stats[f"{name}_empty"], stats[f"{name}_scene"] = e, s
-        stats[f"{name}_ratio"] = e / s if s > 0 else float("nan")
+        stats[f"{name}_ratio"] = torch.where(s > 0, e / s, torch.full_like(s, float("nan")))
     return stats

@@ -115,12 +115,21 @@ def shard(batch: Tensor, rank: int, world_size: int) -> Tensor:
     return batch[rank * per_rank : (rank + 1) * per_rank]
 
 
+# Up to this many pixels (lego's 4.0M and fern's 3.8M at full size) an epoch's order is evaluated
+# once and kept, so a batch is a slice of it rather than a Feistel evaluation (about 300 small ops
+# and a data-dependent loop a step); the values are the same either way. 4 bytes a pixel, 16 MiB at
+# most: inside the memory estimate's 25% margin (model/memory_estimate.py), so it adds no term.
+KEPT_ORDER_MAX_PIXELS = 2**22
+ORDER_CHUNK = 2**20  # pixels evaluated at once while an epoch's order is built
+
+
 class RaySampler:
     """Seeded shuffling over all pixels: each epoch is one permutation keyed by (seed, epoch);
     global batches are consecutive slices of it (the incomplete tail is skipped) and every rank
     takes its shard of the same global batch. The permutation is evaluated per batch
     (model/scenes/permutation.py), so the sampler's memory is its batch, whatever the number of
-    pixels. Its position is a state dict, so a resumed run continues with the very next batch."""
+    pixels; a split of at most KEPT_ORDER_MAX_PIXELS evaluates each epoch's order once and slices
+    it. Its position is a state dict, so a resumed run continues with the very next batch."""
 
     def __init__(
         self,
@@ -145,6 +154,7 @@ class RaySampler:
         self.rank, self.world_size = rank, world_size
         self.epoch, self.offset = 0, 0
         self._perm: FeistelPermutation | None = None
+        self._order: Tensor | None = None  # the epoch's whole order, when kept
 
     @property
     def batches_per_epoch(self) -> int:
@@ -155,12 +165,35 @@ class RaySampler:
             self._perm = FeistelPermutation(len(self.table), self.seed * 1_000_003 + self.epoch)
         return self._perm
 
+    def _kept_order(self) -> Tensor | None:
+        """The epoch's whole order (int32), evaluated a chunk at a time on its first batch; None
+        for a split too large to keep."""
+        n = len(self.table)
+        if n > KEPT_ORDER_MAX_PIXELS:
+            return None
+        if self._order is None:
+            perm = self._permutation()
+            chunks = [
+                perm(torch.arange(start, min(start + ORDER_CHUNK, n))).to(torch.int32)
+                for start in range(0, n, ORDER_CHUNK)
+            ]
+            self._order = torch.cat(chunks)
+        return self._order
+
+    def _new_epoch(self, epoch: int, offset: int) -> None:
+        self.epoch, self.offset, self._perm, self._order = epoch, offset, None, None
+
     def next_global(self) -> Tensor:
         """The next global batch of pixel ids (the same on every rank)."""
         if self.offset + self.batch_size > len(self.table):
-            self.epoch, self.offset, self._perm = self.epoch + 1, 0, None
-        batch = self._permutation()(torch.arange(self.offset, self.offset + self.batch_size))
-        self.offset += self.batch_size
+            self._new_epoch(self.epoch + 1, 0)
+        end = self.offset + self.batch_size
+        order = self._kept_order()
+        if order is not None:
+            batch = order[self.offset : end].long()
+        else:
+            batch = self._permutation()(torch.arange(self.offset, end))
+        self.offset = end
         return batch
 
     def next(self) -> RayBatch:
@@ -180,4 +213,4 @@ class RaySampler:
                 f"sampler state is for seed={state['seed']}, batch_size={state['batch_size']}; "
                 f"this sampler has seed={self.seed}, batch_size={self.batch_size}"
             )
-        self.epoch, self.offset, self._perm = int(state["epoch"]), int(state["offset"]), None
+        self._new_epoch(int(state["epoch"]), int(state["offset"]))

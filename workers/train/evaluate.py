@@ -7,6 +7,7 @@ counted the same way for every method (`rays`), validation renders, and an occup
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -19,6 +20,7 @@ from model.evaluation.metrics import psnr, ssim
 from model.evaluation.occupancy import evaluate_occupancy, evaluate_occupancy_exact
 from model.methods import Method
 from model.methods.base import Networks, Occupied
+from model.methods.parts import read_parts
 from model.render.accounting import step_accounting, surface_accounting
 from model.render.samples import stratified_edges
 from model.scenes.rays import PixelTable
@@ -124,7 +126,8 @@ class RayTotals:
         # None once a render's weights did not line up with its samples
         self.opacity: float | None = 0.0
 
-    def add_steps(self, figures: dict[str, float], rays: int, bins: int) -> None:
+    def add_steps(self, step_figures: Mapping[str, float | Tensor], rays: int, bins: int) -> None:
+        figures = read_parts(step_figures)
         hits = figures["hit_ray_fraction"] * rays  # step_accounting's shares back to counts
         self.rays += rays
         self.hits += hits

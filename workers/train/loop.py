@@ -21,6 +21,7 @@ import torch
 
 from model.errors import Failed
 from model.methods.base import Step
+from model.methods.parts import Parts
 from model.methods.stages import stage, to_device
 from model.scenes import RaySampler, load_scene
 from workers.config import TrainConfig
@@ -39,7 +40,8 @@ from workers.train.checkpoint import (
     save_final,
     snapshot,
 )
-from workers.train.distributed import any_rank, any_rank_each, average_gradients, grads_finite
+from workers.train.distributed import any_rank, any_rank_each, any_rank_tensor, average_gradients
+from workers.train.nonfinite import NonfiniteStreak, nonfinite
 from workers.train.periodic_eval import PeriodicEval
 from workers.train.reporter import StoreReporter
 from workers.train.session import Session
@@ -105,6 +107,7 @@ class RankRun:
         self.method, self.models = method, models
         self.live = LiveNetworks(method, models, self.aabb, device)
         self.budget = Budget(cfg.budget_min, method)
+        self.nonfinite = NonfiniteStreak(0, device)
         self.phase_objects: PhaseObjects | None = None
         self.lr_ramp_steps = 0
         self.activation_mb: float | None = None
@@ -125,6 +128,7 @@ class RankRun:
     # -------------------------------------------------------------------------------
     def save_checkpoint(self, metrics: dict) -> None:
         generators = generator_states(self.state.generator, self.session.world_size)
+        self.progress["nonfinite"] = self.nonfinite.running()
         if self.session.rank != 0:
             self.session.report(metrics, None)
             return
@@ -145,6 +149,7 @@ class RankRun:
                 return False
             saved = load_snapshot(Path(path))
         restore_networks(self.state, saved, self.device)
+        self.nonfinite = NonfiniteStreak(self.progress["nonfinite"], self.device)
         self.start_phase(self.progress["phase"])
         restore_draws(self.state, saved, self.current_phase().optimizer, self.session.rank)
         return True
@@ -200,6 +205,8 @@ class RankRun:
                 if self.periodic and self.periodic.due(before, before + seconds, ending)
                 else None
             )
+            if self.reads_now(ending, evaluation):
+                self.check_nonfinite(phase)
             window.add(seconds, parts)
             self.log_metrics(phase, objects, window, parts, ending, evaluation)
             self.render_and_checkpoint(phase)
@@ -220,9 +227,11 @@ class RankRun:
             raise RunStopped(reason or "stopped by the launcher (asked on rank 0)")
         return spent
 
-    def train_step(self, phase: str, objects: PhaseObjects) -> dict:
+    def train_step(self, phase: str, objects: PhaseObjects) -> Parts:
         """One data-parallel step at the phase's scheduled lr; a non-finite one is skipped on every
-        rank (its parts say `skipped`). Returns the step's loss parts."""
+        rank (its `skipped` part is 1). Returns the step's loss parts, on the device: nothing in a
+        step waits for the device, the logging steps read what they show (`check_nonfinite`,
+        `log_metrics`)."""
         params, optimizer, lr_at = objects
         progress = self.budget.progress(
             phase, self.progress["phase_step"], self.progress["elapsed"]
@@ -241,20 +250,17 @@ class RankRun:
         if saved is not None:
             self.activation_mb = saved.megabytes
         optimizer.zero_grad(set_to_none=True)
-        finite = bool(torch.isfinite(loss))
-        if finite:
-            with stage("backward"):
-                loss.backward()
-            finite = grads_finite(params)
-        if any_rank(not finite, self.device):
-            self.count_nonfinite(phase)
-            optimizer.zero_grad(set_to_none=True)
-            parts["skipped"] = 1.0
-        else:
-            self.progress["nonfinite"] = 0
-            average_gradients(params)
-            with stage("optimizer"):
-                optimizer.step()
+        with stage("backward"):
+            loss.backward()
+        # Decided on the device: the fused Adam leaves every tensor (parameters, moments, step
+        # counts) as it was where `found_inf` is set, so the host never waits for the verdict.
+        skipped = any_rank_tensor(nonfinite(loss, params))
+        self.nonfinite.add(skipped)
+        average_gradients(params)
+        optimizer.found_inf = skipped  # type: ignore[attr-defined]
+        with stage("optimizer"):
+            optimizer.step()
+        parts["skipped"] = skipped
         self.progress["phase_step"] += 1
         self.progress["step"] += 1
         self.timeline.setdefault("first_step_at", time.time())
@@ -270,12 +276,22 @@ class RankRun:
         step = Step(phase, rays, generator, progress, self.progress["phase_step"], self.cfg.seed)
         return self.method.step(self.models, step)
 
-    def count_nonfinite(self, phase: str) -> None:
-        self.progress["nonfinite"] += 1
-        if self.progress["nonfinite"] >= self.cfg.max_nonfinite_steps:
+    def reads_now(self, ending: bool, evaluation: dict | None) -> bool:
+        """Whether this step reads the device (its metrics row, the non-finite streak): a logging
+        step, a checkpoint's, the phase's last, and at least every `max_nonfinite_steps`."""
+        step, cfg = self.progress["step"], self.cfg
+        every = min(cfg.metrics_every, cfg.max_nonfinite_steps)
+        return step % every == 0 or step % cfg.checkpoint_every == 0 or ending or bool(evaluation)
+
+    def check_nonfinite(self, phase: str) -> None:
+        """Reads the device's count of skipped steps (one host read, on logging steps and at least
+        every `max_nonfinite_steps`) and ends the run when a streak reached the limit."""
+        worst, current = self.nonfinite.read()
+        self.progress["nonfinite"] = current
+        if worst >= self.cfg.max_nonfinite_steps:
             raise NonFiniteRun(
-                f"{self.progress['nonfinite']} consecutive steps had a non-finite loss or "
-                f"gradient ({phase} phase, step {self.progress['phase_step']}); the run "
+                f"{worst} consecutive steps had a non-finite loss or "
+                f"gradient ({phase} phase, by step {self.progress['phase_step']}); the run "
                 "stops and keeps its last good checkpoint. Lower the learning rate (--set "
                 "lr=...) or check the scene's images."
             )
@@ -285,7 +301,7 @@ class RankRun:
         phase: str,
         objects: PhaseObjects,
         window: MetricsWindow,
-        parts: dict,
+        parts: Parts,
         ending: bool,
         evaluation: dict | None,
     ) -> None:

@@ -25,6 +25,7 @@ from model.fields.hmoe import OccupancyNetwork
 from model.fields.switch_nerf import SwitchNeRF
 from model.methods.leco.phase1 import render_background
 from model.methods.main_phase import MainRender, composite_field, cull_occluded, field_on_packed
+from model.methods.parts import Parts
 from model.methods.stages import stage
 from model.profiles import GuidedConfig, Profile
 from model.render.samples import PackedSamples, pack_edges, stratified_edges
@@ -139,6 +140,7 @@ def render_guided(
             BinOptions.of(g),
             query.scores,
             place,
+            all_hit=True,
         )
     local = draw.samples
     evaluated = 0
@@ -164,9 +166,9 @@ def render_guided(
                 fine = place.fine
                 main = rendered.weights.reshape(len(fine.rows), g.main_samples)
                 losses.append(g.placement_loss_weight * fine_placement_loss(fine, fine.sigma, main))
-    stats = {
-        "o_kept_ratio": float(draw.occupied_bins.float().mean()) if len(sub) else 0.0,
-        "fallback_fraction": float(draw.lost.float().mean()) if len(sub) else 0.0,
+    stats: Parts = {
+        "o_kept_ratio": draw.occupied_bins.float().mean() if len(sub) else 0.0,
+        "fallback_fraction": draw.lost.float().mean() if len(sub) else 0.0,
     }
     # Culled samples still ran the network once (without gradient), so they count, as vanilla's
     # coarse ones do.

@@ -12,6 +12,7 @@ from torch import Tensor
 from model.fields.background import BackgroundField, background_samples
 from model.fields.hmoe import HMoE
 from model.fields.output import FieldOutput
+from model.methods.parts import Parts, psnr
 from model.methods.schedules import log_linear
 from model.methods.stages import stage
 from model.profiles import OccupancyPhaseConfig
@@ -93,9 +94,10 @@ def occupancy_step(
     generator: torch.Generator | None,
     progress: float = 0.0,
     extra: tuple[str, ExtraLoss] | None = None,
-) -> tuple[Tensor, dict]:
-    """The total loss and its parts (floats) for one batch of rays; `progress` in [0, 1] drives the
-    w_g schedule. `extra`: (name, loss) added to L_f and reported under its name."""
+) -> tuple[Tensor, Parts]:
+    """The total loss and its parts (detached tensors, model/methods/parts.py) for one batch of
+    rays; `progress` in [0, 1] drives the w_g schedule. `extra`: (name, loss) added to L_f and
+    reported under its name."""
     rendered, out, edges = render_hmoe(
         model, background, rays, cfg.samples_per_ray, background_samples_per_ray, generator
     )
@@ -116,10 +118,9 @@ def occupancy_step(
         terms.append((extra[0], l_x))
     terms.append(("loss", loss))
     alpha = -torch.expm1(-(out.sigma.detach() * deltas.reshape(-1)))
-    values = {k: float(v.detach()) for k, v in terms}
-    parts = {
-        **values,
-        "psnr": -10.0 * torch.log10(torch.tensor(max(values["rendering_loss"], 1e-10))).item(),
+    parts: Parts = {
+        **{k: v.detach() for k, v in terms},
+        "psnr": psnr(l_r),
         "samples_per_ray": float(cfg.samples_per_ray),
         "w_g": w_g,
         **gate_statistics(out.gate_probs.detach(), out.expert, out.sigma, alpha),

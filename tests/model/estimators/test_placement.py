@@ -13,6 +13,7 @@ from model.estimators.placement import (
     placement_loss,
 )
 from model.fields.hmoe import OccupancyNetwork
+from model.methods.parts import read_parts
 from model.render.accounting import step_accounting, surface_accounting
 from model.render.samples import PackedSamples, stratified_edges
 from model.render.volume import batched_weights, packed_weights
@@ -186,7 +187,7 @@ def test_accounting_counts_hit_rays_dilation_and_rays_with_nothing_kept():
     dirs = dirs.clone()
     dirs[1] = torch.tensor([0.0, 1.0, 0.0])  # ray 1 looks along y: O keeps nothing there
     samples, kept = guided_samples(near, far, origins, dirs, occupied, 8, 2, None, dilate=1)
-    figures = step_accounting(samples, near, far, 8)
+    figures = read_parts(step_accounting(samples, near, far, 8))
     assert float(kept) == pytest.approx(1 / 16)  # O itself: one bin of the two hit rays' 16
     # after dilation: three bins reach the main network
     assert figures["occupancy_ratio"] == pytest.approx(3 / 16)
@@ -195,7 +196,8 @@ def test_accounting_counts_hit_rays_dilation_and_rays_with_nothing_kept():
     with_fallback, _ = guided_samples(
         near, far, origins, dirs, occupied, 8, 2, None, dilate=1, fallback=True
     )
-    assert step_accounting(with_fallback, near, far, 8)["occupancy_ratio"] == pytest.approx(11 / 16)
+    with_fallback_figures = read_parts(step_accounting(with_fallback, near, far, 8))
+    assert with_fallback_figures["occupancy_ratio"] == pytest.approx(11 / 16)
 
 
 def test_surface_accounting_finds_the_surface_bin_and_the_foreground_opacity():

@@ -16,6 +16,7 @@ from model.fields.proposal import ProposalDensity
 from model.methods import get_method
 from model.methods.base import Step
 from model.methods.costs import proposal_width
+from model.methods.parts import read_parts
 from model.model_info import model_info
 from model.profiles import get_profile
 from model.scenes.rays import RayBatch
@@ -108,6 +109,7 @@ def test_a_prop_step_samples_main_samples_per_ray_and_learns_only_when_due(tiny_
     g = torch.Generator().manual_seed(0)
     loss, parts = method.step(models, Step("main", rays, g, 0.0, 0, seed=0))
     loss.backward()
+    parts = read_parts(parts)
     # Every ray that crosses the box gets exactly main_samples; the ones that miss it (7 of these
     # 64) get none.
     hits = int((rays.far > rays.near).sum())

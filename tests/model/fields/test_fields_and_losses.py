@@ -5,6 +5,7 @@ import torch
 
 from model.fields import FrequencyEncoding, HMoE, OccupancyNetwork, SwitchNeRF
 from model.fields.experts import Expert, capacity_keep, dispatch, top1
+from model.methods.parts import read_parts
 from model.render.losses import balance_loss, density_loss, gate_statistics, imbalanced_gate_loss
 
 
@@ -69,7 +70,7 @@ def test_density_loss_detaches_sigma_and_trains_the_gate():
     # sigma is detached in L_d: no path to the heads
     assert model.scene_head.sigma.weight.grad is None
     ratio = density_loss(out.gate_probs, out.expert, out.sigma).item()
-    stats = gate_statistics(out.gate_probs, out.expert, out.sigma)
+    stats = read_parts(gate_statistics(out.gate_probs, out.expert, out.sigma))
     assert ratio > 0 and stats["fraction_empty"] == pytest.approx(
         float((out.expert == 4).float().mean())
     )
@@ -82,7 +83,7 @@ def test_density_loss_with_empty_groups_is_finite_zero():
         loss = density_loss(probs, index, torch.rand(50))
         loss.backward()
         assert loss.item() == 0.0 and torch.isfinite(probs.grad).all()
-    stats = gate_statistics(probs.detach(), torch.full((50,), 4), torch.rand(50))
+    stats = read_parts(gate_statistics(probs.detach(), torch.full((50,), 4), torch.rand(50)))
     # NaN, no crash
     assert stats["fraction_empty"] == 1.0 and stats["density_scene"] != stats["density_scene"]
 
@@ -125,6 +126,35 @@ def test_dispatch_matches_each_expert_on_its_own_points_in_value_and_gradient():
     assert (grad_h[~keep] == 0).all()
     empty = dispatch(experts, h[:0], index[:0], keep[:0])
     assert empty.shape == (0, 16)
+
+
+def gather_per_expert(experts, h, index, keep):
+    """The dispatch the sort-and-segment one replaced: a gather, a run and a scatter per expert."""
+    out = h.new_zeros(h.shape)
+    for e, expert in enumerate(experts):
+        members = torch.nonzero((index == e) & keep).squeeze(1)
+        if len(members):
+            out = out.index_copy(0, members, expert(h[members]))
+    return out
+
+
+def test_dispatch_is_bit_for_bit_the_gather_per_expert_in_value_and_every_gradient():
+    torch.manual_seed(5)
+    experts = torch.nn.ModuleList(Expert(32, layers=3, residual_at=1) for _ in range(5))
+    index = torch.randint(0, 4, (777,))  # expert 4 gets no points
+    keep = torch.rand(777) > 0.1
+    results = []
+    for fn in (dispatch, gather_per_expert):
+        experts.zero_grad(set_to_none=True)
+        h = torch.randn(777, 32, generator=torch.Generator().manual_seed(9), requires_grad=True)
+        out = fn(experts, h, index, keep)
+        (out.sin() * torch.arange(32)).sum().backward()
+        grads = [p.grad.clone() if p.grad is not None else None for p in experts.parameters()]
+        results.append((out.detach(), h.grad.clone(), grads))
+    (out_a, h_a, grads_a), (out_b, h_b, grads_b) = results
+    assert torch.equal(out_a, out_b) and torch.equal(h_a, h_b)
+    assert all((a is None and b is None) or torch.equal(a, b) for a, b in zip(grads_a, grads_b))
+    assert all(p.grad is None for p in experts[4].parameters())  # no points, no gradient
 
 
 def test_capacity_drops_least_confident_overflow():

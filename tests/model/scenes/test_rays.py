@@ -80,6 +80,28 @@ def test_sampler_resumes_from_state():
         RaySampler(views, AABB, batch_size=16, seed=6).load_state_dict(state)
 
 
+@pytest.mark.parametrize("kept", [True, False])
+def test_a_kept_epoch_order_gives_the_batches_the_evaluated_permutation_gives(monkeypatch, kept):
+    import model.scenes.rays as rays_module
+
+    views = small_views()  # 144 pixels
+    evaluated = RaySampler(views, AABB, batch_size=16, seed=4)
+    monkeypatch.setattr(rays_module, "KEPT_ORDER_MAX_PIXELS", 0)  # too large to keep: evaluated
+    reference = [evaluated.next_global() for _ in range(20)]  # two epochs and more
+    assert evaluated._order is None
+    monkeypatch.setattr(rays_module, "KEPT_ORDER_MAX_PIXELS", 144 if kept else 143)
+    monkeypatch.setattr(rays_module, "ORDER_CHUNK", 50)  # built in three chunks
+    sampler = RaySampler(views, AABB, batch_size=16, seed=4)
+    for k, batch in enumerate(reference):
+        assert torch.equal(sampler.next_global(), batch), k
+        assert batch.dtype == torch.int64
+    assert (sampler._order is not None) == kept
+    # a resume lands on the same order, mid-epoch
+    resumed = RaySampler(views, AABB, batch_size=16, seed=4)
+    resumed.load_state_dict({**sampler.state_dict()})
+    assert torch.equal(resumed.next_global(), sampler.next_global())
+
+
 def test_ray_batch_contents():
     views = small_views()
     sampler = RaySampler(views, AABB, batch_size=32, seed=0)

@@ -11,6 +11,7 @@ from model.evaluation.occupancy import evaluate_occupancy
 from model.fields import HMoE
 from model.fields.background import BackgroundField
 from model.methods.leco.phase1 import occupancy_step
+from model.methods.parts import read_parts
 from model.profiles import OccupancyPhaseConfig
 from model.render.samples import stratified_edges
 from model.scenes import RaySampler, load_scene
@@ -55,6 +56,7 @@ def test_occupancy_phase_learns_sparse_occupancy(tmp_path):
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
+    parts = read_parts(parts)
     predictor = OccupancyPredictor.from_hmoe(model)
     recall, kept = surface_bin_recall(predictor, scene)
     grid = evaluate_occupancy(predictor.occupied, scene.splits["val"], scene.occupancy.aabb, 64)
