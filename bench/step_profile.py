@@ -15,8 +15,8 @@ too with `--gpu`), each inside a `bench::step` label. What it reports, per step:
   work (its name is not one of METADATA: views, aliases, allocations, no-op conversions and scalar
   reads) and no call of such an operator runs beneath it (it delegates none of its work to another
   aten operator). A composite such as `aten::linear` counts as its `aten::addmm`; `aten::sum`, which
-  fills its output first on the CPU, as its `aten::fill_`. The median over the profiled steps. On
-  the CPU the ray batch's ops count too; in a CUDA run they are host ops (its stage row shows them).
+  fills its output first on the CPU, as its `aten::fill_`. The median over the profiled steps. The
+  ray batch's ops count too: a GPU run makes its batch on the device (its stage row shows them).
   **aten calls**: every `aten::` event, nested ones included (the dispatcher's work). With
   `--gpu` also **kernels**: kernel launches (the CUDA runtime's `*LaunchKernel*` calls).
 - **host syncs**: calls that make the host wait for the device on CUDA, each counted once (one
@@ -29,13 +29,14 @@ too with `--gpu`), each inside a `bench::step` label. What it reports, per step:
   `sync::host_read` label (model/methods/stages.py `host_read`: a `tolist()`, which runs no aten
   operator on the CPU, so the code reads through it where it must read a tensor). On the
   CPU, so that the count is what CUDA would wait on: a candidate beneath host-side work of a CUDA
-  run does not count (the `ray_batch` stage, drawn on the host; `Optimizer.step#...`, whose step
-  counters torch.optim keeps on the host; `aten::_index_put_impl_`, whose `x[mask] = 0.0` fills
-  with a host scalar), and each `aten::to` directly beneath a `copy::to_device` label counts (a
-  copy of a host tensor to the device, which waits on CUDA: the ray batch's seven). Still
-  counted on the CPU, though CUDA would not wait: a read of a tensor made on the host
-  (`torch.tensor(x).item()`); not seen on the CPU: copies of host tensors to the device outside
-  that label (every tensor is on the one device). With `--gpu` a candidate, and any
+  run does not count (`Optimizer.step#...`, whose step counters torch.optim keeps on the host;
+  `aten::_index_put_impl_`, whose `x[mask] = 0.0` fills with a host scalar; a `host::` label, the
+  prefetching thread's drawing of a batch too large to keep on a GPU). The ray batch is made on
+  the run's device (workers/train/ray_batches.py): on a GPU from the colours, cameras and order it
+  keeps there, so its ops and any wait among them count as the step's. Still counted on the CPU,
+  though CUDA would not wait: a read of a tensor made on the host (`torch.tensor(x).item()`); not
+  seen on the CPU: copies of host tensors to the device (every tensor is on the one device; the
+  step makes none). With `--gpu` a candidate, and any
   `aten::copy_`, counts only when a synchronising CUDA runtime call (SYNC_CALLS) runs beneath
   it, and **cuda syncs** counts those runtime calls themselves.
 - **stages**: an event belongs to the innermost stage label around it (model/methods/stages.py: the
@@ -103,10 +104,10 @@ SYNC_OPS = {
     "aten::unique_dim_consecutive",
     "aten::equal",
 }
-# On the CPU, what runs beneath these (and beneath the ray batch's stage label, drawn on the host)
-# reads host tensors in a CUDA run too: torch.optim keeps its step counters on the host, and
-# x[mask] = scalar fills with a host scalar.
-HOST_SIDE = ("Optimizer.step#", "aten::_index_put_impl_")
+# On the CPU, what runs beneath these reads host tensors in a CUDA run too: torch.optim keeps its
+# step counters on the host, x[mask] = scalar fills with a host scalar, and a prefetched ray batch
+# is drawn on the host (model/methods/stages.py HOST_DRAW).
+HOST_SIDE = ("Optimizer.step#", "aten::_index_put_impl_", "host::")
 SYNC_CALLS = {
     "cudaStreamSynchronize",
     "cudaDeviceSynchronize",
@@ -151,20 +152,17 @@ def reaches_kernel(event: FunctionEvent) -> bool:
 
 def sync_candidate(event: FunctionEvent, cuda: bool) -> bool:
     """CUDA: a SYNC_OPS call or a copy with a synchronising runtime call beneath it. CPU: a
-    SYNC_OPS call not beneath HOST_SIDE work, a `to` beneath a `to_device` label (a copy of a
-    host tensor to the device on CUDA), or a `host_read` label (a tolist)."""
-    from model.methods.stages import HOST_READ, PREFIX, TO_DEVICE
+    SYNC_OPS call not beneath HOST_SIDE work, or a `host_read` label (a tolist)."""
+    from model.methods.stages import HOST_READ
 
     if cuda:
         return (event.name in SYNC_OPS or event.name == "aten::copy_") and any(
             d.name in SYNC_CALLS for d in descendants(event)
         )
-    if event.name == "aten::to":
-        return event.cpu_parent is not None and event.cpu_parent.name == TO_DEVICE
     if event.name == HOST_READ:  # a tolist(), which runs no operator on the CPU
         return True
-    host = (PREFIX + "ray_batch", *HOST_SIDE)
-    return event.name in SYNC_OPS and not any(a.name.startswith(host) for a in ancestors(event))
+    host_side = any(a.name.startswith(HOST_SIDE) for a in ancestors(event))
+    return event.name in SYNC_OPS and not host_side
 
 
 def is_host_sync(event: FunctionEvent, cuda: bool) -> bool:
@@ -380,7 +378,7 @@ def method_step(run: RankRun, phase: str) -> tuple[Callable[..., Any], tuple]:
     them."""
     from model.methods.base import Step
 
-    rays = run.state.sampler.next().to(run.device)
+    rays = run.state.sampler.next()  # on the run's device
     generator = run.state.generator if run.profile.perturb else None
     progress = run.budget.progress(phase, run.progress["phase_step"], run.progress["elapsed"])
     step = Step(phase, rays, generator, progress, run.progress["phase_step"], run.cfg.seed)

@@ -114,6 +114,14 @@ class TrainConfig(BaseModel):
         le=100,
         description="worker-group restarts Ray Train may make from the last checkpoint",
     )
+    pixels_on_device_max_mb: float = Field(
+        4096,
+        ge=0,
+        le=1_048_576,
+        description="a GPU worker holds its split's pixels on the device (7 bytes a pixel: colour "
+        "and place in the epoch's order) up to this many MB, so a ray batch is made there without "
+        "a copy; a larger split is drawn on the host ahead of the step and copied without a wait",
+    )
     max_nonfinite_steps: StrictInt = Field(
         20,
         ge=1,

@@ -7,6 +7,7 @@ proposals' interlevel loss) is its method's business (model/methods/)."""
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 
 import torch
@@ -29,11 +30,18 @@ class Estimator(ABC):
         far: Tensor,
         step_size: float,
         generator: torch.Generator | None = None,
+        max_length: float | None = None,
     ) -> PackedSamples:
         """March each ray's foreground segment with a fixed step (jittered by one random offset per
         ray with a generator) and keep the intervals whose mid-points are occupied (packed, grouped
-        by ray): nerfacc's `sampling` for an occupancy estimator."""
-        steps = int(torch.ceil(((far - near).max() / step_size)).clamp(min=1))
+        by ray): nerfacc's `sampling` for an occupancy estimator. `max_length`: a bound on every
+        segment's length the caller knows (a box's diagonal), so the march's width is set without
+        reading the rays (a wait on CUDA); the steps past a ray's far end are dropped, so the
+        samples are the same."""
+        if max_length is not None:
+            steps = max(1, math.ceil(max_length / step_size) + 1)  # +1: the bound's rounding
+        else:
+            steps = int(torch.ceil(((far - near).max() / step_size)).clamp(min=1))
         offset = (
             torch.rand(len(near), 1, generator=generator, device=near.device) * step_size
             if generator is not None

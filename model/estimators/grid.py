@@ -66,15 +66,20 @@ class GridEstimator(Estimator):
         inside = ((ijk >= 0) & (ijk < r)).all(-1)
         level = torch.zeros(len(points), dtype=torch.long, device=points.device)
         if self.levels > 1:
+            # Every point goes through the outer levels' rule and keeps it where level 0 did not
+            # hold it: elementwise, so the same values as for the outer points alone, without a
+            # mask to gather by (each gather waits on CUDA).
             outer = ~inside
             centre, half = self.aabb.mean(0), (self.aabb[1] - self.aabb[0]) / 2
-            reach = ((points[outer] - centre) / half).abs().amax(-1)
+            reach = ((points - centre) / half).abs().amax(-1)
             # the finest level 2^l >= reach; at least 1, as level 0 did not hold the point
-            level[outer] = torch.ceil(torch.log2(reach.clamp(min=1.0))).long().clamp(min=1)
-            lo, hi = self.level_box(level[outer])
-            ijk[outer] = torch.floor((points[outer] - lo) / (hi - lo) * r).long()
-            held = ((ijk[outer] >= 0) & (ijk[outer] < r)).all(-1) & (level[outer] < self.levels)
-            inside[outer] = held
+            outer_level = torch.ceil(torch.log2(reach.clamp(min=1.0))).long().clamp(min=1)
+            lo, hi = self.level_box(outer_level)
+            outer_ijk = torch.floor((points - lo) / (hi - lo) * r).long()
+            held = ((outer_ijk >= 0) & (outer_ijk < r)).all(-1) & (outer_level < self.levels)
+            level = torch.where(outer, outer_level, level)
+            ijk = torch.where(outer[:, None], outer_ijk, ijk)
+            inside = torch.where(outer, held, inside)
         ijk = ijk.clamp(0, r - 1)
         level = level.clamp(max=self.levels - 1)
         return ((level * r + ijk[:, 0]) * r + ijk[:, 1]) * r + ijk[:, 2], inside

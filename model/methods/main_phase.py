@@ -179,9 +179,11 @@ def render_background_cascaded(
     flat = xyz.reshape(-1, 3)
     with torch.no_grad():
         keep = grid.not_free(flat)
-    ray = torch.arange(len(rays), device=t.device).repeat_interleave(samples)[keep]
-    sigma, rgb = background(flat[keep], rays.directions[ray], rays.image_index[ray])
-    t_kept, deltas_kept = t.reshape(-1)[keep], deltas.reshape(-1)[keep]
+        # the kept samples' indices once (one wait on CUDA), not once for each tensor masked
+        kept = torch.nonzero(keep)[:, 0]
+    ray = kept // samples  # sample i of the flat (R, samples) layout belongs to ray i // samples
+    sigma, rgb = background(flat[kept], rays.directions[ray], rays.image_index[ray])
+    t_kept, deltas_kept = t.reshape(-1)[kept], deltas.reshape(-1)[kept]
     rendered = composite_packed(sigma, rgb, t_kept, deltas_kept, ray, len(rays), sigma.new_zeros(3))
     return rendered.rgb, keep.float().mean() if len(keep) else rendered.rgb.new_zeros(())
 
@@ -208,7 +210,9 @@ def render_grid(
         behind = render_background(background, rays, background_samples_per_ray, generator).rgb
     step = grid_step_size(grid, march_steps)
     with stage("sampler"):
-        samples = grid.sample(rays.origins, rays.directions, rays.near, rays.far, step, generator)
+        samples = grid.sample(
+            rays.origins, rays.directions, rays.near, rays.far, step, generator, grid.diagonal
+        )
     possible = ((rays.far - rays.near) / step).ceil().clamp(min=0).sum()
     if early_stop_eps > 0:
         out, samples = front_to_back(

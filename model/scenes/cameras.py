@@ -35,6 +35,9 @@ class Cameras:
         """Unit viewing directions (-back)."""
         return -self.c2w[:, :, 2]
 
+    def to(self, device: torch.device | str) -> Cameras:
+        return Cameras(*(getattr(self, f).to(device) for f in self.__dataclass_fields__))
+
     def index(self, idx: Tensor | slice | list[int]) -> Cameras:
         return Cameras(
             self.intrinsics[idx],
@@ -99,19 +102,23 @@ def undistort_opencv(
     return x, y
 
 
-def pixel_rays(cameras: Cameras, cam_index: Tensor, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+def pixel_rays(
+    cameras: Cameras, cam_index: Tensor, u: Tensor, v: Tensor, distorted: bool | None = None
+) -> tuple[Tensor, Tensor]:
     """World-space origins and unit directions of the rays through pixel centres (u, v) of
     cameras[cam_index].
 
     u, v may be fractional (sub-pixel positions); a pixel's centre is at integer u, v here + 0.5.
+    `distorted`: whether any of these cameras has distortion, when the caller knows it (a training
+    batch's table decides once, so drawing a batch on a GPU never waits to read it); None: read.
     """
     intr = cameras.intrinsics[cam_index]
     fx, fy, cx, cy = intr.unbind(-1)
     x = (u.float() + 0.5 - cx) / fx
     y = (v.float() + 0.5 - cy) / fy  # OpenCV image coordinates: y points down
     k = cameras.distortion[cam_index]
-    if bool(k.any()):
-        x, y = undistort_opencv(x, y, k)
+    if distorted if distorted is not None else bool(k.any()):
+        x, y = undistort_opencv(x, y, k)  # zeros for an undistorted camera change nothing
     # OpenGL camera: x right, y up, looking along -z.
     d_cam = torch.stack([x, -y, -torch.ones_like(x)], dim=-1)
     c2w = cameras.c2w[cam_index]

@@ -5,10 +5,11 @@ import json
 
 import pytest
 import torch
+from torch.profiler import record_function
 
 from bench.step_profile import count_steps, graph_breaks, profile_steps
 from cli.main import main
-from model.methods.stages import STAGES, host_read, stage, to_device
+from model.methods.stages import HOST_DRAW, STAGES, host_read, stage
 
 
 def counted(fn, steps: int = 2):
@@ -34,24 +35,23 @@ def test_each_host_sync_counts_once_and_host_side_reads_do_not():
         x.clone()[mask] = 0.0  # 0: a host scalar filled in
         x[:3].tolist()  # 0: no operator runs on the CPU, so the code reads through host_read
         host_read(x[:3])  # 1
-        with stage("ray_batch"):  # drawn on the host in a CUDA run too
+        with record_function(HOST_DRAW):  # 0: a prefetched batch, drawn on the host on CUDA too
             torch.nonzero(mask)
             x.sum().item()
-            with to_device():  # 2: copies of host tensors to the device
-                x.to("cpu")
-                mask.to("cpu")
+        with stage("ray_batch"):  # made on the run's device: its waits are the step's
+            torch.nonzero(mask)  # 1
+            x.to("cpu")  # 0: no copy
 
     steps = counted(syncing)
-    assert [s.syncs for s in steps] == [13, 13]
+    assert [s.syncs for s in steps] == [12, 12]
     assert steps[0].syncs_by_op == {
         "aten::_local_scalar_dense": 6,
-        "aten::nonzero": 2,
+        "aten::nonzero": 3,
         "aten::masked_select": 1,
         "aten::_unique2": 1,
-        "aten::to": 2,
         "sync::host_read": 1,
     }
-    assert steps[0].stage_syncs == {"other": 11, "ray_batch": 2}
+    assert steps[0].stage_syncs == {"other": 11, "ray_batch": 1}
 
 
 def test_device_ops_count_the_calls_that_reach_a_kernel():
@@ -137,10 +137,10 @@ def test_bench_step_measures_a_real_step(tiny_scene, capsys):
     assert 0 < row["step_ms"]["min"] <= row["step_ms"]["median"] <= row["step_ms"]["max"]
     assert row["rays_per_s"] > 0 and len(row["ops_each_step"]) == 2
     assert row["aten_calls_per_step"] > row["ops_per_step"] > 100
-    # the batch's seven tensors copied to the device; the losses, the guard and the optimizer read
-    # nothing (the sampler's own reads remain)
-    assert row["host_syncs_by_op"]["aten::to"] == 7
-    for name in ("losses", "backward", "optimizer", "other"):
+    # the batch is made on the run's device and copies nothing; the losses, the guard and the
+    # optimizer read nothing (the sampler's own reads remain)
+    assert "aten::to" not in row["host_syncs_by_op"]
+    for name in ("ray_batch", "losses", "backward", "optimizer", "other"):
         assert row["stages"][name]["syncs"] == 0, name
     assert (row["kernels_per_step"], row["cuda_syncs_per_step"], row["compile"]) == (None,) * 3
     stages = row["stages"]

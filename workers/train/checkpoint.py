@@ -15,9 +15,9 @@ import torch
 
 from model.methods import Method, Networks
 from model.methods.base import method_state
-from model.scenes import RaySampler
 from workers.config import TrainConfig
 from workers.train.distributed import is_distributed
+from workers.train.ray_batches import RayBatches
 
 STATE_FILE = "state.pt"
 
@@ -29,7 +29,7 @@ class TrainingState:
     progress: dict[str, Any]
     models: Networks
     method: Method
-    sampler: RaySampler
+    sampler: RayBatches
     generator: torch.Generator
 
 

@@ -22,8 +22,8 @@ import torch
 from model.errors import Failed
 from model.methods.base import Step
 from model.methods.parts import Parts
-from model.methods.stages import stage, to_device
-from model.scenes import RaySampler, load_scene
+from model.methods.stages import stage
+from model.scenes import load_scene
 from workers.config import TrainConfig
 from workers.memory import SavedTensorBytes
 from workers.models import LiveNetworks, PhaseObjects, build_models, build_optimizer
@@ -43,6 +43,7 @@ from workers.train.checkpoint import (
 from workers.train.distributed import any_rank, any_rank_each, any_rank_tensor, average_gradients
 from workers.train.nonfinite import NonfiniteStreak, nonfinite
 from workers.train.periodic_eval import PeriodicEval
+from workers.train.ray_batches import ray_batches
 from workers.train.reporter import StoreReporter
 from workers.train.session import Session
 from workers.train.sinks import JsonlSink
@@ -90,13 +91,15 @@ class RankRun:
         method = cfg.method_for_run()
         models = build_models(method, self.scene.num_images, self.aabb, cfg.seed).to(device)
         method.to(device)
-        sampler = RaySampler(
+        sampler = ray_batches(
             self.scene.train,
             self.aabb,
             cfg.global_batch,
             cfg.seed,
             session.rank,
             session.world_size,
+            device,
+            cfg.pixels_on_device_max_mb,
         )
         # Per-rank seeds, on the device the samplers draw on (a CPU generator cannot fill CUDA
         # tensors).
@@ -269,9 +272,7 @@ class RankRun:
 
     def forward(self, phase: str, progress: float) -> tuple[torch.Tensor, dict]:
         with stage("ray_batch"):
-            batch = self.state.sampler.next()  # drawn on the host
-            with to_device():
-                rays = batch.to(self.device)
+            rays = self.state.sampler.next()  # on the device (workers/train/ray_batches.py)
         generator = self.state.generator if self.profile.perturb else None
         step = Step(phase, rays, generator, progress, self.progress["phase_step"], self.cfg.seed)
         return self.method.step(self.models, step)

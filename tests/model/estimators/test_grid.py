@@ -131,3 +131,63 @@ def test_cascaded_background_render_drops_only_free_samples():
     beyond = grid.beyond((directions[:, None] * t[:, None]).reshape(-1, 3)).float().mean()
     assert 0 < kept < 1 and abs(kept - float(beyond)) < 1e-6
     assert not torch.allclose(culled, full)
+
+
+def masked_cell_index(grid, points):
+    """The cascaded cell lookup as it was written with masks (a gather per tensor): the reference
+    the mask-free lookup must equal."""
+    r = grid.resolution
+    unit = (points - grid.aabb[0]) / (grid.aabb[1] - grid.aabb[0])
+    ijk = torch.floor(unit * r).long()
+    inside = ((ijk >= 0) & (ijk < r)).all(-1)
+    level = torch.zeros(len(points), dtype=torch.long)
+    outer = ~inside
+    centre, half = grid.aabb.mean(0), (grid.aabb[1] - grid.aabb[0]) / 2
+    reach = ((points[outer] - centre) / half).abs().amax(-1)
+    level[outer] = torch.ceil(torch.log2(reach.clamp(min=1.0))).long().clamp(min=1)
+    lo, hi = grid.level_box(level[outer])
+    ijk[outer] = torch.floor((points[outer] - lo) / (hi - lo) * r).long()
+    inside[outer] = ((ijk[outer] >= 0) & (ijk[outer] < r)).all(-1) & (level[outer] < grid.levels)
+    ijk, level = ijk.clamp(0, r - 1), level.clamp(max=grid.levels - 1)
+    return ((level * r + ijk[:, 0]) * r + ijk[:, 1]) * r + ijk[:, 2], inside
+
+
+def test_the_cascaded_lookup_without_masks_equals_the_masked_one():
+    grid = GridEstimator(AABB, resolution=16, levels=3)
+    g = torch.Generator().manual_seed(0)
+    # inside the box, in each outer level, past the outermost, and on the levels' faces
+    points = torch.cat(
+        [
+            torch.rand(500, 3, generator=g) * 2 - 1,
+            (torch.rand(2000, 3, generator=g) * 2 - 1) * 6,
+            torch.tensor([[1.0, 0.0, 0.0], [2.0, -2.0, 0.5], [4.0, 0.0, 0.0], [-1.0, -1.0, -1.0]]),
+        ]
+    )
+    index, inside = grid._cell_index(points)
+    expected_index, expected_inside = masked_cell_index(grid, points)
+    assert torch.equal(inside, expected_inside) and 0 < int(inside.sum()) < len(points)
+    assert torch.equal(index, expected_index)
+
+
+def test_a_march_bounded_by_the_diagonal_keeps_the_samples_the_read_length_gives():
+    grid = GridEstimator(AABB, resolution=32)
+    grid.update(0, ball, step_size=0.01)
+    g = torch.Generator().manual_seed(3)
+    directions = torch.nn.functional.normalize(torch.randn(64, 3, generator=g), dim=-1)
+    directions[0] = torch.tensor([1.0, 1.0, 1.0]) / 3**0.5  # through the box along its diagonal
+    origins = -3 * directions + 0.2 * torch.randn(64, 3, generator=g)
+    origins[0] = torch.tensor([-2.0, -2.0, -2.0])
+    from model.scenes.bounds import ray_aabb
+
+    near, far = ray_aabb(origins, directions, AABB)
+    assert (far - near).max() > 0.999 * grid.diagonal
+    for seed in (None, 5):
+
+        def draw(seed=seed):
+            return torch.Generator().manual_seed(seed) if seed is not None else None
+
+        read = grid.sample(origins, directions, near, far, 0.02, draw())
+        bounded = grid.sample(origins, directions, near, far, 0.02, draw(), grid.diagonal)
+        assert len(read) > 100
+        for name in ("starts", "ends", "ray_index"):
+            assert torch.equal(getattr(read, name), getattr(bounded, name)), (seed, name)

@@ -1,5 +1,7 @@
 """Ray generation, the seeded shuffling sampler, and the sharding rule."""
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -126,3 +128,49 @@ def test_ray_aabb_cases():
     assert near.tolist() == [4.0, 0.0, 0.0, 4.0]
     assert far.tolist() == [6.0, 1.0, 0.0, 6.0]
     assert torch.isfinite(near).all() and torch.isfinite(far).all()
+
+
+def test_a_resident_sampler_makes_the_host_samplers_batches(monkeypatch):
+    """A GPU run's sampler keeps colours, cameras and each epoch's order on its device; on the CPU
+    (`resident=True`) it must make the very batches the host sampler makes, past an epoch's end
+    and for a split too large for the host to keep its order, and resume to the same batch."""
+    import model.scenes.rays as rays_module
+
+    monkeypatch.setattr(rays_module, "KEPT_ORDER_MAX_PIXELS", 0)  # the host evaluates each batch
+    views = small_views()
+    host = RaySampler(views, AABB, batch_size=16, seed=2)
+    resident = RaySampler(views, AABB, batch_size=16, seed=2, resident=True)
+    assert resident.table._colours is not None and resident.table._colours.dtype == torch.uint8
+    for k in range(12):  # 9 batches an epoch
+        a, b = host.next(), resident.next()
+        for name, value in a.__dict__.items():
+            assert torch.equal(value, getattr(b, name)), (k, name)
+    assert host._order is None and resident._order is not None
+    again = RaySampler(views, AABB, batch_size=16, seed=2, resident=True)
+    again.load_state_dict(resident.state_dict())
+    assert torch.equal(again.next().rgb, host.next().rgb)
+
+
+def test_a_distorted_camera_is_undistorted_in_every_batch_it_is_in():
+    """The table decides once whether any camera is distorted; a batch is undistorted exactly as
+    the per-batch check undistorted it (zeros leave a pinhole camera's rays unchanged)."""
+    from model.scenes.cameras import pixel_rays
+
+    views = small_views()
+    k = torch.zeros(3, 4)
+    k[1] = torch.tensor([0.5, -0.1, 0.01, 0.02])
+    views = Views(views.names, views.images, replace(views.cameras, distortion=k), views.appearance)
+    sampler = RaySampler(views, AABB, batch_size=48, seed=1)
+    assert sampler.table.distorted
+    rays = sampler.next()
+    image, u, v = sampler.table.locate(rays.pixel)
+    pinhole = replace(views.cameras, distortion=torch.zeros(3, 4))
+    for i in range(3):
+        at = image == i
+        assert at.sum() > 5, i
+        origins, directions = pixel_rays(views.cameras, image[at], u[at], v[at])
+        assert torch.allclose(directions, rays.directions[at], atol=1e-7), i
+        assert torch.equal(origins, rays.origins[at]), i
+        _, undistorted = pixel_rays(pinhole, image[at], u[at], v[at])
+        moved = (undistorted - rays.directions[at]).abs().max()
+        assert (moved > 1e-4) if i == 1 else (moved < 1e-7), i
