@@ -38,12 +38,18 @@ def live_bytes_per_sample(width: int) -> int:
 
 
 def estimate_peak_bytes(
-    method: str, profile: Profile, num_images: int, ray_fraction: float = 1.0
+    method: str,
+    profile: Profile,
+    num_images: int,
+    ray_fraction: float = 1.0,
+    resident_pixels: int = 0,
 ) -> dict:
     """Per-rank peak bytes and its parts (each naming the settings that drive it): the worst phase
     of the method's (its registry entry's memory model, model/methods/costs.py) for each part.
     `ray_fraction`: the mean share of the box's diagonal a training ray travels inside the box,
-    which a march's samples scale with (1: every ray along the diagonal, the most it can be)."""
+    which a march's samples scale with (1: every ray along the diagonal, the most it can be).
+    `resident_pixels`: the bytes a GPU rank keeps of its training pixels (model/sizes.py
+    resident_pixel_bytes; 0 on a CPU, whose batches are drawn from the pixel cache)."""
     n, b = profile.network, profile.background
     phases: dict[str, PhaseMemory] = get_method(method).memory(profile, num_images)
     mlp_sample = saved_bytes_per_sample(n.width, n.expert_layers)
@@ -76,6 +82,7 @@ def estimate_peak_bytes(
         ),
         "activations": max(max(training.values()), render),
         "estimator": max(p.extra_bytes for p in phases.values()),  # e.g. an occupancy grid's cells
+        "pixels": resident_pixels,
         "runtime": RUNTIME_BYTES,
     }
     return {
@@ -139,6 +146,8 @@ DRIVERS = {
     "(guided.coarse_samples x guided.queries_per_bin) and the proposal levels' (prop.samples)",
     "estimator": "grid.resolution (the occupancy grid's cells; ngp.grid.resolution x "
     "ngp.grid.levels for NGP's cascades)",
+    "pixels": "a GPU rank's training pixels, 7 bytes each, held on the device up to "
+    "pixels_on_device_max_mb",
     "frame": "a frame's pixels: width x height of a render, a view's over stride squared of an "
     "export",
     "points": "an export's max_points (or every kept pixel of every view, when fewer)",

@@ -12,6 +12,21 @@ import math
 from model.profiles import Profile
 
 BACKGROUND_FREQUENCIES = 10  # model/fields/background.py's point encoding
+# What a GPU rank's ray sampler keeps on the device for each training pixel (model/scenes/rays.py):
+# its uint8 colour and its int32 place in the epoch's order
+RESIDENT_BYTES_PER_PIXEL = 3 + 4
+
+
+def keeps_pixels_on_device(pixels: int, max_mb: float) -> bool:
+    """Whether a GPU rank keeps a training split of `pixels` pixels on the device (every rank draws
+    from all of them): while they take at most `pixels_on_device_max_mb`; else its batches are
+    prefetched from the host (workers/train/ray_batches.py)."""
+    return pixels * RESIDENT_BYTES_PER_PIXEL <= max_mb * 2**20
+
+
+def resident_pixel_bytes(pixels: int, max_mb: float) -> int:
+    """Device bytes a GPU rank holds for its training split's pixels (none when prefetched)."""
+    return pixels * RESIDENT_BYTES_PER_PIXEL if keeps_pixels_on_device(pixels, max_mb) else 0
 
 
 def linear(inputs: int, outputs: int, bias: bool = True) -> int:

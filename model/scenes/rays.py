@@ -152,10 +152,9 @@ def shard(batch: Tensor, rank: int, world_size: int) -> Tensor:
 # (about 300 small ops and a data-dependent loop a step); the values are the same either way. 4
 # bytes a pixel, 16 MiB at most: inside the memory estimate's 25% margin
 # (model/memory_estimate.py), so it adds no term. A sampler on a GPU always keeps it, beside the
-# colours it holds there (RESIDENT_BYTES_PER_PIXEL).
+# colours it holds there (model/sizes.py RESIDENT_BYTES_PER_PIXEL).
 KEPT_ORDER_MAX_PIXELS = 2**22
 ORDER_CHUNK = 2**20  # pixels evaluated at once while an epoch's order is built
-RESIDENT_BYTES_PER_PIXEL = 3 + 4  # a GPU sampler's uint8 colour and int32 place in the order
 
 
 class RaySampler:
@@ -168,9 +167,9 @@ class RaySampler:
 
     `device`: where batches are made. On a GPU the sampler is resident there: the colours, the
     cameras and each epoch's order live on the device, and a batch is drawn without a copy or a
-    wait (RESIDENT_BYTES_PER_PIXEL a pixel; workers/train/ray_batches.py decides when that fits and
-    prefetches host batches when it does not; `resident=True` keeps a CPU sampler the same way).
-    The batches are the same on every device and either way."""
+    wait (model/sizes.py RESIDENT_BYTES_PER_PIXEL a pixel; workers/train/ray_batches.py decides
+    when that fits and prefetches host batches when it does not; `resident=True` keeps a CPU
+    sampler the same way). The batches are the same on every device and either way."""
 
     def __init__(
         self,

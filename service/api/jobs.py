@@ -16,9 +16,10 @@ from sqlalchemy.orm import Session
 
 from model.memory_estimate import RUNTIME_BYTES, describe, estimate_peak_bytes
 from model.scenes.folders import folder_factor
+from model.sizes import resident_pixel_bytes
 from service import queue
 from service.api.deps import MAX_INT, RowId, SettingsDep, not_found, poll_cache_of
-from service.api.feasibility import check_feasible, local_gpus, scene_sizes
+from service.api.feasibility import check_feasible, local_gpus, scene_sizes, training_pixels
 from service.api.links import (
     cancelled_job_links,
     deleted_job_links,
@@ -123,12 +124,18 @@ def rays_per_step(job: Job) -> int | None:
 
 
 def check_resources(
-    cfg: TrainConfig, settings: Settings, num_images: int, ray_fraction: float = 1.0
+    cfg: TrainConfig,
+    settings: Settings,
+    num_images: int,
+    ray_fraction: float = 1.0,
+    train_pixels: int | None = None,
 ) -> None:
     """Refuse, with 422 naming the fields, a job that cannot run where it would: more workers than
     there are, or a peak memory (model/memory_estimate.py) over the slot's RAM or a GPU's
     memory. `ray_fraction`: the scene's mean_diagonal_fraction (1 for a scene registered before it
-    was recorded: the most a march can take)."""
+    was recorded: the most a march can take); `train_pixels`: its training split's pixels at the
+    job's downscale, which a GPU rank keeps on the device up to `pixels_on_device_max_mb` (None:
+    not recorded, counted as none)."""
     problems = []
 
     def problem(field: str, msg: str) -> None:
@@ -154,7 +161,14 @@ def check_resources(
 
         if torch.cuda.is_available():
             gpu_memory = torch.cuda.get_device_properties(0).total_memory
-    estimate = estimate_peak_bytes(cfg.method, cfg.resolved_profile(), num_images, ray_fraction)
+    resident = (
+        resident_pixel_bytes(train_pixels, cfg.pixels_on_device_max_mb)
+        if cfg.use_gpu and train_pixels
+        else 0
+    )
+    estimate = estimate_peak_bytes(
+        cfg.method, cfg.resolved_profile(), num_images, ray_fraction, resident
+    )
     per_rank, mib = estimate["total"], lambda b: f"{b / 2**20:,.0f} MiB"
     if gpu_memory is not None and per_rank - RUNTIME_BYTES > gpu_memory:
         problem(
@@ -207,7 +221,11 @@ def create_job(
     check_feasible(cfg, settings, name, info)
     rays = (info.get("bounds") or {}).get("rays") or {}
     check_resources(
-        cfg, settings, info.get("cameras") or 1000, rays.get("mean_diagonal_fraction", 1.0)
+        cfg,
+        settings,
+        info.get("cameras") or 1000,
+        rays.get("mean_diagonal_fraction", 1.0),
+        training_pixels(info, cfg.downscale),
     )
     with transaction(settings.db_url) as session:
         scene = find_scene(session, body.scene)

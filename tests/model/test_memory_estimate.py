@@ -143,3 +143,20 @@ def test_os_coarse_queries_count_in_leco_s_estimate():
     many = estimate_peak_bytes("leco", ask(coarse_samples=4096, queries_per_bin=16), 100)
     few = estimate_peak_bytes("leco", ask(), 100)
     assert many["training_by_phase"]["main"] > 30 * 2**30 > 10 * few["training_by_phase"]["main"]
+
+
+def test_a_gpu_ranks_resident_pixels_are_a_part_of_the_estimate_up_to_their_bound():
+    from model.memory_estimate import describe
+    from model.sizes import resident_pixel_bytes
+
+    profile = TrainConfig(method="prop", profile="cpu").resolved_profile()
+    # lego at full size: 100 views of 800 x 800, 7 bytes a pixel, under the default 4,096 MB
+    pixels = 100 * 800 * 800
+    held = resident_pixel_bytes(pixels, 4096)
+    assert held == pixels * 7
+    without = estimate_peak_bytes("prop", profile, 100)
+    with_pixels = estimate_peak_bytes("prop", profile, 100, resident_pixels=held)
+    assert with_pixels["total"] - without["total"] == held == with_pixels["parts"]["pixels"]
+    assert "pixels 0.42 GiB" in describe(with_pixels) and "pixels" not in describe(without)
+    # a split over the bound is prefetched from the host: none of it stays on the device
+    assert resident_pixel_bytes(pixels, 400) == 0

@@ -20,8 +20,9 @@ from torch import Tensor
 from torch.profiler import record_function
 
 from model.methods.stages import HOST_DRAW
-from model.scenes.rays import RESIDENT_BYTES_PER_PIXEL, RayBatch, RaySampler
+from model.scenes.rays import RayBatch, RaySampler
 from model.scenes.scene import Views
+from model.sizes import RESIDENT_BYTES_PER_PIXEL, keeps_pixels_on_device
 
 PREFETCH_DEPTH = 2  # batches drawn ahead: one being copied while the step uses the one before
 _POLL_S = 0.1  # how often a full queue's producer looks whether it was told to stop
@@ -55,7 +56,7 @@ def ray_batches(
     """The sampler of one rank: resident on a GPU when the split fits under the bound, prefetched
     from the host when it does not, the host's own on a CPU."""
     where = device if device.type != "cpu" else None
-    fits = resident_bytes(views) <= pixels_on_device_max_mb * 2**20
+    fits = keeps_pixels_on_device(views.num_pixels, pixels_on_device_max_mb)
     if where is None or fits:
         return RaySampler(views, aabb, batch_size, seed, rank, world_size, device=where)
     host = RaySampler(views, aabb, batch_size, seed, rank, world_size)
