@@ -47,9 +47,15 @@ too with `--gpu`), each inside a `bench::step` label. What it reports, per step:
   steps' time; `other` is the rest (compositing, the non-finite guard, the learning rate), so the
   shares sum to 1. With `--gpu` the host runs ahead of the device: a stage's time includes the
   waits at its syncs.
+- **compiled** (`--compile`): the run is the job setting `compile` (workers/train/compiled.py:
+  the networks each phase calls, compiled in place by inductor). The warm-up steps compile
+  (`warmup_s` is their time: give enough of them for a packed method's second, dynamic-shape
+  compile); the timed and profiled steps run compiled. Each kernel inductor made for the CPU is a
+  profiler event (`cpp_fused_*`, with inductor's kernel profiling on) and counts as one device op;
+  the aten calls its code still makes (matrix products, gathers) count as before.
 - **graph breaks** (`--compile`): `torch._dynamo.explain` on the method's step (`Method.step` on a
-  drawn ray batch: sampler, field, background, losses; not the ray batch, not backward): the
-  number of graphs, of breaks, and the first BREAK_REASONS reasons. The timed steps stay eager.
+  drawn ray batch: sampler, field, background, losses; not the ray batch, not backward), after the
+  timed steps: the number of graphs, of breaks, and the first BREAK_REASONS reasons.
 """
 
 from __future__ import annotations
@@ -115,6 +121,9 @@ SYNC_CALLS = {
     "cudaMemcpy",
 }
 OTHER = "other"
+# The profiler's name of a kernel inductor generated for the CPU (with its kernel profiling on, as
+# `--compile` sets it): one fused loop over the data, a device op like an aten call.
+FUSED_KERNEL = "cpp_fused_"
 
 
 # ----- counting a profile
@@ -125,6 +134,8 @@ def is_cpu(event: FunctionEvent) -> bool:
 
 
 def is_work(event: FunctionEvent) -> bool:
+    if event.name.startswith(FUSED_KERNEL):  # one of inductor's kernels (--compile)
+        return True
     return event.name.startswith("aten::") and event.name not in METADATA
 
 
@@ -321,9 +332,18 @@ def default_phase(phases: tuple[str, ...]) -> str:
 
 
 def make_run(
-    method: str, profile: str, rays: int, scene: Path, run_dir: Path, device: torch.device
+    method: str,
+    profile: str,
+    rays: int,
+    scene: Path,
+    run_dir: Path,
+    device: torch.device,
+    compile: bool = False,
+    overrides: dict | None = None,
 ) -> RankRun:
-    """The training loop's run of one rank, in `run_dir`; no step of it logs."""
+    """The training loop's run of one rank, in `run_dir`; no step of it logs. `compile`: the
+    run's networks compiled (workers/train/compiled.py), inductor's CPU kernels each a profiler
+    event."""
     from model.profiles import MAX_STEPS
     from workers.config import TrainConfig
     from workers.train.loop import RankRun
@@ -335,8 +355,13 @@ def make_run(
         use_gpu=device.type == "cuda",
         metrics_every=MAX_STEPS,
         checkpoint_every=MAX_STEPS,
-        overrides={"rays_per_device": rays},
+        overrides={**(overrides or {}), "rays_per_device": rays},
+        compile=compile,
     )
+    if compile:
+        import torch._inductor.config
+
+        torch._inductor.config.cpp.enable_kernel_profile = True
     return RankRun(cfg, scene, run_dir, LocalSession(run_dir / "session"), device)
 
 
@@ -439,7 +464,8 @@ def format_report(row: dict) -> str:
     lines = [
         f"{row['method']}, {row['phase']} phase, profile {row['profile']}, {row['device']}, "
         f"{row['rays']} rays, {row['steps']} steps after {row['warmup']} warm-up, "
-        f"{row['threads']} threads",
+        f"{row['threads']} threads" + (", networks compiled" if row["compiled"] else ""),
+        f"warm-up {row['warmup_s']:.1f} s" + (" (compiling included)" if row["compiled"] else ""),
         f"step ms    median {ms['median']:.1f}   min {ms['min']:.1f}   max {ms['max']:.1f}   "
         f"rays/s {row['rays_per_s']:,.0f}",
         f"device ops per step  {row['ops_per_step']:g}   (aten calls {row['aten_calls_per_step']:g}"
@@ -471,16 +497,28 @@ def measure(args: argparse.Namespace) -> dict:
     cuda = bool(args.gpu)
     if cuda and not torch.cuda.is_available():
         raise ValueError("--gpu: PyTorch sees no CUDA device here")
+    from workers.config import parse_overrides
+
     device = torch.device("cuda" if cuda else "cpu")
+    overrides = parse_overrides(args.set or [])
     scene = scene_folder(args.scene)
     with tempfile.TemporaryDirectory(prefix="leco-step-") as tmp:
         # the run's own lines (a warm start's) go to stderr: stdout is the report
         with contextlib.redirect_stdout(sys.stderr):
-            run = make_run(args.method, args.profile, args.rays, scene, Path(tmp), device)
+            run = make_run(
+                args.method,
+                args.profile,
+                args.rays,
+                scene,
+                Path(tmp),
+                device,
+                args.compile,
+                overrides,
+            )
             phase = args.phase or default_phase(run.method.phases)
             enter_phase(run, phase, args.at_step)
         step = step_of(run, phase)
-        timed(step, args.warmup, cuda)
+        warmup = timed(step, args.warmup, cuda)
         seconds = timed(step, args.steps, cuda)
         steps = count_steps(profile_steps(step, args.steps, cuda), cuda)
         head = {
@@ -494,6 +532,9 @@ def measure(args: argparse.Namespace) -> dict:
             "at_step": args.at_step,
             "threads": torch.get_num_threads(),
             "scene": str(scene),
+            "overrides": overrides,
+            "compiled": bool(args.compile),
+            "warmup_s": round(sum(warmup), 3),
         }
         row = report(head, seconds, steps, cuda, run.cfg.global_batch)
         if args.compile:
@@ -524,7 +565,10 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     step.add_argument("--steps", type=int, default=20, help="steps timed, then profiled")
     step.add_argument("--warmup", type=int, default=3, help="steps before the timed ones")
     step.add_argument(
-        "--compile", action="store_true", help="also the step's graph breaks (torch._dynamo)"
+        "--compile",
+        action="store_true",
+        help="the run's networks compiled (the job setting compile): the warm-up compiles, the "
+        "timed and profiled steps run compiled; also the step's graph breaks (torch._dynamo)",
     )
     step.add_argument("--phase", default=None, help="the phase measured (default: the main one)")
     step.add_argument(
@@ -538,6 +582,13 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         "--scene",
         default=None,
         help=f"scene folder or benchmark scene name (default {DEFAULT_SCENE})",
+    )
+    step.add_argument(
+        "--set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="override a profile setting, as `leco train --set` (repeatable; rays_per_device "
+        "comes from --rays)",
     )
     step.add_argument("--json", action="store_true", help="print JSON instead of a table")
     step.set_defaults(func=step_command)

@@ -168,6 +168,7 @@ def submit_command(args: argparse.Namespace) -> int:
         "seed": args.seed,
         "eval_every_s": args.eval_every_s,
         "downscale": args.downscale,
+        "compile": args.compile,
     }
     job = api.call(
         "POST", "/v1/jobs", json=body, headers={"Idempotency-Key": str(uuid.uuid4())}
@@ -270,6 +271,12 @@ def add_submit(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         action="append",
         metavar="KEY=VALUE",
         help="profile override (repeatable; `leco settings` lists them)",
+    )
+    sub.add_argument(
+        "--compile",
+        action="store_true",
+        help="compile the networks with torch.compile (inductor), the compiling counted as "
+        "training time",
     )
     sub.add_argument("--no-follow", action="store_true", help="submit and return")
     sub.set_defaults(func=submit_command)

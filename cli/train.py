@@ -78,6 +78,7 @@ def train_command(args: argparse.Namespace) -> int:
         checkpoint_every=args.checkpoint_every,
         eval_every_s=args.eval_every_s,
         downscale=args.downscale,
+        compile=args.compile,
     )
     progress = ProgressPrinter(cfg)
     try:
@@ -146,6 +147,12 @@ def add_commands(commands: argparse._SubParsersAction[argparse.ArgumentParser]) 
         type=float,
         default=None,
         help="validation PSNR/SSIM every this many seconds of training time (not counted in it)",
+    )
+    train.add_argument(
+        "--compile",
+        action="store_true",
+        help="compile the networks with torch.compile (inductor); the compiling counts as "
+        "training time (a CPU needs a C++ compiler)",
     )
     train.add_argument(
         "--set",

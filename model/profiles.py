@@ -437,6 +437,13 @@ class ProposalConfig(Frozen):
     loss_weight: float = Field(
         1.0, ge=0, le=1e4, description="weight of the interlevel loss (interlevel_loss_mult)"
     )
+    static_shapes: bool = Field(
+        False,
+        description="rays that miss the box ride along with an empty segment (zero weight) "
+        "instead of being picked out: every tensor of a step has a fixed shape and the sampler "
+        "reads nothing from the device (capture-safe, for CUDA graphs), at the cost of the "
+        "misses' samples",
+    )
 
     @field_validator("samples")
     @classmethod
@@ -572,6 +579,12 @@ class LeCOPropConfig(Frozen):
             raise ValueError(
                 "leco_prop.bound=level draws the first level from O's placement histogram: set "
                 "leco_prop.guided.placement=true too"
+            )
+        if self.prop.static_shapes:
+            raise ValueError(
+                "leco_prop.prop.static_shapes: LeCO+Prop packs the bins O keeps, whose number only "
+                "the device knows, so its step has no fixed shapes; prop.static_shapes is "
+                "S+Prop's and NGP+Prop's"
             )
         return self
 

@@ -122,6 +122,12 @@ class TrainConfig(BaseModel):
         "and place in the epoch's order) up to this many MB, so a ray batch is made there without "
         "a copy; a larger split is drawn on the host ahead of the step and copied without a wait",
     )
+    compile: bool = Field(
+        False,
+        description="torch.compile (inductor) the networks each phase calls: fields, encodings, "
+        "proposal networks, O; the compiling counts as training time (a CPU worker needs a C++ "
+        "compiler)",
+    )
     max_nonfinite_steps: StrictInt = Field(
         20,
         ge=1,

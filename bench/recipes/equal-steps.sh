@@ -7,16 +7,20 @@
 # Usage: bench/recipes/equal-steps.sh OUT   (leco, prop, ngp-leco and ngp-prop)
 #   METHODS="prop leco" bench/recipes/equal-steps.sh OUT   those methods only
 #   SCENE=DIR bench/recipes/equal-steps.sh OUT   trains on that scene folder instead
+#   COMPILE=1 bench/recipes/equal-steps.sh OUT   with the job setting compile (`leco train --compile`)
 set -euo pipefail
 out="${1:?usage: bench/recipes/equal-steps.sh OUT}"
 source bench/recipes/scenes.sh
 scene_dir="${SCENE:-$(scene city-0)}"
 mkdir -p "$out"
+compile=()
+[ -n "${COMPILE:-}" ] && compile=(--compile)
 for method in leco prop ngp-leco ngp-prop; do
   case " ${METHODS:-$method} " in *" $method "*) ;; *) continue ;; esac
   rm -rf "$out/$method"
   PYTHONPATH="$PWD" .venv/bin/python -m cli train --scene "$scene_dir" --method "$method" \
     --profile cpu --backend local --seed 0 --set main_steps=1000 --out "$out/$method" \
+    "${compile[@]}" \
     >"$out/$method.log" 2>&1
   .venv/bin/python - "$out/$method/summary.json" "$method" <<'PY'
 import json, sys

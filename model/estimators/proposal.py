@@ -74,15 +74,24 @@ def outer_weights(target: Tensor, source: Tensor, source_weights: Tensor) -> Ten
 
 
 def interlevel_loss(
-    main_edges: Tensor, main_weights: Tensor, levels: list[tuple[Tensor, Tensor]]
+    main_edges: Tensor,
+    main_weights: Tensor,
+    levels: list[tuple[Tensor, Tensor]],
+    rows: Tensor | None = None,
 ) -> Tensor:
     """mip-NeRF 360's L_prop: each proposal level's histogram must bound the main weights (detached)
-    from above; max(0, w - outer)^2 / w, averaged over intervals and summed over levels."""
+    from above; max(0, w - outer)^2 / w, averaged over intervals and summed over levels. `rows`
+    (R,) bool: the rays the mean is over (the others' terms are left out; None: every ray)."""
     w = main_weights.detach().float()
     total = main_weights.new_zeros(())
     for edges, weights in levels:
         excess = (w - outer_weights(main_edges, edges, weights.float())).clamp(min=0)
-        total = total + (excess**2 / (w + EPS)).mean()
+        term = excess**2 / (w + EPS)
+        if rows is None:
+            total = total + term.mean()
+        else:  # a mean over the chosen rows' intervals, with no read of how many there are
+            kept = torch.where(rows[:, None], term, 0.0).sum()
+            total = total + kept / (rows.sum() * term.shape[1]).clamp(min=1)
     return total
 
 

@@ -201,6 +201,14 @@ class Method:
         the validation protocol fits)."""
         return [models.field, models.background]
 
+    def compiled_modules(self, models: Networks, phase: str) -> list[nn.Module]:
+        """The networks a run with `compile` compiles for the phase: those it trains, each network
+        of a list on its own (a list is not called)."""
+        modules: list[nn.Module] = []
+        for module in self.trained_modules(models, phase):
+            modules += list(module) if isinstance(module, nn.ModuleList) else [module]
+        return modules
+
     def extra_parameters(self, models: Networks, phase: str) -> list[nn.Parameter]:
         """Parameters the phase's optimizer also steps, outside `trained_modules`."""
         return []

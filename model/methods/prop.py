@@ -112,7 +112,7 @@ class ProposalMethod(Method):
     def step(self, models: Networks, step: Step) -> tuple[Tensor, dict]:
         learn = self.schedule.due(step.phase_step)
         with stage("sampler"):
-            hits = self.hits(step.rays)
+            hits = self.hits(step.rays, self.profile.prop.static_shapes)
             with torch.set_grad_enabled(learn):
                 levels, edges = self.propose(
                     models, step.rays.subset(hits), step.generator, step.phase_step
@@ -144,17 +144,23 @@ class ProposalMethod(Method):
         )
         # only the proposals get this gradient: the main weights are detached inside
         if learn and hits:
-            l_prop = interlevel_loss(edges, render.rendered.weights, levels)
+            # with static shapes the misses' rows are in `edges`, empty: the mean is the hit rays'
+            rows = rays.far > rays.near if self.profile.prop.static_shapes else None
+            l_prop = interlevel_loss(edges, render.rendered.weights, levels, rows)
             loss = loss + self.profile.prop.loss_weight * l_prop
             parts["interlevel_loss"] = l_prop.detach()
             parts["loss"] = loss.detach()
         return loss, parts
 
     @staticmethod
-    def hits(rays: RayBatch) -> Tensor:
+    def hits(rays: RayBatch, static_shapes: bool = False) -> Tensor:
         """Indices of the rays that cross the foreground box: the others have no segment to sample,
         so neither the proposals nor the main network see them (they render the background alone, as
-        LeCO's do)."""
+        LeCO's do). With `static_shapes` every ray, read from nothing: a miss's segment is empty
+        (near = far = 0, model/scenes/bounds.py ray_aabb), so its intervals have zero length and
+        zero weight and it renders its background alone all the same."""
+        if static_shapes:
+            return torch.arange(len(rays), device=rays.far.device)
         return torch.nonzero(rays.far > rays.near)[:, 0]
 
     def propose(
@@ -233,7 +239,7 @@ class ProposalMethod(Method):
         generator: torch.Generator | None,
         phase_step: int | None,
     ) -> MainRender:
-        hits = self.hits(rays)
+        hits = self.hits(rays, self.profile.prop.static_shapes)
         with torch.no_grad():
             _, edges = self.propose(models, rays.subset(hits), generator, phase_step)
         return self.render_on(models, rays, hits, edges, generator)

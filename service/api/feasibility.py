@@ -14,6 +14,7 @@ from model.scenes.folders import folder_factor
 from service.settings import Settings
 from service.tables import Scene
 from workers.config import TrainConfig
+from workers.toolchain import cpp_compiler
 
 NVIDIA_GPUS = Path("/proc/driver/nvidia/gpus")  # one folder a GPU the driver sees
 
@@ -120,8 +121,8 @@ def local_gpus(settings: Settings) -> int:
 
 def check_feasible(cfg: TrainConfig, settings: Settings, scene_name: str, info: dict) -> None:
     """422 naming the fields when the job cannot start here: more workers than the local backend
-    runs, more GPU workers than the backend has GPUs, or a step's batch larger than the scene's
-    training pixels."""
+    runs, more GPU workers than the backend has GPUs, `compile` on CPU workers of a machine with
+    no C++ compiler, or a step's batch larger than the scene's training pixels."""
     problems = []
 
     def problem(field: str, msg: str) -> None:
@@ -152,6 +153,13 @@ def check_feasible(cfg: TrainConfig, settings: Settings, scene_name: str, info: 
                 f"{cfg.workers} GPU workers asked for (one GPU each); this service's {where} has "
                 f"{gpus} GPU{'s' if gpus > 1 else ''}: ask for at most {gpus} workers or no GPU",
             )
+    if cfg.compile and not cfg.use_gpu and not cluster and cpp_compiler() is None:
+        # the service's own workers run here: a cluster's workers are other machines
+        problem(
+            "compile",
+            "compile=true needs a C++ compiler on a CPU worker (inductor builds its kernels at run "
+            "time) and this service's machine has none: install g++ there, or set compile=false",
+        )
     pixels = training_pixels_at_most(info, cfg.downscale)
     batch = cfg.global_batch
     if pixels is not None and batch > pixels:

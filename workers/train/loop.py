@@ -40,6 +40,7 @@ from workers.train.checkpoint import (
     save_final,
     snapshot,
 )
+from workers.train.compiled import check_can_compile, compile_modules
 from workers.train.distributed import any_rank, any_rank_each, any_rank_tensor, average_gradients
 from workers.train.nonfinite import NonfiniteStreak, nonfinite
 from workers.train.periodic_eval import PeriodicEval
@@ -88,6 +89,8 @@ class RankRun:
         self.timeline["pixels_ready_at"] = time.time()
         self.aabb = self.scene.bounds.aabb
         self.profile = cfg.resolved_profile()
+        if cfg.compile:
+            check_can_compile(device)
         method = cfg.method_for_run()
         models = build_models(method, self.scene.num_images, self.aabb, cfg.seed).to(device)
         method.to(device)
@@ -182,6 +185,8 @@ class RankRun:
         # Before the optimizer: the method may copy weights into the phase's networks or freeze some
         # of them.
         self.method.start_phase(self.models, phase, fresh, self.device, log)
+        if self.cfg.compile:
+            compile_modules(self.method.compiled_modules(self.models, phase))
         self.phase_objects = build_optimizer(self.method, self.models, phase)
         self.lr_ramp_steps = self.method.lr_ramp_steps(phase)
         self.report("phase_started", phase)

@@ -128,3 +128,72 @@ def test_a_prop_step_samples_main_samples_per_ray_and_learns_only_when_due(tiny_
     )
     occupied = method.final_occupancy(models)(torch.rand(100, 3) * 2 - 1)
     assert occupied.dtype == torch.bool and occupied.shape == (100,)
+
+
+def test_the_interlevel_loss_over_chosen_rows_is_the_loss_of_those_rows_alone():
+    g = torch.Generator().manual_seed(3)
+    edges = torch.sort(torch.rand(6, 9, generator=g), -1).values
+    main_w = torch.rand(6, 8, generator=g) * 0.2
+    level = (edges, torch.rand(6, 8, generator=g) * 0.1)
+    rows = torch.tensor([True, False, True, True, False, True])
+    alone = interlevel_loss(edges[rows], main_w[rows], [(level[0][rows], level[1][rows])])
+    assert float(interlevel_loss(edges, main_w, [level], rows)) == pytest.approx(float(alone))
+    none = torch.zeros(6, dtype=torch.bool)
+    assert float(interlevel_loss(edges, main_w, [level], none)) == 0.0
+
+
+def static(name: str, on: bool):
+    from workers.config import TrainConfig
+
+    return TrainConfig(
+        method=name, profile="smoke", overrides={"prop.static_shapes": on}
+    ).resolved_profile()
+
+
+def batch(tiny_scene, seed: int) -> RayBatch:
+    from model.scenes import RaySampler
+
+    return RaySampler(tiny_scene.train, tiny_scene.bounds.aabb, 64, seed, 0, 1).next()
+
+
+@pytest.mark.parametrize("name", ["prop", "ngp-prop"])
+def test_static_shapes_render_every_ray_as_picking_out_the_hits_does(tiny_scene, name):
+    rays = batch(tiny_scene, 0)
+    assert 0 < int((rays.far > rays.near).sum()) < len(rays)  # 7 of the 64 miss the box
+    renders = []
+    for on in (False, True):
+        method = get_method(name)(static(name, on))
+        torch.manual_seed(0)
+        models = method.build(tiny_scene.num_images, tiny_scene.bounds.aabb).eval()  # no noise
+        with torch.no_grad():
+            renders.append(method.render_main(models, rays, None, None).rendered)
+    picked, padded = renders
+    for field in ("rgb", "depth", "opacity", "transmittance"):
+        assert torch.allclose(getattr(padded, field), getattr(picked, field), atol=1e-6), field
+    # a miss's intervals are empty: its weights are zero and it shows its background alone
+    miss = rays.far <= rays.near
+    assert padded.weights.shape == (len(rays), picked.weights.shape[1])
+    assert float(padded.weights[miss].abs().max()) == 0.0
+
+
+def test_a_static_ngp_prop_step_has_fixed_shapes_and_reads_nothing_from_the_device(tiny_scene):
+    from torch.profiler import profile as torch_profile
+
+    from model.methods.stages import HOST_READ
+
+    method = get_method("ngp-prop")(static("ngp-prop", True))
+    torch.manual_seed(0)
+    models = method.build(tiny_scene.num_images, tiny_scene.bounds.aabb)
+    shapes = []
+    models.field.register_forward_hook(lambda m, args, out: shapes.append(args[0].shape))
+    g = torch.Generator().manual_seed(0)
+    reads = {"aten::nonzero", "aten::_local_scalar_dense", "aten::masked_select", HOST_READ}
+    for seed in (0, 1):
+        rays = batch(tiny_scene, seed)
+        with torch_profile() as prof:
+            loss, parts = method.step(models, Step("main", rays, g, 0.5, 0, seed=0))
+            loss.backward()
+        assert not reads & {e.name for e in prof.events()}
+        assert "interlevel_loss" in parts
+    hits = [int((batch(tiny_scene, s).far > batch(tiny_scene, s).near).sum()) for s in (0, 1)]
+    assert hits[0] != hits[1] and shapes[0] == shapes[1]  # other hits, the same shapes

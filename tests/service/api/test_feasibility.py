@@ -306,3 +306,20 @@ def test_a_view_over_the_jobs_memory_is_refused_as_a_render_is(service_settings)
         fits = api.post(f"/v1/jobs/{job}/view", json={**body, "width": 160, "height": 120})
         assert fits.status_code == 429, fits.text
         busy.release()
+
+
+def test_compile_on_cpu_workers_of_a_machine_without_a_cpp_compiler_is_refused(monkeypatch):
+    from service.api import feasibility
+
+    cfg = TrainConfig(method="prop", compile=True)
+    monkeypatch.setattr(feasibility, "cpp_compiler", lambda: "/usr/bin/g++")
+    check_feasible(cfg, Settings(database_url="sqlite://"), "mixed", MIXED)
+    monkeypatch.setattr(feasibility, "cpp_compiler", lambda: None)
+    with pytest.raises(HTTPException) as error:
+        check_feasible(cfg, Settings(database_url="sqlite://"), "mixed", MIXED)
+    [problem] = error.value.detail
+    assert problem["loc"] == ["body", "compile"]
+    assert "needs a C++ compiler" in problem["msg"] and "compile=false" in problem["msg"]
+    check_feasible(  # without compile nothing is asked of the machine
+        TrainConfig(method="prop"), Settings(database_url="sqlite://"), "mixed", MIXED
+    )

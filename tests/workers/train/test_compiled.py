@@ -1,0 +1,124 @@
+"""The job setting `compile` (workers/train/compiled.py): the networks compiled in place train the
+same steps as eager ones, keep their names, and a machine that cannot compile says so first."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from model.methods.parts import read_parts
+from model.profiles import MAX_STEPS
+from workers import toolchain
+from workers.config import TrainConfig
+from workers.toolchain import cpp_compiler
+from workers.train.compiled import COMPILED, CompileUnavailable, check_can_compile, compile_modules
+from workers.train.loop import RankRun
+from workers.train.session import LocalSession
+
+
+def three_steps(scene, run_dir, method: str, compile: bool) -> tuple[list[dict], RankRun]:
+    torch._dynamo.reset()
+    cfg = TrainConfig(
+        method=method,
+        profile="smoke",
+        metrics_every=MAX_STEPS,
+        checkpoint_every=MAX_STEPS,
+        overrides={"rays_per_device": 64},
+        compile=compile,
+    )
+    run = RankRun(cfg, scene.root, run_dir, LocalSession(run_dir / "s"), torch.device("cpu"))
+    run.start_phase("main", fresh=True)
+    objects = run.current_phase()
+    parts = [read_parts(run.train_step("main", objects)) for _ in range(3)]
+    return parts, run
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(cpp_compiler() is None, reason="inductor needs a C++ compiler (g++) here")
+@pytest.mark.parametrize("method", ["ngp-prop", "prop"])
+def test_a_compiled_run_trains_the_same_three_steps_as_an_eager_one(tiny_scene, tmp_path, method):
+    # prop's Switch-NeRF reads its experts' group sizes inside the field (a symbolic size when
+    # compiled); ngp-prop's hash field is all gathers and arithmetic, fused by inductor
+    eager, eager_run = three_steps(tiny_scene, tmp_path / "eager", method, compile=False)
+    fused, fused_run = three_steps(tiny_scene, tmp_path / "compiled", method, compile=True)
+    torch._dynamo.reset()
+    assert all(
+        getattr(m, COMPILED, False)
+        for m in fused_run.method.compiled_modules(fused_run.models, "main")
+    )
+    assert eager_run.models.state_dict().keys() == fused_run.models.state_dict().keys()
+    for a, b in zip(eager, fused):
+        assert b["loss"] == pytest.approx(a["loss"], rel=1e-4)
+        assert b["rendering_loss"] == pytest.approx(a["rendering_loss"], rel=1e-4)
+        assert b["samples_per_ray"] == a["samples_per_ray"]
+    # the parameters after three Adam steps: the same to float32 rounding of a fused order
+    eager_params = dict(eager_run.models.named_parameters())
+    for name, p in fused_run.models.named_parameters():
+        assert torch.allclose(p, eager_params[name], rtol=1e-4, atol=1e-6), name
+
+
+def test_compile_modules_compiles_each_module_once_and_keeps_its_names():
+    net = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.ReLU())
+    names = list(net.state_dict())
+    assert compile_modules([net, net]) == 1
+    assert compile_modules([net]) == 0
+    assert list(net.state_dict()) == names
+    torch._dynamo.reset()
+
+
+def test_the_modules_a_phase_compiles_are_the_networks_it_trains_each_proposal_on_its_own():
+    from model.methods import get_method
+    from model.profiles import PROFILES
+
+    method = get_method("prop")(PROFILES["smoke"])
+    models = method.build(4, torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
+    modules = method.compiled_modules(models, "main")
+    assert modules[:2] == [models.field, models.background]
+    assert modules[2:] == list(models.proposals) and len(modules) == 2 + len(models.proposals)
+
+
+def test_a_cpu_without_a_cpp_compiler_fails_before_training_naming_what_is_missing(monkeypatch):
+    monkeypatch.setattr(toolchain.shutil, "which", lambda name: None)
+    with pytest.raises(CompileUnavailable, match="needs a C\\+\\+ compiler.*compile=false"):
+        check_can_compile(torch.device("cpu"))
+    check_can_compile(torch.device("cuda"))  # a GPU's kernels are Triton's: nothing to check here
+
+
+@pytest.mark.parametrize("static_shapes", [True, False])
+def test_an_ngp_prop_step_with_static_shapes_traces_as_one_graph(tiny_scene, static_shapes):
+    """Capture-safe: with `prop.static_shapes` dynamo traces NGP+Prop's whole deterministic step
+    (sampler, field, background, losses; no generator: a draw from a torch.Generator still breaks
+    the graph) as one graph; picking out the hits breaks it at the nonzero."""
+    from model.methods import get_method
+    from model.methods.base import Step
+    from model.scenes import RaySampler
+
+    profile = TrainConfig(
+        method="ngp-prop", profile="smoke", overrides={"prop.static_shapes": static_shapes}
+    ).resolved_profile()
+    method = get_method("ngp-prop")(profile)
+    torch.manual_seed(0)
+    models = method.build(tiny_scene.num_images, tiny_scene.bounds.aabb)
+    rays = RaySampler(tiny_scene.train, tiny_scene.bounds.aabb, 64, 0, 0, 1).next()
+    step = Step("main", rays, None, 0.5, 0, seed=0)
+    torch._dynamo.reset()
+    try:
+        explained = torch._dynamo.explain(method.step)(models, step)
+    finally:
+        torch._dynamo.reset()
+    reasons = [r.reason for r in explained.break_reasons]
+    if static_shapes:
+        assert (explained.graph_count, explained.graph_break_count) == (1, 0), reasons
+    else:
+        assert explained.graph_break_count > 0
+        assert all("nonzero" in reason for reason in reasons), reasons
+
+
+def test_leco_compiles_its_main_networks_and_not_the_hmoe_of_phase_1():
+    from model.methods import get_method
+    from model.profiles import PROFILES
+
+    method = get_method("leco")(PROFILES["smoke"])
+    models = method.build(4, torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
+    assert method.compiled_modules(models, "occupancy") == []
+    assert method.compiled_modules(models, "main") == [models.field, models.background]
