@@ -124,9 +124,9 @@ class TrainConfig(BaseModel):
     )
     compile: bool = Field(
         False,
-        description="torch.compile (inductor) the networks each phase calls: fields, encodings, "
-        "proposal networks, O; the compiling counts as training time (a CPU worker needs a C++ "
-        "compiler)",
+        description="torch.compile (inductor) the networks each phase trains (fields and their "
+        "encodings, proposal networks; LeCO's phase 1 is not compiled); the compiling counts as "
+        "training time (a CPU worker needs a C++ compiler)",
     )
     max_nonfinite_steps: StrictInt = Field(
         20,

@@ -11,7 +11,7 @@ COMPILERS = ("g++", "c++", "clang++", "gcc")
 
 
 def cpp_compiler() -> str | None:
-    """The path of a C++ compiler on this machine (Python's own CC first), or None."""
+    """The path of a C++ compiler on this machine (Python's own CXX first), or None."""
     configured = (sysconfig.get_config_var("CXX") or "").split()[:1]
     for name in (*configured, *COMPILERS):
         found = shutil.which(name)
