@@ -112,7 +112,7 @@ class GroundTruthOccupancy:
 
 @dataclass
 class Scene:
-    format: str  # megantf | nerfstudio | blender | llff
+    format: str  # meganerf | nerfstudio | blender | llff | colmap
     root: Path
     splits: dict[str, Views]  # always "train"; "val" and "test" when the dataset has them
     normalization: Normalization

@@ -84,8 +84,8 @@ def create_synthetic(
     response_model=SceneOut,
     operation_id="uploadScene",
     responses=links(201, scene_links()),
-    summary="Upload a dataset archive (tar or zip of a Mega-NeRF, nerfstudio, Blender or LLFF "
-    "folder)",
+    summary="Upload a dataset archive (tar or zip of a Mega-NeRF, nerfstudio, Blender, LLFF or "
+    "COLMAP folder)",
     openapi_extra={
         "requestBody": {
             "required": True,

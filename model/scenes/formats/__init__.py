@@ -6,14 +6,17 @@ from pathlib import Path
 
 from model.scenes.errors import SceneError
 
-# Marker file -> format, in detection order.
-MARKERS = (
-    ("coordinates.pt", "meganerf"),
-    ("transforms_train.json", "blender"),
-    ("transforms.json", "nerfstudio"),
-    ("poses_bounds.npy", "llff"),
+# Marker files (paths relative to the scene folder, all of them present) -> format, in detection
+# order. LLFF comes before COLMAP: an LLFF capture often keeps the COLMAP model it came from.
+MARKERS: tuple[tuple[tuple[str, ...], str], ...] = (
+    (("coordinates.pt",), "meganerf"),
+    (("transforms_train.json",), "blender"),
+    (("transforms.json",), "nerfstudio"),
+    (("poses_bounds.npy",), "llff"),
+    (("sparse/0/cameras.bin", "sparse/0/images.bin"), "colmap"),
+    (("sparse/0/cameras.txt", "sparse/0/images.txt"), "colmap"),
 )
-FORMATS = tuple(name for _, name in MARKERS)
+FORMATS = tuple(dict.fromkeys(name for _, name in MARKERS))
 
 
 def detect_format(root: Path) -> str:
@@ -23,11 +26,11 @@ def detect_format(root: Path) -> str:
         raise SceneError(
             root, "is not a folder (a scene is a folder in one of the supported formats)"
         )
-    for marker, name in MARKERS:
-        if (root / marker).is_file():
+    for markers, name in MARKERS:
+        if all((root / marker).is_file() for marker in markers):
             return name
     present = sorted(p.name for p in root.iterdir())[:10]
-    expected = ", ".join(f"{m} ({n})" for m, n in MARKERS)
+    expected = ", ".join(f"{' + '.join(m)} ({n})" for m, n in MARKERS)
     raise SceneError(
         root,
         f"unknown scene format: expected one of {expected}; found {present or 'an empty folder'}",

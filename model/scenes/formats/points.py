@@ -1,9 +1,11 @@
-"""Sparse SfM points: COLMAP points3D.bin and the vertex positions of a PLY file (nerfstudio's
-sparse_pc.ply)."""
+"""Sparse SfM points: COLMAP points3D.bin and points3D.txt, and the vertex positions of a PLY file
+(nerfstudio's sparse_pc.ply)."""
 
 from __future__ import annotations
 
 import struct
+from array import array
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -54,11 +56,51 @@ def read_colmap_points(path: Path) -> Tensor:
             offset += 51 + 8 * track
     except struct.error:
         raise SceneError(path, "truncated or malformed COLMAP points3D.bin") from None
+    if offset > len(data):  # the last point's track runs past the end
+        raise SceneError(path, "truncated or malformed COLMAP points3D.bin")
     if offset != len(data):
         raise SceneError(
             path, f"malformed COLMAP points3D.bin: {len(data) - offset} trailing bytes"
         )
     return values.points(path, torch.from_numpy(xyz), "COLMAP points")
+
+
+def text_lines(path: Path, limit: int, what: str) -> Iterator[tuple[int, str]]:
+    """(line number, line without its end) of a text file (COLMAP's .txt models), read as they are
+    walked, after the file's size check; a file that is not UTF-8 is refused."""
+    check_file_size(path, limit, what)
+    try:
+        with open(path, encoding="utf-8") as stream:
+            for number, line in enumerate(stream, 1):
+                yield number, line.rstrip("\n")
+    except UnicodeDecodeError:
+        raise SceneError(path, f"{what} is not UTF-8 text") from None
+    except OSError as exc:
+        raise SceneError(path, f"cannot read file ({exc.strerror})") from None
+
+
+def read_colmap_points_text(path: Path) -> Tensor:
+    """xyz (P, 3) float64 of a COLMAP text points3D file: one point a line, POINT3D_ID X Y Z R G B
+    ERROR then its track as (IMAGE_ID POINT2D_IDX) pairs; lines starting with # are comments."""
+    xyz = array("d")
+    for number, line in text_lines(path, MAX_POINTS_BYTES, "a point file"):
+        words = line.split()
+        if not words or words[0].startswith("#"):
+            continue
+        if len(words) < 8 or len(words) % 2:
+            raise SceneError(
+                path,
+                f"truncated or malformed COLMAP points3D.txt: line {number} has {len(words)} "
+                "field(s), not POINT3D_ID X Y Z R G B ERROR and (IMAGE_ID POINT2D_IDX) pairs",
+            )
+        try:
+            xyz.extend(float(w) for w in words[1:4])
+        except ValueError:
+            raise SceneError(
+                path, f"malformed COLMAP points3D.txt: X Y Z on line {number} are not numbers"
+            ) from None
+    points = torch.from_numpy(np.frombuffer(xyz, dtype=np.float64).copy()).reshape(-1, 3)
+    return values.points(path, points, "COLMAP points")
 
 
 def read_ply_points(path: Path) -> Tensor:

@@ -274,7 +274,74 @@ def test_mutated_llff_poses_load_sanely_or_are_refused(llff_root, row, column, v
         np.save(path, original)
 
 
-def test_the_fixtures_themselves_load(nerfstudio_root, meganerf_root, llff_root):
-    for root in (nerfstudio_root[0], meganerf_root, llff_root):
+# --- COLMAP
+# -------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def colmap_root(tmp_path):
+    from tests.model.scenes.test_colmap import tiny_model, write_scene
+
+    return write_scene(tmp_path / "colmap", tiny_model(6, ("OPENCV", "SIMPLE_RADIAL")), "txt")
+
+
+@SETTINGS
+@given(
+    name=st.sampled_from(["cameras.txt", "images.txt", "points3D.txt"]),
+    line=st.integers(0, 40),
+    word=st.integers(0, 12),
+    value=st.one_of(
+        st.just("<deleted>"), hostile_numbers.map(repr), st.text(max_size=6), st.just("")
+    ),
+)
+def test_mutated_colmap_text_models_load_sanely_or_are_refused(
+    colmap_root, name, line, word, value
+):
+    path = colmap_root / "sparse" / "0" / name
+    original = path.read_text()
+    lines = original.splitlines()
+    records = [i for i, text in enumerate(lines) if not text.startswith("#")]
+    at = records[line % len(records)]
+    words = lines[at].split(" ")
+    if value == "<deleted>":
+        del words[word % len(words)]
+    else:
+        words[word % len(words)] = value
+    lines[at] = " ".join(words)
+    path.write_text("\n".join(lines) + "\n")
+    try:
+        accepted_scene_is_sane(colmap_root)
+    finally:
+        path.write_text(original)
+
+
+@SETTINGS
+@given(
+    name=st.sampled_from(["cameras.bin", "images.bin", "points3D.bin"]),
+    at=st.floats(0.0, 1.0),
+    data=st.binary(min_size=1, max_size=8),
+    cut=st.booleans(),
+)
+def test_mutated_colmap_binary_models_load_sanely_or_are_refused(tmp_path, name, at, data, cut):
+    from tests.model.scenes.test_colmap import tiny_model, write_scene
+
+    root = tmp_path / "colmap-bin"
+    if not root.exists():
+        write_scene(root, tiny_model(6, ("OPENCV", "SIMPLE_RADIAL")), "bin")
+    path = root / "sparse" / "0" / name
+    original = path.read_bytes()
+    offset = int(at * (len(original) - 1))
+    # overwrite some bytes in place, or cut the file there
+    path.write_bytes(
+        original[:offset] if cut else original[:offset] + data + original[offset + len(data) :]
+    )
+    try:
+        accepted_scene_is_sane(root)
+    finally:
+        path.write_bytes(original)
+
+
+def test_the_fixtures_themselves_load(nerfstudio_root, meganerf_root, llff_root, colmap_root):
+    for root in (nerfstudio_root[0], meganerf_root, llff_root, colmap_root):
         scene = load_scene(root)
         assert scene.bounds.aabb.shape == (2, 3) and len(scene.train) >= 2

@@ -5,6 +5,8 @@ data."""
 
 import json
 import math
+import struct
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,6 +14,7 @@ import torch
 
 from model.scenes import SceneError, load_scene, values
 from tests.model.scenes.test_bad_input import blender, expect, llff, meganerf  # noqa: F401 (fixtures)
+from tests.model.scenes.test_colmap import tiny_model, write_bin, write_scene
 from tests.model.scenes.test_nerfstudio import nerfstudio, rewrite  # noqa: F401 (fixture)
 
 MAX_MESSAGE = 400  # every refusal below is a sentence, not a dump of the file
@@ -340,3 +343,105 @@ def test_array_accepts_what_readers_give():
     with pytest.raises(SceneError, match="must be a small array"):
         values.array(path, [[0.0] * 100] * 100, "v", ((3,),))
     assert math.isclose(values.number(path, np.float32(2.5), "n"), 2.5)
+
+
+# --- COLMAP sparse/0 models
+# ---------------------------------------------------------------------------------
+
+
+def with_camera(**change):
+    return lambda m: replace(m, cameras=[replace(m.cameras[0], **change)])
+
+
+COLMAP_MODEL_CASES = {  # an edit of the tiny model, rewritten as binary over its good files
+    "width 0": (
+        with_camera(width=0),
+        "cameras.bin",
+        r"image width \(camera 1\) must be in \[1, 65535\], got 0",
+    ),
+    "width 2**64 - 1": (
+        with_camera(width=2**64 - 1),
+        "cameras.bin",
+        r"image width \(camera 1\) must be in",
+    ),
+    "focal 1e-50": (
+        with_camera(params=[1e-50, 7.5, 4.25, 2.75]),
+        "cameras.bin",
+        r"focal length fx \(camera 1\) must be 0.01 to 10000 times",
+    ),
+    "focal inf": (
+        with_camera(params=[math.inf, 7.5, 4.25, 2.75]),
+        "cameras.bin",
+        "fx of camera 1 must be finite",
+    ),
+    "principal point far outside": (
+        with_camera(params=[8.5, 7.5, 1e8, 2.75]),
+        "cameras.bin",
+        r"principal point \(camera 1\) .* is far outside the 8x6 image",
+    ),
+    "k1 50": (
+        with_camera(model="OPENCV", params=[8.0, 8.0, 4.0, 3.0, 50.0, 0, 0, 0]),
+        "cameras.bin",
+        r"distortion \(camera 1\) has values beyond \+-10",
+    ),
+    "a translation of 1e300": (
+        lambda m: m.edit_image(0, tvec=[1e300, 0.0, 0.0]),
+        "images.bin",
+        r"tvec \(image 100 'frame_00002.png'\) has values beyond \+-1e\+09",
+    ),
+    "a name of 5000 bytes": (
+        lambda m: m.edit_image(0, name="a" * 5000),
+        "images.bin",
+        "truncated or malformed COLMAP images.bin",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", COLMAP_MODEL_CASES)
+def test_colmap_binary_fields_are_bounded(tmp_path, case):
+    edit, file, match = COLMAP_MODEL_CASES[case]
+    model = tiny_model(n=3)
+    root = write_scene(tmp_path / "colmap", model)
+    write_bin(root / "sparse" / "0", edit(model))
+    refused(root, match, file)
+
+
+def after_first_name(data: bytes) -> int:
+    """Offset of the first image's num_points2D in images.bin."""
+    return data.index(b"\0", 8 + 4 + 56 + 4) + 1
+
+
+COLMAP_BYTE_CASES = {  # file, its bytes -> hostile bytes, what is said
+    "images claimed 2**64 - 1": (
+        "images.bin",
+        lambda d: struct.pack("<Q", 2**64 - 1) + d[8:],
+        "claims 18,446,744,073,709,551,615 images",
+    ),
+    "num_points2D 2**63": (
+        "images.bin",
+        lambda d: (
+            d[: after_first_name(d)] + struct.pack("<Q", 2**63) + d[after_first_name(d) + 8 :]
+        ),
+        "truncated or malformed COLMAP images.bin",
+    ),
+    "a name that is not UTF-8": (
+        "images.bin",
+        lambda d: d[:72] + b"\xff" + d[73:],
+        "the name of image 100 is not UTF-8",
+    ),
+    "a track of 2**62 in the last point": (
+        "points3D.bin",
+        # the last point: 43 bytes, its u64 track length, then 2 (IMAGE_ID, POINT2D_IDX) pairs
+        lambda d: d[: len(d) - 24] + struct.pack("<Q", 2**62) + d[len(d) - 16 :],
+        "truncated or malformed COLMAP points3D.bin",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", COLMAP_BYTE_CASES)
+def test_colmap_binary_layout_is_checked(tmp_path, case):
+    name, edit, match = COLMAP_BYTE_CASES[case]
+    root = write_scene(tmp_path / "colmap", tiny_model(n=3))
+    path = root / "sparse" / "0" / name
+    path.write_bytes(edit(path.read_bytes()))
+    refused(root, match, name)
