@@ -402,11 +402,12 @@ def method_step(run: RankRun, phase: str) -> tuple[Callable[..., Any], tuple]:
     """The method's step and its arguments on the next ray batch, as `RankRun.forward` makes
     them."""
     from model.methods.base import Step
+    from model.render.noise import Noise
 
     rays = run.state.sampler.next()  # on the run's device
-    generator = run.state.generator if run.profile.perturb else None
+    noise = Noise() if run.profile.perturb else None
     progress = run.budget.progress(phase, run.progress["phase_step"], run.progress["elapsed"])
-    step = Step(phase, rays, generator, progress, run.progress["phase_step"], run.cfg.seed)
+    step = Step(phase, rays, noise, progress, run.progress["phase_step"], run.cfg.seed)
     return run.method.step, (run.models, step)
 
 

@@ -13,6 +13,7 @@ from abc import ABC, abstractmethod
 import torch
 from torch import Tensor
 
+from model.render.noise import Noise
 from model.render.samples import PackedSamples
 
 
@@ -29,11 +30,11 @@ class Estimator(ABC):
         near: Tensor,
         far: Tensor,
         step_size: float,
-        generator: torch.Generator | None = None,
+        noise: Noise | None = None,
         max_length: float | None = None,
     ) -> PackedSamples:
         """March each ray's foreground segment with a fixed step (jittered by one random offset per
-        ray with a generator) and keep the intervals whose mid-points are occupied (packed, grouped
+        ray with noise) and keep the intervals whose mid-points are occupied (packed, grouped
         by ray): nerfacc's `sampling` for an occupancy estimator. `max_length`: a bound on every
         segment's length the caller knows (a box's diagonal), so the march's width is set without
         reading the rays (a wait on CUDA); the steps past a ray's far end are dropped, so the
@@ -43,9 +44,7 @@ class Estimator(ABC):
         else:
             steps = int(torch.ceil(((far - near).max() / step_size)).clamp(min=1))
         offset = (
-            torch.rand(len(near), 1, generator=generator, device=near.device) * step_size
-            if generator is not None
-            else 0.0
+            noise.rand(len(near), 1, device=near.device) * step_size if noise is not None else 0.0
         )
         starts = (
             near[:, None]

@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from model.estimators.proposal import interlevel_loss, pdf_edges
+from model.render.noise import Noise
 from model.render.samples import PackedSamples
 from model.render.volume import batched_weights
 
@@ -62,7 +63,7 @@ def fine_samples(
     intermediate: int,
     n: int,
     density: Callable[[Tensor], Tensor],
-    generator: torch.Generator | None,
+    noise: Noise | None,
     anneal: float,
     padding: float,
 ) -> tuple[PackedSamples, FineDraw]:
@@ -75,13 +76,13 @@ def fine_samples(
     mass = weights.clamp(min=0) * keep
     # no weight: by bin
     mass = torch.where(mass.sum(-1, keepdim=True) > 0, mass, keep.to(mass.dtype))
-    coarse = pdf_edges(s_edges, mass, intermediate, generator, padding=0.0)
+    coarse = pdf_edges(s_edges, mass, intermediate, noise, padding=0.0)
     t_mid = to_t(0.5 * (coarse[:, 1:] + coarse[:, :-1]), s_edges, edges)
     sigma = density(t_mid)
     fine = batched_weights(sigma.detach().double(), (coarse[:, 1:] - coarse[:, :-1]).double())[
         0
     ].to(coarse.dtype)
-    main = pdf_edges(coarse, fine, n, generator, anneal=anneal, padding=padding)
+    main = pdf_edges(coarse, fine, n, noise, anneal=anneal, padding=padding)
     mid, delta = 0.5 * (main[:, 1:] + main[:, :-1]), main[:, 1:] - main[:, :-1]
     t = to_t(mid, s_edges, edges).reshape(-1)
     delta = delta.reshape(-1)

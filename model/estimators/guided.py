@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from model.profiles import GuidedConfig
+from model.render.noise import Noise
 from model.render.samples import PackedSamples, split_bins, stratified_edges
 
 
@@ -20,7 +21,7 @@ class BinOptions:
 
     coarse: int  # coarse bins per ray, each asked of O (guided.coarse_samples)
     split: int  # stratified samples per kept bin (guided.split)
-    # O is asked at a random point of each bin while training (a generator is given), so a surface
+    # O is asked at a random point of each bin while training (noise is given), so a surface
     # between mid-points is found on some steps (guided.jitter)
     jitter: bool = False
     dilate: int = 0  # the neighbours of kept bins along the ray are kept too (guided.dilate)
@@ -101,7 +102,7 @@ def keep_bins(
     origins: Tensor,
     directions: Tensor,
     occupied: Callable[[Tensor], Tensor],
-    generator: torch.Generator | None,
+    noise: Noise | None,
     options: BinOptions,
     scores: Callable[[], Tensor] | None = None,
     all_hit: bool = False,
@@ -116,13 +117,13 @@ def keep_bins(
     edges = stratified_edges(near, far, num_coarse, None)
     lo_all, hi_all = edges[:, :-1, None], edges[:, 1:, None]
     u = (torch.arange(queries, device=near.device, dtype=near.dtype) + 0.5) / queries
-    if options.jitter and generator is not None:
+    if options.jitter and noise is not None:
         u = (
             u
             + (
-                torch.rand(
-                    (*edges[:, 1:].shape, queries),
-                    generator=generator,
+                noise.rand(
+                    *edges[:, 1:].shape,
+                    queries,
                     device=near.device,
                     dtype=near.dtype,
                 )
@@ -159,7 +160,7 @@ def draw_guided(
     origins: Tensor,
     directions: Tensor,
     occupied: Callable[[Tensor], Tensor],
-    generator: torch.Generator | None,
+    noise: Noise | None,
     options: BinOptions,
     scores: Callable[[], Tensor] | None = None,
     place: Callable[[Tensor, Tensor, Tensor], PackedSamples] | None = None,
@@ -169,7 +170,7 @@ def draw_guided(
     ray (`keep_bins`), the kept ones are split (BinOptions says how). `place(rows, edges, keep)`:
     draws the samples of these rows over their kept bins instead of splitting them
     (model/estimators/placement.py). `all_hit`: as in `keep_bins`."""
-    bins = keep_bins(near, far, origins, directions, occupied, generator, options, scores, all_hit)
+    bins = keep_bins(near, far, origins, directions, occupied, noise, options, scores, all_hit)
     edges, keep, lost, split = bins.edges, bins.keep, bins.lost, options.split
     if place is not None:
         rows = torch.nonzero(keep.any(dim=1))[:, 0]
@@ -185,7 +186,7 @@ def draw_guided(
         edges[ray, bin_ + 1],
         ray,
         counts[ray, bin_],
-        generator if split > 1 else None,
+        noise if split > 1 else None,
     )
     return GuidedDraw(samples, bins.occupied_bins, lost, edges)
 
@@ -198,7 +199,7 @@ def guided_samples(
     occupied: Callable[[Tensor], Tensor],
     num_coarse: int,
     split: int,
-    generator: torch.Generator | None,
+    noise: Noise | None,
     scores: Callable[[], Tensor] | None = None,
     place: Callable[[Tensor, Tensor, Tensor], PackedSamples] | None = None,
     **options: Any,
@@ -207,7 +208,7 @@ def guided_samples(
     name) and the fraction of the hit rays' coarse bins that O itself keeps (before dilation and
     fallback; model/render/accounting.py counts what reaches the main network)."""
     bins = BinOptions(num_coarse, split, **options)
-    draw = draw_guided(near, far, origins, directions, occupied, generator, bins, scores, place)
+    draw = draw_guided(near, far, origins, directions, occupied, noise, bins, scores, place)
     hits = far > near
     kept = draw.occupied_bins[hits].float().mean() if bool(hits.any()) else near.new_zeros(())
     return draw.samples, kept

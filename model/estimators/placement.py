@@ -19,17 +19,18 @@ import torch
 from torch import Tensor
 
 from model.render.accounting import sample_bins
+from model.render.noise import Noise
 from model.render.samples import PackedSamples, invert_cdf
 
 EPS = 1e-7
 
 
 def placed_samples(
-    edges: Tensor, keep: Tensor, weights: Tensor, n: int, generator: torch.Generator | None
+    edges: Tensor, keep: Tensor, weights: Tensor, n: int, noise: Noise | None
 ) -> PackedSamples:
     """Exactly n samples per ray (rows of `edges` (R, B + 1)), sorted along it, inside its kept bins
     (`keep` (R, B), at least one per row), distributed like `weights` (R, B) (>= 0; padding already
-    added) over them. Deterministic (CDF levels at (j + 0.5) / n) without a generator, stratified
+    added) over them. Deterministic (CDF levels at (j + 0.5) / n) without a noise, stratified
     and jittered with one."""
     r, b = keep.shape
     width = (edges[:, 1:] - edges[:, :-1]) * keep
@@ -40,12 +41,11 @@ def placed_samples(
     mass = torch.where(mass.sum(-1, keepdim=True) > 0, mass, keep.to(mass.dtype) * width)
     cumulative = torch.cat([torch.zeros_like(mass[:, :1]), mass.cumsum(-1)], -1)
     cdf = cumulative / cumulative[:, -1:].clamp(min=1e-30)
-    if generator is None:
+    if noise is None:
         u = torch.linspace(0.0, 1.0, n + 1, device=edges.device).expand(r, n + 1).contiguous()
     else:
         u = (
-            torch.arange(n + 1, device=edges.device)
-            + torch.rand(r, n + 1, generator=generator, device=edges.device)
+            torch.arange(n + 1, device=edges.device) + noise.rand(r, n + 1, device=edges.device)
         ) / (n + 1)
     s = invert_cdf(s_edges, cdf, u.to(cdf.dtype))
     mid_s, delta = 0.5 * (s[:, 1:] + s[:, :-1]), s[:, 1:] - s[:, :-1]

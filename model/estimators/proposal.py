@@ -9,6 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from model.render.noise import Noise
 from model.render.samples import invert_cdf
 
 EPS = 1e-7
@@ -27,14 +28,14 @@ def pdf_edges(
     edges: Tensor,
     weights: Tensor,
     n: int,
-    generator: torch.Generator | None,
+    noise: Noise | None,
     anneal: float = 1.0,
     padding: float = 0.01,
     support: Tensor | None = None,
 ) -> Tensor:
     """(R, n + 1) sorted edges of n new intervals placed by the piecewise-constant pdf of `weights`
     (R, M) over `edges` (R, M + 1): u at n + 1 stratified levels of the CDF (jittered with a
-    generator), each mapped back to t. `padding` is added to every weight first (nerfstudio's
+    noise), each mapped back to t. `padding` is added to every weight first (nerfstudio's
     histogram padding), so no bin is unreachable; with `support` (R, M) bool, only to the bins in
     it, and the others get nothing (zero-long bins of a kept axis, where a sample would be
     wasted)."""
@@ -48,13 +49,10 @@ def pdf_edges(
     cumulative = torch.cat([torch.zeros_like(w[:, :1]), w.cumsum(-1)], -1)
     cdf = cumulative / cumulative[:, -1:]
     r, device = len(edges), edges.device
-    if generator is None:
+    if noise is None:
         u = torch.linspace(0.0, 1.0, n + 1, device=device).expand(r, n + 1).contiguous()
     else:
-        u = (
-            torch.arange(n + 1, device=device)
-            + torch.rand(r, n + 1, generator=generator, device=device)
-        ) / (n + 1)
+        u = (torch.arange(n + 1, device=device) + noise.rand(r, n + 1, device=device)) / (n + 1)
     return invert_cdf(edges, cdf, u)
 
 

@@ -12,26 +12,18 @@ from torch import Tensor, nn
 
 from model.fields.encoding import FrequencyEncoding
 from model.fields.heads import density_activation
+from model.render.noise import Noise
 
 MIN_START = 1e-2  # world units: rays that miss the box are background from (almost) the camera on
 
 
-def background_samples(
-    far: Tensor, n: int, generator: torch.Generator | None
-) -> tuple[Tensor, Tensor]:
+def background_samples(far: Tensor, n: int, noise: Noise | None) -> tuple[Tensor, Tensor]:
     """(t_mid, deltas) of n samples per ray from the foreground exit `far` to infinity, (R, n)
     each."""
     start = far.clamp(min=MIN_START)
     u = (torch.arange(n, device=far.device, dtype=far.dtype) + 0.5) / n
-    if generator is not None:
-        u = (
-            u
-            + (
-                torch.rand(len(far), n, generator=generator, device=far.device, dtype=far.dtype)
-                - 0.5
-            )
-            / n
-        )
+    if noise is not None:
+        u = u + (noise.rand(len(far), n, device=far.device, dtype=far.dtype) - 0.5) / n
     inverse = (1.0 - u) / start[:, None]  # from 1 / start down towards 0
     t = 1.0 / inverse.clamp(min=1e-6)
     deltas = torch.cat([t[:, 1:] - t[:, :-1], torch.full_like(t[:, :1], 1e10)], dim=-1)

@@ -23,6 +23,7 @@ from model.methods.costs import PhaseMemory, SweepPoint
 from model.methods.main_phase import MainRender, main_loss
 from model.methods.stages import stage
 from model.profiles import Profile
+from model.render.noise import Noise
 from model.render.volume import Rendered
 from model.scenes.rays import RayBatch
 
@@ -88,7 +89,7 @@ class Step:
 
     phase: str
     rays: RayBatch  # this rank's share of the step's rays, on the run's device
-    generator: torch.Generator | None  # this rank's draws; None: deterministic (perturb off)
+    noise: Noise | None  # this rank's draws; None: deterministic (perturb off)
     progress: float  # of the phase, in [0, 1] (model/methods/schedules.py)
     phase_step: int  # steps of this phase done before this one
     seed: int  # the run's, for any draw that must be the same on every rank (a grid's update)
@@ -229,7 +230,7 @@ class Method:
 
     def step(self, models: Networks, step: Step) -> tuple[Tensor, dict]:
         """One training step's loss and its parts (floats)."""
-        render = self.render_main(models, step.rays, step.generator, step.phase_step)
+        render = self.render_main(models, step.rays, step.noise, step.phase_step)
         with stage("losses"):
             return main_loss(
                 render,
@@ -243,7 +244,7 @@ class Method:
         self,
         models: Networks,
         rays: RayBatch,
-        generator: torch.Generator | None,
+        noise: Noise | None,
         phase_step: int | None,
     ) -> MainRender:
         """The main phase's render; `phase_step` is None outside training (validation,

@@ -14,6 +14,7 @@ from model.methods.main_phase import MainRender, grid_step_size, render_grid
 from model.methods.spec import setting
 from model.methods.stages import stage
 from model.profiles import GridConfig
+from model.render.noise import Noise
 from model.render.volume import Rendered
 from model.scenes.rays import RayBatch
 
@@ -86,10 +87,10 @@ class GridMethod(Method):
         self,
         models: Networks,
         rays: RayBatch,
-        generator: torch.Generator | None,
+        noise: Noise | None,
         phase_step: int | None,
     ) -> MainRender:
-        return self.march(models, rays, generator)
+        return self.march(models, rays, noise)
 
     def render(self, models: Networks, phase: str, rays: RayBatch) -> Rendered:
         """Images march each ray only until it is opaque, as Instant-NGP's renders do."""
@@ -99,7 +100,7 @@ class GridMethod(Method):
         self,
         models: Networks,
         rays: RayBatch,
-        generator: torch.Generator | None,
+        noise: Noise | None,
         early_stop_eps: float = 0.0,
     ) -> MainRender:
         return render_grid(
@@ -109,7 +110,7 @@ class GridMethod(Method):
             self.profile.background.samples,
             self.grid_config.march_steps,
             self.grid,
-            generator,
+            noise,
             early_stop_eps,
         )
 

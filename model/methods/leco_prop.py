@@ -28,6 +28,7 @@ from model.methods.main_phase import MainRender
 from model.methods.parts import Parts
 from model.methods.prop import ProposalMethod
 from model.methods.stages import stage
+from model.render.noise import Noise
 from model.render.samples import PackedSamples
 from model.render.volume import Rendered, batched_weights
 from model.scenes.rays import RayBatch
@@ -57,12 +58,12 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
                 step.rays,
                 self.profile.occupancy,
                 self.profile.background.samples,
-                step.generator,
+                step.noise,
                 step.progress,
                 ("interlevel_loss", warm),
             )
         learn = self.schedule.due(step.phase_step)
-        render, levels, edges = self.draw(models, step.rays, step.generator, step.phase_step, learn)
+        render, levels, edges = self.draw(models, step.rays, step.noise, step.phase_step, learn)
         with stage("losses"):
             return self.loss_with_proposals(render, step.rays, levels, edges, learn)
 
@@ -70,16 +71,16 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
         self,
         models: Networks,
         rays: RayBatch,
-        generator: torch.Generator | None,
+        noise: Noise | None,
         phase_step: int | None,
     ) -> MainRender:
-        return self.draw(models, rays, generator, phase_step, learn=False)[0]
+        return self.draw(models, rays, noise, phase_step, learn=False)[0]
 
     def draw(
         self,
         models: Networks,
         rays: RayBatch,
-        generator: torch.Generator | None,
+        noise: Noise | None,
         phase_step: int | None,
         learn: bool,
     ) -> tuple[MainRender, list[tuple[Tensor, Tensor]], Tensor]:
@@ -106,7 +107,7 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
                     sub.origins,
                     sub.directions,
                     query.occupied,
-                    generator,
+                    noise,
                     BinOptions.of(g),
                     query.scores,
                     all_hit=True,
@@ -124,8 +125,8 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
                     "bounded_length": share.mean(),
                 }
         with stage("sampler"), torch.set_grad_enabled(learn):
-            levels, edges = self.propose(models, sub, generator, phase_step, axis, first)
-        render = self.render_on(models, rays, hits, edges, generator, axis)
+            levels, edges = self.propose(models, sub, noise, phase_step, axis, first)
+        render = self.render_on(models, rays, hits, edges, noise, axis)
         render.stats.update(stats)
         if learner is not None and render.samples is not None:
             local = render.samples
@@ -154,14 +155,14 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
         the HMoE's detached render weights (`rendered` on `edges`, mip-NeRF 360's eq. 13); with O's
         placement head (the level form), its histogram must too (LeCO's phase-1 placement loss)."""
         hits = self.hits(step.rays)
-        levels, _ = self.propose(models, step.rays.subset(hits), step.generator, step.phase_step)
+        levels, _ = self.propose(models, step.rays.subset(hits), step.noise, step.phase_step)
         loss = self.profile.prop.loss_weight * interlevel_loss(
             edges[hits], rendered.weights[hits], levels
         )
         g = self.profile.guided
         if g.placement and g.placement_in_phase1:
             gate = models.hmoe.gate
-            loss = loss + phase1_placement_loss(gate, step.rays, g, step.generator, rendered, edges)
+            loss = loss + phase1_placement_loss(gate, step.rays, g, step.noise, rendered, edges)
         return loss
 
     def trained_modules(self, models: Networks, phase: str) -> list[nn.Module]:

@@ -34,6 +34,7 @@ from model.render.losses import (
     distortion_loss,
     rendering_loss,
 )
+from model.render.noise import Noise
 from model.render.samples import (
     PackedSamples,
     inverse_cdf_edges,
@@ -119,12 +120,12 @@ def render_vanilla(
     background: BackgroundField,
     rays: RayBatch,
     profile: Profile,
-    generator: torch.Generator | None,
+    noise: Noise | None,
 ) -> MainRender:
     cfg = profile.vanilla
-    behind = render_background(background, rays, profile.background.samples, generator).rgb
+    behind = render_background(background, rays, profile.background.samples, noise).rgb
     with stage("sampler"):
-        coarse = stratified_edges(rays.near, rays.far, cfg.coarse_samples, generator)
+        coarse = stratified_edges(rays.near, rays.far, cfg.coarse_samples, noise)
     if cfg.fine_samples == 0:
         rendered, out = render_batched(field, rays, coarse, behind)
         return MainRender(
@@ -133,7 +134,7 @@ def render_vanilla(
     with torch.no_grad():  # coarse weights only place the fine samples
         weights = render_batched(field, rays, coarse, behind)[0].weights
     with stage("sampler"):
-        edges = merge_edges(coarse, inverse_cdf_edges(coarse, weights, cfg.fine_samples, generator))
+        edges = merge_edges(coarse, inverse_cdf_edges(coarse, weights, cfg.fine_samples, noise))
     rendered, out = render_batched(field, rays, edges, behind)
     # Coarse points run the network twice (once without gradient to place the fine ones).
     return MainRender(
@@ -168,13 +169,13 @@ def render_background_cascaded(
     rays: RayBatch,
     samples: int,
     grid: GridEstimator,
-    generator: torch.Generator | None,
+    noise: Noise | None,
 ) -> tuple[Tensor, Tensor]:
     """The background's colour with its samples culled by the grid's outer cascades (Instant-NGP
     skips empty space beyond the box too): a sample in a free cell is dropped, one beyond the
     outermost level is kept. A dropped sample had no density, so compositing the kept ones with
     their own intervals is the same integral. Returns the colour and the kept share."""
-    t, deltas = background_samples(rays.far, samples, generator)
+    t, deltas = background_samples(rays.far, samples, noise)
     xyz = rays.origins[:, None, :] + rays.directions[:, None, :] * t[..., None]
     flat = xyz.reshape(-1, 3)
     with torch.no_grad():
@@ -195,7 +196,7 @@ def render_grid(
     background_samples_per_ray: int,
     march_steps: int,
     grid: GridEstimator,
-    generator: torch.Generator | None,
+    noise: Noise | None,
     early_stop_eps: float = 0.0,
 ) -> MainRender:
     """`early_stop_eps` > 0: rays stop at that transmittance (model/render/front_to_back.py),
@@ -204,14 +205,14 @@ def render_grid(
     if grid.levels > 1:
         with stage("background"):
             behind, stats["background_kept"] = render_background_cascaded(
-                background, rays, background_samples_per_ray, grid, generator
+                background, rays, background_samples_per_ray, grid, noise
             )
     else:
-        behind = render_background(background, rays, background_samples_per_ray, generator).rgb
+        behind = render_background(background, rays, background_samples_per_ray, noise).rgb
     step = grid_step_size(grid, march_steps)
     with stage("sampler"):
         samples = grid.sample(
-            rays.origins, rays.directions, rays.near, rays.far, step, generator, grid.diagonal
+            rays.origins, rays.directions, rays.near, rays.far, step, noise, grid.diagonal
         )
     possible = ((rays.far - rays.near) / step).ceil().clamp(min=0).sum()
     if early_stop_eps > 0:

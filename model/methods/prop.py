@@ -30,6 +30,7 @@ from model.methods.main_phase import MainRender, grid_step_size, main_loss, rend
 from model.methods.parts import Parts
 from model.methods.stages import stage
 from model.profiles import Profile
+from model.render.noise import Noise
 from model.render.samples import PackedSamples, pack_edges, stratified_edges
 from model.render.volume import Rendered, batched_weights, composite_batched
 from model.scenes.rays import RayBatch
@@ -115,9 +116,9 @@ class ProposalMethod(Method):
             hits = self.hits(step.rays, self.profile.prop.static_shapes)
             with torch.set_grad_enabled(learn):
                 levels, edges = self.propose(
-                    models, step.rays.subset(hits), step.generator, step.phase_step
+                    models, step.rays.subset(hits), step.noise, step.phase_step
                 )
-        render = self.render_on(models, step.rays, hits, edges, step.generator)
+        render = self.render_on(models, step.rays, hits, edges, step.noise)
         with stage("losses"):
             return self.loss_with_proposals(render, step.rays, levels, edges, learn)
 
@@ -167,7 +168,7 @@ class ProposalMethod(Method):
         self,
         models: Networks,
         rays: RayBatch,
-        generator: torch.Generator | None,
+        noise: Noise | None,
         phase_step: int | None,
         axis: Axis | None = None,
         first: tuple[Tensor, Tensor, Tensor] | None = None,
@@ -181,12 +182,12 @@ class ProposalMethod(Method):
         anneal = anneal_power(phase_step, p.anneal_steps, p.anneal_slope)
         levels = []
         if first is None:
-            edges = stratified_edges(axis.start, axis.end, p.samples[0], generator)
+            edges = stratified_edges(axis.start, axis.end, p.samples[0], noise)
         else:
             given, weights, support = first
             levels.append((given, weights))
             edges = pdf_edges(
-                given, weights, p.samples[0], generator, anneal, p.histogram_padding, support
+                given, weights, p.samples[0], noise, anneal, p.histogram_padding, support
             )
         for i, network in enumerate(models.proposals):
             mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
@@ -196,7 +197,7 @@ class ProposalMethod(Method):
             weights = batched_weights(sigma, deltas)[0]
             levels.append((edges, weights))
             n = p.samples[i + 1] if i + 1 < len(p.samples) else p.main_samples
-            edges = pdf_edges(edges, weights, n, generator, anneal, p.histogram_padding)
+            edges = pdf_edges(edges, weights, n, noise, anneal, p.histogram_padding)
         return levels, edges.detach()
 
     def render_on(
@@ -205,7 +206,7 @@ class ProposalMethod(Method):
         rays: RayBatch,
         hits: Tensor,
         edges: Tensor,
-        generator: torch.Generator | None,
+        noise: Noise | None,
         axis: Axis | None = None,
     ) -> MainRender:
         """The main network on the hit rays' intervals (`edges` on `axis`, one row per hit ray,
@@ -213,7 +214,7 @@ class ProposalMethod(Method):
         ray that misses the box shows its background. `rendered.weights` is (hit rays,
         main_samples)."""
         behind = render_background(
-            models.background, rays, self.profile.background.samples, generator
+            models.background, rays, self.profile.background.samples, noise
         ).rgb
         if axis is None:
             sub, out = render_batched(models.field, rays.subset(hits), edges, behind[hits])
@@ -236,13 +237,13 @@ class ProposalMethod(Method):
         self,
         models: Networks,
         rays: RayBatch,
-        generator: torch.Generator | None,
+        noise: Noise | None,
         phase_step: int | None,
     ) -> MainRender:
         hits = self.hits(rays, self.profile.prop.static_shapes)
         with torch.no_grad():
-            _, edges = self.propose(models, rays.subset(hits), generator, phase_step)
-        return self.render_on(models, rays, hits, edges, generator)
+            _, edges = self.propose(models, rays.subset(hits), noise, phase_step)
+        return self.render_on(models, rays, hits, edges, noise)
 
     def proposal_grid(self, models: Networks) -> GridEstimator:
         """The last proposal level's density through one full update of an occupancy grid: the

@@ -3,10 +3,9 @@ The reference every speed-up is measured against."""
 
 from __future__ import annotations
 
-import torch
-
 from model.methods.base import Method, Networks, SweepPoint
 from model.methods.main_phase import MainRender, render_vanilla
+from model.render.noise import Noise
 from model.scenes.rays import RayBatch
 
 
@@ -15,10 +14,10 @@ class SwitchNeRFMethod(Method):
         self,
         models: Networks,
         rays: RayBatch,
-        generator: torch.Generator | None,
+        noise: Noise | None,
         phase_step: int | None,
     ) -> MainRender:
-        return render_vanilla(models.field, models.background, rays, self.profile, generator)
+        return render_vanilla(models.field, models.background, rays, self.profile, noise)
 
     def sweep(self) -> list[SweepPoint]:
         v = self.profile.vanilla

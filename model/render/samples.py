@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from model.render.noise import Noise
+
 
 @dataclass
 class PackedSamples:
@@ -37,35 +39,31 @@ class PackedSamples:
         return PackedSamples(self.starts[keep], self.ends[keep], self.ray_index[keep])
 
 
-def stratified_edges(
-    near: Tensor, far: Tensor, n: int, generator: torch.Generator | None
-) -> Tensor:
-    """(R, n + 1) bin edges; with a generator the inner edges are jittered inside their bins
+def stratified_edges(near: Tensor, far: Tensor, n: int, noise: Noise | None) -> Tensor:
+    """(R, n + 1) bin edges; with noise the inner edges are jittered inside their bins
     (training)."""
     u = torch.linspace(0.0, 1.0, n + 1, device=near.device)
-    if generator is not None:
-        jitter = (torch.rand(len(near), n - 1, generator=generator, device=near.device) - 0.5) / n
+    if noise is not None:
+        jitter = (noise.rand(len(near), n - 1, device=near.device) - 0.5) / n
         u = u.expand(len(near), n + 1).clone()
         u[:, 1:-1] += jitter
     return near[:, None] + (far - near)[:, None] * u
 
 
-def inverse_cdf_edges(
-    edges: Tensor, weights: Tensor, n: int, generator: torch.Generator | None
-) -> Tensor:
+def inverse_cdf_edges(edges: Tensor, weights: Tensor, n: int, noise: Noise | None) -> Tensor:
     """(R, n) new sample positions distributed like the coarse weights (piecewise-constant pdf)."""
     pdf = weights.detach() + 1e-5  # keep every bin reachable and empty rays uniform
     cdf = torch.cat(
         [torch.zeros_like(pdf[:, :1]), (pdf / pdf.sum(-1, keepdim=True)).cumsum(-1)], -1
     )
-    if generator is None:
+    if noise is None:
         u = (
             torch.linspace(0.0, 1.0, n + 2, device=edges.device)[1:-1]
             .expand(len(edges), n)
             .contiguous()
         )
     else:
-        u = torch.rand(len(edges), n, generator=generator, device=edges.device)
+        u = noise.rand(len(edges), n, device=edges.device)
     return invert_cdf(edges, cdf, u)
 
 
@@ -97,18 +95,18 @@ def pack_edges(edges: Tensor) -> PackedSamples:
 
 
 def split_bins(
-    lo: Tensor, hi: Tensor, ray: Tensor, counts: Tensor, generator: torch.Generator | None
+    lo: Tensor, hi: Tensor, ray: Tensor, counts: Tensor, noise: Noise | None
 ) -> PackedSamples:
     """Bin k of [lo_k, hi_k) split into counts_k stratified sub-intervals (inner edges jittered with
-    a generator); bins must come grouped by ray in increasing t, and so do the samples."""
+    noise); bins must come grouped by ray in increasing t, and so do the samples."""
     bin_of = torch.repeat_interleave(torch.arange(len(lo), device=lo.device), counts)
     first = torch.cumsum(counts, 0) - counts
     # sub-interval index inside its bin
     j = torch.arange(len(bin_of), device=lo.device) - first[bin_of]
     c, width = counts[bin_of].to(lo.dtype), (hi - lo)[bin_of]
     shift = torch.zeros_like(c)
-    if generator is not None:
-        shift = torch.rand(len(c), generator=generator, device=lo.device, dtype=lo.dtype) - 0.5
+    if noise is not None:
+        shift = noise.rand(len(c), device=lo.device, dtype=lo.dtype) - 0.5
         # the bin's own start edge stays put
         shift = torch.where(j > 0, shift, torch.zeros_like(shift))
     starts = lo[bin_of] + width * (j + shift) / c

@@ -10,6 +10,7 @@ from model.methods import METHODS, get_method
 from model.methods.base import Step
 from model.methods.main_phase import main_loss, render_vanilla
 from model.model_info import background, switch_nerf
+from model.render.noise import Noise
 from model.scenes.rays import PixelTable, RayBatch
 from workers.config import TrainConfig
 from workers.memory import SavedTensorBytes
@@ -41,7 +42,7 @@ def test_the_estimate_of_a_steps_activations_is_within_15_percent_of_what_autogr
                 behind,
                 random_rays(profile.rays_per_device),
                 profile,
-                torch.Generator().manual_seed(0),
+                Noise(torch.Generator().manual_seed(0)),
             ),
             random_rays(profile.rays_per_device),
             5e-4,
@@ -82,7 +83,9 @@ def activation_bytes(method, models, phase: str, rays: RayBatch, steps: list[int
     most = 0
     for k in steps:
         with SavedTensorBytes() as saved:
-            method.step(models, Step(phase, rays, torch.Generator().manual_seed(k), 0.5, k, 0))
+            method.step(
+                models, Step(phase, rays, Noise(torch.Generator().manual_seed(k)), 0.5, k, 0)
+            )
         most = max(most, sum(n for ptr, n in saved.storages.items() if ptr not in weights))
     return most
 

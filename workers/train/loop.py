@@ -23,6 +23,7 @@ from model.errors import Failed
 from model.methods.base import Step
 from model.methods.parts import Parts
 from model.methods.stages import stage
+from model.render.noise import Noise
 from model.scenes import load_scene
 from workers.config import TrainConfig
 from workers.memory import SavedTensorBytes
@@ -42,6 +43,7 @@ from workers.train.checkpoint import (
 )
 from workers.train.compiled import check_can_compile, compile_modules
 from workers.train.distributed import any_rank, any_rank_each, any_rank_tensor, average_gradients
+from workers.train.lent_generator import lent
 from workers.train.nonfinite import NonfiniteStreak, nonfinite
 from workers.train.periodic_eval import PeriodicEval
 from workers.train.ray_batches import ray_batches
@@ -278,9 +280,10 @@ class RankRun:
     def forward(self, phase: str, progress: float) -> tuple[torch.Tensor, dict]:
         with stage("ray_batch"):
             rays = self.state.sampler.next()  # on the device (workers/train/ray_batches.py)
-        generator = self.state.generator if self.profile.perturb else None
-        step = Step(phase, rays, generator, progress, self.progress["phase_step"], self.cfg.seed)
-        return self.method.step(self.models, step)
+        noise = Noise() if self.profile.perturb else None
+        step = Step(phase, rays, noise, progress, self.progress["phase_step"], self.cfg.seed)
+        with lent(self.state.generator):
+            return self.method.step(self.models, step)
 
     def reads_now(self, ending: bool, evaluation: dict | None) -> bool:
         """Whether this step reads the device (its metrics row, the non-finite streak): a logging

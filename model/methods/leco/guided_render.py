@@ -28,6 +28,7 @@ from model.methods.main_phase import MainRender, composite_field, cull_occluded,
 from model.methods.parts import Parts
 from model.methods.stages import stage
 from model.profiles import GuidedConfig, Profile
+from model.render.noise import Noise
 from model.render.samples import PackedSamples, pack_edges, stratified_edges
 from model.render.volume import Rendered, batched_weights
 from model.scenes.rays import RayBatch
@@ -51,17 +52,17 @@ class Placer:
         query: OccupancyQuery,
         rays: RayBatch,
         anneal: float,
-        generator: torch.Generator | None,
+        noise: Noise | None,
         learn: bool = False,
     ):
         """`learn`: O's placement learns this step, so the fine pass asks O with gradient (kept for
         the loss)."""
-        self.g, self.query, self.rays, self.anneal, self.generator = (
+        self.g, self.query, self.rays, self.anneal, self.noise = (
             profile.guided,
             query,
             rays,
             anneal,
-            generator,
+            noise,
         )
         self.learn = learn
         self.fine: FineDraw | None = None
@@ -85,7 +86,7 @@ class Placer:
             if g.placement_within != "uniform":
                 shares = within_bin_shares(g.placement_within, mass, sigma, edges)
                 edges, keep, mass = subdivided(edges, keep, mass, shares)
-            return placed_samples(edges, keep, mass, g.main_samples, self.generator)
+            return placed_samples(edges, keep, mass, g.main_samples, self.noise)
         density = lambda t: self.density(rows, t, grad=self.learn)  # noqa: E731
         samples, self.fine = fine_samples(
             rows,
@@ -95,7 +96,7 @@ class Placer:
             g.placement_fine,
             g.main_samples,
             density,
-            self.generator,
+            self.noise,
             self.anneal,
             g.placement_padding,
         )
@@ -114,7 +115,7 @@ def render_guided(
     rays: RayBatch,
     profile: Profile,
     query: OccupancyQuery,
-    generator: torch.Generator | None,
+    noise: Noise | None,
     learner: OnlineOccupancy | None = None,
     learn_placement: bool = False,
     anneal: float = 1.0,
@@ -123,20 +124,18 @@ def render_guided(
     step; `learn_placement`: O's placement loss this step; `anneal`: the exponent on O's histogram
     (nerfstudio's)."""
     g = profile.guided
-    behind = render_background(background, rays, profile.background.samples, generator).rgb
+    behind = render_background(background, rays, profile.background.samples, noise).rgb
     hit = torch.nonzero(rays.far > rays.near)[:, 0]
     sub = rays.subset(hit)  # only rays that cross the box have bins to keep
     with stage("sampler"), torch.no_grad():
-        place = (
-            Placer(profile, query, sub, anneal, generator, learn_placement) if g.placement else None
-        )
+        place = Placer(profile, query, sub, anneal, noise, learn_placement) if g.placement else None
         draw = draw_guided(
             sub.near,
             sub.far,
             sub.origins,
             sub.directions,
             query.occupied,
-            generator,
+            noise,
             BinOptions.of(g),
             query.scores,
             place,
@@ -187,7 +186,7 @@ def phase1_placement_loss(
     gate: OccupancyNetwork,
     rays: RayBatch,
     g: GuidedConfig,
-    generator: torch.Generator | None,
+    noise: Noise | None,
     rendered: Rendered,
     edges: Tensor,
 ) -> Tensor:
@@ -199,10 +198,8 @@ def phase1_placement_loss(
     sub = rays.subset(hit)
     coarse = stratified_edges(sub.near, sub.far, g.coarse_samples, None)
     u: Tensor | float = 0.5
-    if g.jitter and generator is not None:
-        u = torch.rand(
-            coarse[:, 1:].shape, generator=generator, device=coarse.device, dtype=coarse.dtype
-        )
+    if g.jitter and noise is not None:
+        u = noise.rand(*coarse[:, 1:].shape, device=coarse.device, dtype=coarse.dtype)
     t = coarse[:, :-1] + (coarse[:, 1:] - coarse[:, :-1]) * u
     sigma = gate.query(
         (sub.origins[:, None] + sub.directions[:, None] * t[..., None]).reshape(-1, 3)

@@ -31,6 +31,7 @@ from model.methods.leco.phase1 import occupancy_step, render_hmoe
 from model.methods.leco.warm_start import warm_start_main
 from model.methods.main_phase import MainRender
 from model.profiles import Profile
+from model.render.noise import Noise
 from model.render.volume import Rendered
 from model.scenes.rays import RayBatch
 
@@ -182,7 +183,7 @@ class LeCOMethod(Method):
         return g.warm_start_ramp if phase == "main" and self.warm_starts() else 0
 
     def step(self, models: Networks, step: Step) -> tuple[Tensor, dict]:
-        rays, generator = step.rays, step.generator
+        rays, noise = step.rays, step.noise
         if step.phase == "occupancy":
             g = self.profile.guided
             extra = None
@@ -190,7 +191,7 @@ class LeCOMethod(Method):
             if g.placement and g.placement_in_phase1:
                 extra = (
                     "placement_loss",
-                    partial(phase1_placement_loss, models.hmoe.gate, rays, g, generator),
+                    partial(phase1_placement_loss, models.hmoe.gate, rays, g, noise),
                 )
             return occupancy_step(
                 models.hmoe,
@@ -198,7 +199,7 @@ class LeCOMethod(Method):
                 rays,
                 self.profile.occupancy,
                 self.profile.background.samples,
-                generator,
+                noise,
                 step.progress,
                 extra,
             )
@@ -208,7 +209,7 @@ class LeCOMethod(Method):
         self,
         models: Networks,
         rays: RayBatch,
-        generator: torch.Generator | None,
+        noise: Noise | None,
         phase_step: int | None,
     ) -> MainRender:
         g = self.profile.guided
@@ -228,7 +229,7 @@ class LeCOMethod(Method):
             rays,
             self.profile,
             query,
-            generator,
+            noise,
             learner,
             places,
             anneal,

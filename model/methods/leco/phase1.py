@@ -23,16 +23,17 @@ from model.render.losses import (
     rendering_loss,
     visibility_loss,
 )
+from model.render.noise import Noise
 from model.render.samples import stratified_edges
 from model.render.volume import Rendered, composite_batched
 from model.scenes.rays import RayBatch
 
 
 def render_background(
-    background: BackgroundField, rays: RayBatch, samples: int, generator: torch.Generator | None
+    background: BackgroundField, rays: RayBatch, samples: int, noise: Noise | None
 ) -> Rendered:
     with stage("background"):
-        t, deltas = background_samples(rays.far, samples, generator)
+        t, deltas = background_samples(rays.far, samples, noise)
         xyz = rays.origins[:, None, :] + rays.directions[:, None, :] * t[..., None]
         r = len(rays)
         sigma, rgb = background(
@@ -66,14 +67,14 @@ def render_hmoe(
     rays: RayBatch,
     samples: int,
     background_samples_per_ray: int,
-    generator: torch.Generator | None,
+    noise: Noise | None,
 ) -> tuple[Rendered, FieldOutput, Tensor]:
     """The HMoE's image of a batch of rays (stratified samples), its field output and the sample
     edges."""
     r = len(rays)
-    edges = stratified_edges(rays.near, rays.far, samples, generator)
+    edges = stratified_edges(rays.near, rays.far, samples, noise)
     out, mids, deltas = field_on_edges(model, rays, edges)
-    behind = render_background(background, rays, background_samples_per_ray, generator)
+    behind = render_background(background, rays, background_samples_per_ray, noise)
     rendered = composite_batched(
         out.sigma.reshape(r, samples), out.rgb.reshape(r, samples, 3), mids, deltas, behind.rgb
     )
@@ -91,7 +92,7 @@ def occupancy_step(
     rays: RayBatch,
     cfg: OccupancyPhaseConfig,
     background_samples_per_ray: int,
-    generator: torch.Generator | None,
+    noise: Noise | None,
     progress: float = 0.0,
     extra: tuple[str, ExtraLoss] | None = None,
 ) -> tuple[Tensor, Parts]:
@@ -99,7 +100,7 @@ def occupancy_step(
     rays; `progress` in [0, 1] drives the w_g schedule. `extra`: (name, loss) added to L_f and
     reported under its name."""
     rendered, out, edges = render_hmoe(
-        model, background, rays, cfg.samples_per_ray, background_samples_per_ray, generator
+        model, background, rays, cfg.samples_per_ray, background_samples_per_ray, noise
     )
     deltas = edges[:, 1:] - edges[:, :-1]
     l_r = rendering_loss(rendered.rgb, rays.rgb)

@@ -7,6 +7,7 @@ import torch
 from model.estimators.base import Estimator
 from model.estimators.grid import GridEstimator
 from model.evaluation.occupancy import evaluate_occupancy_exact
+from model.render.noise import Noise
 
 
 class BelowPlane(Estimator):
@@ -29,7 +30,7 @@ def test_a_toy_estimator_is_marched_only_where_it_says_occupied():
     assert samples.ray_index.tolist() == [0] * 4 + [1] * 4
     assert torch.allclose(z, torch.tensor([-0.125, -0.375, -0.625, -0.875] * 2))
     jittered = BelowPlane(0.0).sample(
-        origins, directions, near, far, 0.25, torch.Generator().manual_seed(0)
+        origins, directions, near, far, 0.25, Noise(torch.Generator().manual_seed(0))
     )
     # one random offset a ray: ray 1 starts late enough for a fifth mid-point below the plane
     assert ((1.0 - jittered.mids) < 0).all() and jittered.ray_index.tolist() == [0] * 4 + [1] * 5

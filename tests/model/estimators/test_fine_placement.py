@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from model.estimators.fine_placement import fine_placement_loss, fine_samples, kept_axis, to_t
+from model.render.noise import Noise
 from model.render.samples import stratified_edges
 
 
@@ -32,14 +33,14 @@ def test_the_kept_axis_skips_dropped_bins_and_maps_back():
     assert to_t(torch.tensor([[0.5, 1.5, 2.5]]), s_edges, edges).tolist() == [[1.5, 2.5, 5.5]]
 
 
-@pytest.mark.parametrize("generator", [None, torch.Generator().manual_seed(0)])
-def test_fine_samples_are_n_per_ray_sorted_inside_kept_bins_and_gather_at_o_s_surface(generator):
+@pytest.mark.parametrize("noise", [None, Noise(torch.Generator().manual_seed(0))])
+def test_fine_samples_are_n_per_ray_sorted_inside_kept_bins_and_gather_at_o_s_surface(noise):
     edges = rows()
     keep = torch.zeros(4, 8, dtype=torch.bool)
     keep[:, [2, 3, 6]] = True
     weights = torch.tensor([[0, 0, 0.1, 0.8, 0, 0, 0.1, 0.0]]).expand(4, 8)
     samples, draw = fine_samples(
-        torch.arange(4), edges, keep, weights + 0.01, 32, 21, wall_at(3.3), generator, 1.0, 0.01
+        torch.arange(4), edges, keep, weights + 0.01, 32, 21, wall_at(3.3), noise, 1.0, 0.01
     )
     assert len(samples) == 4 * 21 and draw.main.shape == (4, 22) and draw.coarse.shape == (4, 33)
     mids = samples.mids.reshape(4, 21)

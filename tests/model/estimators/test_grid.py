@@ -3,6 +3,7 @@
 import torch
 
 from model.estimators.grid import GridEstimator, cull_by_transmittance
+from model.render.noise import Noise
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
@@ -184,7 +185,7 @@ def test_a_march_bounded_by_the_diagonal_keeps_the_samples_the_read_length_gives
     for seed in (None, 5):
 
         def draw(seed=seed):
-            return torch.Generator().manual_seed(seed) if seed is not None else None
+            return Noise(torch.Generator().manual_seed(seed)) if seed is not None else None
 
         read = grid.sample(origins, directions, near, far, 0.02, draw())
         bounded = grid.sample(origins, directions, near, far, 0.02, draw(), grid.diagonal)

@@ -8,6 +8,7 @@ import torch
 from model.estimators.guided import dilate_bins, guided_samples
 from model.estimators.occupancy import OccupancyQuery
 from model.fields.hmoe import OccupancyNetwork
+from model.render.noise import Noise
 
 # a thin wall at x in [2, 2.2]: between the mid-points 1.5 and 2.5 of unit coarse bins
 SLAB = (2.0, 2.2)
@@ -71,7 +72,15 @@ def test_every_option_keeps_samples_sorted_and_inside_the_segment(options):
     near, far, origins, dirs = rays()
     for occupied in (wall, nothing):
         samples, ratio = guided_samples(
-            near, far, origins, dirs, occupied, 8, 4, torch.Generator().manual_seed(1), **options
+            near,
+            far,
+            origins,
+            dirs,
+            occupied,
+            8,
+            4,
+            Noise(torch.Generator().manual_seed(1)),
+            **options,
         )
         check_invariants(samples, near, far)
         assert 0 <= float(ratio) <= 1
@@ -87,12 +96,12 @@ def test_jittered_queries_find_a_wall_between_mid_points():
     origins = torch.stack([torch.zeros(n), torch.linspace(-1, 1, n), torch.zeros(n)], -1)
     dirs = torch.tensor([[1.0, 0.0, 0.0]]).expand(n, 3)
     fixed, _ = guided_samples(
-        near, far, origins, dirs, wall, 8, 4, torch.Generator().manual_seed(0)
+        near, far, origins, dirs, wall, 8, 4, Noise(torch.Generator().manual_seed(0))
     )
     assert len(fixed) == 0  # mid-point queries never see the thin wall
     hits, g = torch.zeros(n, dtype=torch.bool), torch.Generator().manual_seed(0)
     for _ in range(30):
-        jittered, _ = guided_samples(near, far, origins, dirs, wall, 8, 4, g, jitter=True)
+        jittered, _ = guided_samples(near, far, origins, dirs, wall, 8, 4, Noise(g), jitter=True)
         check_invariants(jittered, near, far)
         hits[jittered.ray_index] = True
     assert hits.all()  # every ray samples the wall on some step (p = 0.2 per step)
@@ -151,7 +160,15 @@ def test_dilation_keeps_the_neighbours_of_kept_bins():
 def test_a_ray_with_nothing_kept_still_renders_its_foreground_with_the_fallback():
     near, far, origins, dirs = rays(8)
     samples, ratio = guided_samples(
-        near, far, origins, dirs, nothing, 8, 4, torch.Generator().manual_seed(0), fallback=True
+        near,
+        far,
+        origins,
+        dirs,
+        nothing,
+        8,
+        4,
+        Noise(torch.Generator().manual_seed(0)),
+        fallback=True,
     )
     assert ratio.item() == 0.0
     # One sample per coarse bin on each of the 4 rays inside the box: 8, not 8 x split.
@@ -227,7 +244,7 @@ def test_transmittance_culling_drops_only_samples_behind_an_opaque_wall():
         KeepEverything().occupied,
         8,
         8,
-        torch.Generator().manual_seed(0),
+        Noise(torch.Generator().manual_seed(0)),
     )
     culled = samples.subset(cull_occluded(field, rays, samples, 1e-3))
     check_invariants(culled, rays.near, rays.far)

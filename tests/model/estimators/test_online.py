@@ -11,6 +11,7 @@ from model.estimators.guided import guided_samples
 from model.estimators.occupancy import OccupancyPredictor
 from model.estimators.online import OnlineOccupancy
 from model.fields.hmoe import OccupancyNetwork
+from model.render.noise import Noise
 from model.render.samples import PackedSamples
 from model.render.volume import packed_weights
 from model.scenes.rays import RayBatch
@@ -90,7 +91,7 @@ def test_o_that_keeps_nothing_learns_the_wall_the_main_network_sees():
         network.output.bias[network.empty_index] = 8.0  # O starts sure that everything is empty
     online = OnlineOccupancy(network, empty_threshold=0.9)
     optimizer = torch.optim.Adam(network.parameters(), lr=1e-2)
-    rays, generator = ray_batch(128), torch.Generator().manual_seed(1)
+    rays, noise = ray_batch(128), Noise(torch.Generator().manual_seed(1))
     free_x = torch.linspace(0.2, 3.8, 50)
     free = torch.stack([free_x, torch.zeros(50), torch.zeros(50)], -1)
     wall = torch.stack(
@@ -106,7 +107,7 @@ def test_o_that_keeps_nothing_learns_the_wall_the_main_network_sees():
             online.occupied,
             8,
             4,
-            generator,
+            noise,
             jitter=True,
             dilate=1,
             fallback=True,

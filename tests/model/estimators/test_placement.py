@@ -15,6 +15,7 @@ from model.estimators.placement import (
 from model.fields.hmoe import OccupancyNetwork
 from model.methods.parts import read_parts
 from model.render.accounting import step_accounting, surface_accounting
+from model.render.noise import Noise
 from model.render.samples import PackedSamples, stratified_edges
 from model.render.volume import batched_weights, packed_weights
 
@@ -26,15 +27,15 @@ def coarse(r=5, bins=8, seed=0):
     return near, far, stratified_edges(near, far, bins, None)
 
 
-@pytest.mark.parametrize("generator", [None, torch.Generator().manual_seed(3)])
-def test_placed_samples_are_exactly_n_per_ray_sorted_and_inside_the_kept_bins(generator):
+@pytest.mark.parametrize("noise", [None, Noise(torch.Generator().manual_seed(3))])
+def test_placed_samples_are_exactly_n_per_ray_sorted_and_inside_the_kept_bins(noise):
     near, far, edges = coarse()
     keep = torch.zeros(5, 8, dtype=torch.bool)
     keep[:, [1, 2, 5]] = True  # kept bins need not touch
     keep[0] = False
     keep[0, 7] = True  # one ray keeps its last bin only
     weights = torch.rand(5, 8, generator=torch.Generator().manual_seed(1)) + 0.01
-    samples = placed_samples(edges, keep, weights, 21, generator)
+    samples = placed_samples(edges, keep, weights, 21, noise)
     assert len(samples) == 5 * 21 and samples.ray_index.tolist() == [
         r for r in range(5) for _ in range(21)
     ]
@@ -49,7 +50,7 @@ def test_placed_samples_are_exactly_n_per_ray_sorted_and_inside_the_kept_bins(ge
     # ends).
     kept_length = keep.sum(1) * width
     assert (samples.deltas.reshape(5, 21).sum(1) <= kept_length + 1e-5).all()
-    if generator is None:
+    if noise is None:
         assert torch.allclose(samples.deltas.reshape(5, 21).sum(1), kept_length, atol=1e-5)
 
 
@@ -83,7 +84,9 @@ def test_bins_below_the_minimum_share_get_no_sample_and_every_ray_keeps_one():
     ]
     assert torch.equal(confident_bins(keep, weights, 0.0), keep)
     near, far, edges = coarse(r=3, bins=4)
-    samples = placed_samples(edges, kept, weights + 0.01, 9, torch.Generator().manual_seed(0))
+    samples = placed_samples(
+        edges, kept, weights + 0.01, 9, Noise(torch.Generator().manual_seed(0))
+    )
     bin_of = (
         ((samples.mids - near[samples.ray_index]) / ((far - near) / 4)[samples.ray_index])
         .floor()
@@ -280,7 +283,9 @@ def test_a_shaped_draw_is_still_exactly_n_per_ray_sorted_inside_the_kept_bins(ki
     shares = within_bin_shares(kind, mass, sigma, edges)
     fine_edges, fine_keep, fine_mass = subdivided(edges, keep, mass, shares)
     assert fine_edges.shape == (5, 33) and torch.allclose(fine_mass.reshape(5, 8, 4).sum(-1), mass)
-    samples = placed_samples(fine_edges, fine_keep, fine_mass, 21, torch.Generator().manual_seed(2))
+    samples = placed_samples(
+        fine_edges, fine_keep, fine_mass, 21, Noise(torch.Generator().manual_seed(2))
+    )
     mids = samples.mids.reshape(5, 21)
     assert (mids[:, 1:] > mids[:, :-1]).all() and (samples.deltas > 0).all()
     width = (far - near) / 8

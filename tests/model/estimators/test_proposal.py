@@ -19,6 +19,7 @@ from model.methods.costs import proposal_width
 from model.methods.parts import read_parts
 from model.model_info import model_info
 from model.profiles import get_profile
+from model.render.noise import Noise
 from model.scenes.rays import RayBatch
 
 
@@ -38,7 +39,7 @@ def test_proposals_total_the_parameters_of_lecos_occupancy_network(profile, expe
 def test_pdf_edges_follow_the_histogram_and_stay_sorted_inside_it():
     edges = torch.linspace(0.0, 4.0, 5).expand(3, 5).contiguous()  # bins [0,1) [1,2) [2,3) [3,4)
     weights = torch.tensor([[0.0, 1.0, 0.0, 0.0]]).expand(3, 4)
-    out = pdf_edges(edges, weights, 64, torch.Generator().manual_seed(0), padding=0.0)
+    out = pdf_edges(edges, weights, 64, Noise(torch.Generator().manual_seed(0)), padding=0.0)
     assert out.shape == (3, 65) and (out[:, 1:] >= out[:, :-1]).all()
     assert ((out >= 1.0) & (out <= 2.0)).all()  # every new interval inside the only bin with weight
     # weights^0: the anneal's start
@@ -107,7 +108,7 @@ def test_a_prop_step_samples_main_samples_per_ray_and_learns_only_when_due(tiny_
 
     rays: RayBatch = RaySampler(tiny_scene.train, tiny_scene.bounds.aabb, 64, 0, 0, 1).next()
     g = torch.Generator().manual_seed(0)
-    loss, parts = method.step(models, Step("main", rays, g, 0.0, 0, seed=0))
+    loss, parts = method.step(models, Step("main", rays, Noise(g), 0.0, 0, seed=0))
     loss.backward()
     parts = read_parts(parts)
     # Every ray that crosses the box gets exactly main_samples; the ones that miss it (7 of these
@@ -121,7 +122,7 @@ def test_a_prop_step_samples_main_samples_per_ray_and_learns_only_when_due(tiny_
     assert all(p.grad is not None for p in models.proposals.parameters())
     models.zero_grad(set_to_none=True)
     method.schedule.since_update = -10  # not due on the next step
-    loss, parts = method.step(models, Step("main", rays, g, 0.0, 11, seed=0))
+    loss, parts = method.step(models, Step("main", rays, Noise(g), 0.0, 11, seed=0))
     loss.backward()
     assert "interlevel_loss" not in parts and all(
         p.grad is None for p in models.proposals.parameters()
@@ -191,7 +192,7 @@ def test_a_static_ngp_prop_step_has_fixed_shapes_and_reads_nothing_from_the_devi
     for seed in (0, 1):
         rays = batch(tiny_scene, seed)
         with torch_profile() as prof:
-            loss, parts = method.step(models, Step("main", rays, g, 0.5, 0, seed=0))
+            loss, parts = method.step(models, Step("main", rays, Noise(g), 0.5, 0, seed=0))
             loss.backward()
         assert not reads & {e.name for e in prof.events()}
         assert "interlevel_loss" in parts

@@ -18,6 +18,7 @@ from model.estimators.guided import BinOptions, keep_bins
 from model.estimators.kept_axis import bounded
 from model.methods import family_of, get_method
 from model.methods.base import Step
+from model.render.noise import Noise
 from model.scenes import RaySampler
 from tests.helpers import ROOT, api_client, wait_for
 from tests.workers.train.test_training import read_metrics
@@ -89,7 +90,7 @@ def test_a_step_trains_both_proposal_levels_and_o_on_the_bounded_axis(tiny_scene
     overrides = {"leco_prop.guided.online": True, "leco_prop.guided.online_warmup": 0}
     method, models, rays = started(tiny_scene, **overrides)
     g = torch.Generator().manual_seed(0)
-    render, levels, edges = method.draw(models, rays, g, 0, learn=True)
+    render, levels, edges = method.draw(models, rays, Noise(g), 0, learn=True)
     kept = render.stats["bounded_length"]
     assert 0.0 < kept <= 1.0
     # the first level spans each ray's axis, [0, its kept length]; every later edge lies on it
@@ -99,7 +100,7 @@ def test_a_step_trains_both_proposal_levels_and_o_on_the_bounded_axis(tiny_scene
     assert bool((length > 0).all()) and bool((length <= rays.far.max() - rays.near.min()).all())
     for later in [e for e, _ in levels[1:]] + [edges]:
         assert bool((later >= 0).all()) and bool((later <= length + 1e-6).all())
-    loss, parts = method.step(models, Step("main", rays, g, 0.0, 0, seed=0))
+    loss, parts = method.step(models, Step("main", rays, Noise(g), 0.0, 0, seed=0))
     loss.backward()
     assert parts["interlevel_loss"] >= 0 and parts["occupancy_online_loss"] > 0
     for level in models.proposals:
@@ -112,7 +113,7 @@ def test_phase_1_can_warm_the_proposals_on_the_hmoes_weights(tiny_scene):
     method, models, rays = started(tiny_scene, **{"leco_prop.prop_in_phase1": True})
     assert models.proposals in method.trained_modules(models, "occupancy")
     g = torch.Generator().manual_seed(0)
-    loss, parts = method.step(models, Step("occupancy", rays, g, 0.0, 0, seed=0))
+    loss, parts = method.step(models, Step("occupancy", rays, Noise(g), 0.0, 0, seed=0))
     loss.backward()
     assert parts["interlevel_loss"] > 0 and "imbalanced_gate_loss" in parts
     for level in models.proposals:
@@ -120,7 +121,7 @@ def test_phase_1_can_warm_the_proposals_on_the_hmoes_weights(tiny_scene):
     # off (the default), phase 1 is LeCO's and the proposals wait for the main phase
     method, models, rays = started(tiny_scene)
     assert models.proposals not in method.trained_modules(models, "occupancy")
-    loss, parts = method.step(models, Step("occupancy", rays, g, 0.0, 0, seed=0))
+    loss, parts = method.step(models, Step("occupancy", rays, Noise(g), 0.0, 0, seed=0))
     assert "interlevel_loss" not in parts
 
 
@@ -140,11 +141,11 @@ def test_in_the_level_form_os_histogram_is_the_first_level_and_learns_with_the_p
     overrides = {"leco_prop.bound": "level", "leco_prop.guided.placement": True}
     method, models, rays = started(tiny_scene, **overrides)
     g = torch.Generator().manual_seed(0)
-    render, levels, edges = method.draw(models, rays, g, 0, learn=True)
+    render, levels, edges = method.draw(models, rays, Noise(g), 0, learn=True)
     coarse = method.profile.guided.coarse_samples
     # O's coarse bins, then one level per proposal network
     assert [e.shape[1] - 1 for e, _ in levels] == [coarse, *method.profile.prop.samples]
-    loss = method.step(models, Step("main", rays, g, 0.0, 0, seed=0))[0]
+    loss = method.step(models, Step("main", rays, Noise(g), 0.0, 0, seed=0))[0]
     loss.backward()
     head = models.hmoe.gate
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in head.parameters())
@@ -158,7 +159,7 @@ def test_a_ray_with_nothing_kept_renders_its_background_without_nans(tiny_scene)
     method, models, rays = started(tiny_scene, **{"leco_prop.guided.fallback": False})
     method.query.occupied = lambda points: torch.zeros(len(points), dtype=torch.bool)
     g = torch.Generator().manual_seed(0)
-    loss, parts = method.step(models, Step("main", rays, g, 0.0, 0, seed=0))
+    loss, parts = method.step(models, Step("main", rays, Noise(g), 0.0, 0, seed=0))
     loss.backward()
     assert torch.isfinite(loss) and parts["bounded_length"] == 0.0
     render = method.render_main(models, rays, None, None)

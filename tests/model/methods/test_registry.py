@@ -24,12 +24,12 @@ from workers.config import TrainConfig
 class UniformSamples(Method):
     """The toy: the main network on 6 stratified samples per ray, nothing else."""
 
-    def render_main(self, models, rays, generator, phase_step) -> MainRender:
+    def render_main(self, models, rays, noise, phase_step) -> MainRender:
         behind = render_background(
-            models.background, rays, self.profile.background.samples, generator
+            models.background, rays, self.profile.background.samples, noise
         ).rgb
         rendered, out = render_batched(
-            models.field, rays, stratified_edges(rays.near, rays.far, 6, generator), behind
+            models.field, rays, stratified_edges(rays.near, rays.far, 6, noise), behind
         )
         return MainRender(rendered, out, 6.0, None)
 

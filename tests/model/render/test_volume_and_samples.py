@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from model.estimators.guided import guided_samples
+from model.render.noise import Noise
 from model.render.samples import (
     inverse_cdf_edges,
     merge_edges,
@@ -98,12 +99,12 @@ def test_bf16_inputs_render_finite():
 def test_stratified_and_inverse_cdf():
     near, far = torch.tensor([1.0, 2.0]), torch.tensor([3.0, 6.0])
     g = torch.Generator().manual_seed(0)
-    edges = stratified_edges(near, far, 16, g)
+    edges = stratified_edges(near, far, 16, Noise(g))
     assert torch.allclose(edges[:, 0], near) and torch.allclose(edges[:, -1], far)
     assert (edges.diff(dim=-1) >= 0).all()
     weights = torch.zeros(2, 16)
     weights[:, 5] = 1.0  # all mass in bin 5
-    fine = inverse_cdf_edges(edges, weights, 64, g)
+    fine = inverse_cdf_edges(edges, weights, 64, Noise(g))
     inside = (fine >= edges[:, 5:6]) & (fine <= edges[:, 6:7])
     assert inside.float().mean() > 0.9
     merged = merge_edges(edges, fine)
@@ -128,7 +129,7 @@ def test_guided_sampler_drops_empty_bins_and_splits_kept_ones():
         occupied,
         num_coarse=8,
         split=4,
-        generator=torch.Generator().manual_seed(0),
+        noise=Noise(torch.Generator().manual_seed(0)),
     )
     # Coarse bins of width 1: midpoints 2.5 and 3.5 are occupied on rays 0 and 1 -> 2 bins x 4
     # sub-samples each.
@@ -148,7 +149,7 @@ def test_background_samples_and_compositing():
     from model.render.volume import composite_batched
 
     far = torch.tensor([2.0, 0.0, 5.0])  # the middle ray misses the foreground box
-    t, deltas = background_samples(far, 16, torch.Generator().manual_seed(0))
+    t, deltas = background_samples(far, 16, Noise(torch.Generator().manual_seed(0)))
     assert (t[:, 0] >= far.clamp(min=1e-2)).all() and (t.diff(dim=-1) > 0).all()
     assert torch.isfinite(t).all() and deltas[:, -1].eq(1e10).all()
     torch.manual_seed(0)

@@ -85,12 +85,16 @@ def test_a_cpu_without_a_cpp_compiler_fails_before_training_naming_what_is_missi
 
 
 @pytest.mark.parametrize("static_shapes", [True, False])
-def test_an_ngp_prop_step_with_static_shapes_traces_as_one_graph(tiny_scene, static_shapes):
-    """Capture-safe: with `prop.static_shapes` dynamo traces NGP+Prop's whole deterministic step
-    (sampler, field, background, losses; no generator: a draw from a torch.Generator still breaks
-    the graph) as one graph; picking out the hits breaks it at the nonzero."""
+@pytest.mark.parametrize("perturb", [True, False])
+def test_an_ngp_prop_step_with_static_shapes_traces_as_one_graph(
+    tiny_scene, static_shapes, perturb
+):
+    """Capture-safe: with `prop.static_shapes` dynamo traces NGP+Prop's whole step (sampler,
+    field, background, losses, and its random draws, which come from the default generator) as one
+    graph; picking out the hits breaks it at the nonzero and nowhere else."""
     from model.methods import get_method
     from model.methods.base import Step
+    from model.render.noise import Noise
     from model.scenes import RaySampler
 
     profile = TrainConfig(
@@ -100,7 +104,7 @@ def test_an_ngp_prop_step_with_static_shapes_traces_as_one_graph(tiny_scene, sta
     torch.manual_seed(0)
     models = method.build(tiny_scene.num_images, tiny_scene.bounds.aabb)
     rays = RaySampler(tiny_scene.train, tiny_scene.bounds.aabb, 64, 0, 0, 1).next()
-    step = Step("main", rays, None, 0.5, 0, seed=0)
+    step = Step("main", rays, Noise() if perturb else None, 0.5, 0, seed=0)
     torch._dynamo.reset()
     try:
         explained = torch._dynamo.explain(method.step)(models, step)

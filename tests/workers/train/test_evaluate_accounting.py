@@ -27,7 +27,7 @@ class SurfaceBinToy:
     def __init__(self, depth: torch.Tensor, shift: int):
         self.depth, self.shift = depth, shift
 
-    def render_main(self, models, rays, generator, phase_step) -> MainRender:
+    def render_main(self, models, rays, noise, phase_step) -> MainRender:
         t = self.depth[rays.pixel].to(rays.near.dtype)
         surface = torch.isfinite(t) & (t >= rays.near) & (t < rays.far) & (rays.far > rays.near)
         span = rays.far - rays.near
@@ -118,8 +118,8 @@ def test_without_depth_maps_the_block_says_so_and_has_no_surface_figures(tiny_sc
 
 def test_weights_that_do_not_line_up_drop_the_opacity_only(tiny_scene):
     class Misaligned(SurfaceBinToy):
-        def render_main(self, models, rays, generator, phase_step) -> MainRender:
-            render = super().render_main(models, rays, generator, phase_step)
+        def render_main(self, models, rays, noise, phase_step) -> MainRender:
+            render = super().render_main(models, rays, noise, phase_step)
             # one short: not the samples' order
             render.rendered.weights = render.rendered.weights[:-1]
             return render

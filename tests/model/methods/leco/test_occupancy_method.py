@@ -13,6 +13,7 @@ from model.fields.background import BackgroundField
 from model.methods.leco.phase1 import occupancy_step
 from model.methods.parts import read_parts
 from model.profiles import OccupancyPhaseConfig
+from model.render.noise import Noise
 from model.render.samples import stratified_edges
 from model.scenes import RaySampler, load_scene
 from model.scenes.rays import PixelTable
@@ -52,7 +53,7 @@ def test_occupancy_phase_learns_sparse_occupancy(tmp_path):
     sampler = RaySampler(scene.train, scene.bounds.aabb, batch_size=256, seed=0)
     generator = torch.Generator().manual_seed(0)
     for _ in range(STEPS):
-        loss, parts = occupancy_step(model, background, sampler.next(), cfg, 8, generator)
+        loss, parts = occupancy_step(model, background, sampler.next(), cfg, 8, Noise(generator))
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
