@@ -46,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     commands = parser.add_subparsers(dest="command", required=True)
 
-    scene = commands.add_parser("scene", help="generate or inspect scenes").add_subparsers(
+    scene = commands.add_parser("scene", help="generate, pose or inspect scenes").add_subparsers(
         dest="action", required=True
     )
     synth = scene.add_parser(
@@ -68,6 +68,10 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("--json", action="store_true", help="print JSON instead of text")
     info.add_argument("--downscale", type=int, default=None, help="integer image downscale factor")
     info.set_defaults(func=scene_info)
+
+    from cli.poses import add_poses_command
+
+    add_poses_command(scene)
 
     model = commands.add_parser("model", help="inspect model sizes").add_subparsers(
         dest="action", required=True

@@ -80,7 +80,30 @@ def default_token(data_dir: str | None) -> str | None:
     return path.read_text().strip() if path.is_file() else None
 
 
+def photos_archive(path: Path) -> bytes:
+    """A tar of a folder of photos (an archive given as it is)."""
+    if not path.is_dir():
+        return path.read_bytes()
+    import io
+    import tarfile
+
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w") as tar:
+        tar.add(path, arcname=path.name)
+    return buffer.getvalue()
+
+
 def ensure_scene(api: Api, args: argparse.Namespace) -> dict:
+    if args.photos:
+        name = args.name or Path(args.photos).name.split(".")[0]
+        settings = dict(item.partition("=")[::2] for item in args.poses_set or [])
+        return api.call(
+            "POST",
+            "/v1/scenes/photos",
+            params={"name": name, **settings},
+            content=photos_archive(Path(args.photos)),
+            headers={"Content-Type": "application/octet-stream"},
+        ).json()
     if args.upload:
         name = args.name or Path(args.upload).name.split(".")[0]
         with open(args.upload, "rb") as f:
@@ -106,6 +129,10 @@ def ensure_scene(api: Api, args: argparse.Namespace) -> dict:
 
 
 def wait_ready(api: Api, scene: dict, stream: TextIO) -> dict:
+    if scene["state"] == "posing":  # its poses job, followed as any job
+        stream.write(f"finding the poses of scene {scene['name']}'s photos ...\n")
+        follow(api, scene["poses_job"], stream)
+        scene = api.call("GET", f"/v1/scenes/{scene['id']}").json()
     if scene["state"] == "generating":
         stream.write(
             f"generating scene {scene['name']} (preset {scene['generator']['preset']}) ...\n"
@@ -243,6 +270,18 @@ def add_submit(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     where.add_argument(
         "--upload", metavar="ARCHIVE", help="a tar or zip of a scene folder to register"
+    )
+    where.add_argument(
+        "--photos",
+        metavar="FOLDER|ARCHIVE",
+        help="photos without poses (a folder, or a tar or zip): the service finds their poses, "
+        "then trains",
+    )
+    sub.add_argument(
+        "--poses-set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="with --photos: a poses setting (repeatable; `leco scene poses --help` lists them)",
     )
     sub.add_argument("--name", help="name for a new scene")
     # Not checked here: the service knows its methods (GET /v1/methods) and answers 422 naming them.

@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING
 
 from service import queue
 from service.jobs.attempt import execute
+from service.jobs.kinds import KINDS
 from service.jobs.process import run_in_child
 from service.settings import Settings
 
@@ -78,7 +79,12 @@ class Dispatcher:
         self.running = {j: (a, f) for j, (a, f) in self.running.items() if not f.done()}
         if len(self.running) >= self.slots or self.stopping.is_set():
             return None
-        claimed = queue.claim(self.settings.db_url, self.owner, self.settings.lease_s)
+        claimed = queue.claim(
+            self.settings.db_url,
+            self.owner,
+            self.settings.lease_s,
+            {kind.name: kind.scene_states for kind in KINDS.values()},
+        )
         if claimed is None:
             return None
         job_id, attempt = claimed

@@ -11,7 +11,7 @@ from __future__ import annotations
 from datetime import datetime, timedelta
 from typing import cast
 
-from sqlalchemy import CursorResult, Result, select, update
+from sqlalchemy import ColumnElement, CursorResult, Result, and_, or_, select, update
 from sqlalchemy.orm import Session
 
 from service.db import transaction
@@ -91,8 +91,21 @@ def enqueue(
     return job
 
 
-def claim(db_url: str, owner: str, lease_s: float) -> tuple[int, int] | None:
-    """Takes the oldest queued job whose scene is ready: (job id, attempt), or None.
+def runnable_on_its_scene(runs_on: dict[str, tuple[str, ...]]) -> ColumnElement[bool]:
+    """A job's scene is in a state its kind runs on (`runs_on`: kind -> scene states, from the
+    job-kind registry); any other kind (none given, or no longer registered) runs on a ready scene,
+    and one no longer registered fails there naming its kind."""
+    return or_(
+        and_(Job.kind.not_in(list(runs_on)), Scene.state == "ready"),
+        *(and_(Job.kind == kind, Scene.state.in_(states)) for kind, states in runs_on.items()),
+    )
+
+
+def claim(
+    db_url: str, owner: str, lease_s: float, runs_on: dict[str, tuple[str, ...]] | None = None
+) -> tuple[int, int] | None:
+    """Takes the oldest queued job whose scene is in a state its kind runs on (`runs_on`; ready
+    by default, a poses job the scene it poses): (job id, attempt), or None.
 
     One statement: on PostgreSQL the subquery locks the row with FOR UPDATE SKIP LOCKED, so
     concurrent claimers skip each other's rows; on SQLite (which drops FOR UPDATE) the single UPDATE
@@ -101,7 +114,7 @@ def claim(db_url: str, owner: str, lease_s: float) -> tuple[int, int] | None:
     candidate = (
         select(Job.id)
         .join(Scene, Scene.id == Job.scene_id)
-        .where(Job.state == "queued", Scene.state == "ready")
+        .where(Job.state == "queued", runnable_on_its_scene(runs_on or {}))
         .order_by(Job.id)
         .limit(1)
         .with_for_update(skip_locked=True, of=Job)

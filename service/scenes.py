@@ -13,12 +13,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from sqlalchemy import select
+from sqlalchemy.orm import Session
 
 from model.errors import Conflict
 from service.db import transaction
 from service.settings import Settings
 from service.tables import Scene
 from service.workpool import WorkPool
+from workers.poses.settings import PosesConfig
 
 if TYPE_CHECKING:
     from model.scenes.scene import Scene as LoadedScene
@@ -132,12 +134,16 @@ def read_layout(settings: Settings, scene_id: int, path: Path, pool: WorkPool) -
     return json.loads(target.read_text())
 
 
+def refuse_taken(session: Session, name: str) -> None:
+    if session.scalar(select(Scene.id).where(Scene.name == name)) is not None:
+        raise SceneConflict(
+            f"a scene named {name!r} already exists: choose another name or delete it first"
+        )
+
+
 def _new_row(settings: Settings, name: str, source: str, state: str, **fields: object) -> int:
     with transaction(settings.db_url) as session:
-        if session.scalar(select(Scene.id).where(Scene.name == name)) is not None:
-            raise SceneConflict(
-                f"a scene named {name!r} already exists: choose another name or delete it first"
-            )
+        refuse_taken(session, name)
         row = Scene(name=name, source=source, state=state, path="", **fields)
         session.add(row)
         session.flush()
@@ -231,10 +237,7 @@ def register_upload(settings: Settings, name: str, archive: Path, pool: WorkPool
     loads is moved into place and gets a row. Raises ArchiveError / SceneError (the user's archive),
     WorkerLost or SceneConflict (the name). The caller holds a running place in the scene pool."""
     with transaction(settings.db_url) as session:
-        if session.scalar(select(Scene.id).where(Scene.name == name)) is not None:
-            raise SceneConflict(
-                f"a scene named {name!r} already exists: choose another name or delete it first"
-            )
+        refuse_taken(session, name)
     settings.scenes_dir.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(dir=settings.scenes_dir, prefix=".upload-"))
     try:
@@ -252,5 +255,97 @@ def register_upload(settings: Settings, name: str, archive: Path, pool: WorkPool
                 session.delete(session.get(Scene, scene_id))
             raise
         return scene_id
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+# ----- photos to pose: an archive of photos becomes a scene once its poses job succeeds
+# ---------------
+def photos_path(settings: Settings, scene_id: int) -> Path:
+    """Where a scene's uploaded photos wait for their poses job, beside the folder the job writes
+    (the scene's own, which appears whole when the job succeeds)."""
+    return settings.scenes_dir / f"scene-{scene_id}.photos"
+
+
+def posing_paths(settings: Settings, scene_id: int) -> list[Path]:
+    """Everything a scene posed from photos may leave beside its folder: the photos, the pipeline's
+    work folder (workers/poses/pipeline.py) and a partial export."""
+    return [
+        photos_path(settings, scene_id),
+        settings.scenes_dir / f".scene-{scene_id}.poses",
+        settings.scenes_dir / f".scene-{scene_id}.poses.lock",
+        settings.scenes_dir / f".scene-{scene_id}.partial",
+    ]
+
+
+def remove_scene_files(settings: Settings, scene_id: int, path: Path) -> None:
+    """A deleted scene's folder, its camera layout and whatever posing left beside it."""
+    for target in (path, *posing_paths(settings, scene_id)):
+        if target.is_dir():
+            shutil.rmtree(target, ignore_errors=True)
+        else:
+            target.unlink(missing_ok=True)
+    layout_path(settings, scene_id).unlink(missing_ok=True)
+
+
+def extract_photos(archive: Path, dest: Path, min_photos: int) -> tuple[Path, int]:
+    """Extracts an archive of photos (in the scene pool's process): the folder and its photos'
+    count; fewer than `min_photos` is refused before anything is registered."""
+    from model.scenes.errors import SceneError
+    from service.archives import extract_archive
+    from workers.poses.settings import PHOTO_SUFFIXES
+
+    root = extract_archive(archive, dest)
+    count = sum(
+        1
+        for p in root.rglob("*")
+        if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in PHOTO_SUFFIXES
+    )
+    if count < min_photos:
+        shutil.rmtree(dest, ignore_errors=True)
+        raise SceneError(
+            "<upload>",
+            f"the archive holds {count} photos ({', '.join(PHOTO_SUFFIXES)}); at least "
+            f"{min_photos} overlapping photos are needed to find poses (min_photos)",
+        )
+    return root, count
+
+
+def register_photos(
+    settings: Settings, name: str, archive: Path, config: PosesConfig, pool: WorkPool
+) -> tuple[int, int]:
+    """An archive of photos becomes a scene in state 'posing' and its poses job (service/jobs/
+    poses.py), written together; the photos are moved into place before either is visible to a
+    dispatcher. Raises ArchiveError / SceneError (the upload), WorkerLost or SceneConflict. The
+    caller holds a running place in the scene pool."""
+    from service.jobs.kinds import POSES
+    from service.jobs.submit import submit
+
+    with transaction(settings.db_url) as session:
+        refuse_taken(session, name)
+    settings.scenes_dir.mkdir(parents=True, exist_ok=True)
+    scratch = Path(tempfile.mkdtemp(dir=settings.scenes_dir, prefix=".upload-"))
+    try:
+        root, _ = pool.call(extract_photos, archive, scratch / "x", config.min_photos)
+        moved: Path | None = None
+        try:
+            with transaction(settings.db_url) as session:
+                refuse_taken(session, name)
+                row = Scene(name=name, source="photos", state="posing", path="")
+                session.add(row)
+                session.flush()
+                row.path = str(settings.scenes_dir / f"scene-{row.id}")
+                # the photos are in place before the job commits: no dispatcher claims it
+                # without them
+                moved = photos_path(settings, row.id)
+                root.rename(moved)
+                job = submit(session, POSES, row.id, config)
+                session.flush()
+                ids = row.id, job.id
+        except BaseException:
+            if moved is not None:  # the rows were not written: neither are the photos
+                shutil.rmtree(moved, ignore_errors=True)
+            raise
+        return ids
     finally:
         shutil.rmtree(scratch, ignore_errors=True)

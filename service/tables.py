@@ -25,7 +25,7 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 TERMINAL = ("succeeded", "failed", "cancelled")
-SCENE_STATES = ("generating", "ready", "failed")
+SCENE_STATES = ("generating", "posing", "ready", "failed")
 ARTIFACT_KINDS = ("checkpoint", "render", "occupancy_model", "pointcloud", "report")
 
 
@@ -70,7 +70,7 @@ class Scene(Base):
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     name: Mapped[str] = mapped_column(String(128), unique=True)
-    source: Mapped[str] = mapped_column(String(16))  # synthetic | upload
+    source: Mapped[str] = mapped_column(String(16))  # synthetic | upload | photos
     state: Mapped[str] = mapped_column(String(16))
     format: Mapped[str | None] = mapped_column(String(32))
     path: Mapped[str] = mapped_column(Text)

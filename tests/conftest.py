@@ -101,3 +101,14 @@ def service_settings(database_url, tmp_path):
     return Settings(
         data_dir=tmp_path / "data", database_url=database_url, local_cpus=2, lease_s=5.0
     )
+
+
+@pytest.fixture(scope="session")
+def flight(tmp_path_factory) -> Path:
+    """A small synthetic drone flight as photos (bench/photo_flight.py): 30 JPEGs of 320x240 with
+    EXIF focal length and GPS, and truth.json with the exact cameras. Written once a session."""
+    from bench.photo_flight import write_flight
+
+    root = tmp_path_factory.mktemp("flight")
+    write_flight(root, preset="city", seed=2, views=30, size=(320, 240))
+    return root

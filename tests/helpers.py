@@ -5,6 +5,10 @@ from __future__ import annotations
 
 import io
 import itertools
+import os
+import signal
+import subprocess
+import sys
 import tarfile
 import threading
 import time
@@ -158,3 +162,33 @@ def uvicorn_in_thread(app, **config):
     finally:
         runner.should_exit = True
         thread.join(10)
+
+
+@contextmanager
+def dispatch_process(settings, **env: str) -> Iterator[subprocess.Popen]:
+    """`leco dispatch` in a process (and session) of its own with a 4 s lease, to be killed mid-job
+    with SIGKILL; on leaving, its whole process group is killed (a dead dispatcher's Ray agents
+    outlive it in its group: cleared, as a container stop would)."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "cli", "dispatch"],
+        cwd=ROOT,
+        env={
+            **os.environ,
+            "DATABASE_URL": settings.db_url,
+            "LECO_DATA_DIR": str(settings.data_dir),
+            "LECO_LEASE_S": "4",
+            "LECO_LOCAL_CPUS": "2",
+            "RAY_ADDRESS": "",
+            **env,
+        },
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    try:
+        yield process
+    finally:
+        try:
+            os.killpg(process.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass

@@ -15,12 +15,9 @@ from PIL import Image, UnidentifiedImageError
 from torch import Tensor
 
 from model.scenes.errors import SceneError
-from model.scenes.limits import spend_pixels
+from model.scenes.limits import MAX_PIXELS, spend_pixels
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG")
-# Checked from the header before any pixel is decoded: a tiny file can claim billions of pixels (a
-# decompression bomb). 100 MP is above any drone or DSLR photo a NeRF dataset holds.
-MAX_PIXELS = 100_000_000
 
 
 def find_image(stem: Path) -> Path:

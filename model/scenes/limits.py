@@ -24,6 +24,9 @@ MAX_POINTS_BYTES = 512 << 20  # a sparse point cloud (COLMAP points3D.bin, PLY):
 # one decoded array (a depth map, a 512^3 occupancy grid at 1 byte a cell)
 MAX_ARRAY_BYTES = 256 << 20
 MAX_NPZ_MEMBERS = 16
+# An image's pixels, checked from its header before any is decoded: a tiny file can claim billions
+# (a decompression bomb). 100 MP is above any drone or DSLR photo a NeRF dataset holds.
+MAX_PIXELS = 100_000_000
 
 
 def check_file_size(path: Path, limit: int, what: str) -> None:

@@ -26,6 +26,12 @@ def scene_sizes(scene: Scene | None) -> dict:
     job could not be checked before it is accepted."""
     if scene is None:
         return {}
+    if scene.state == "posing":
+        raise HTTPException(
+            409,
+            f"scene {scene.name!r} is posing (its poses job has not finished): submit the job "
+            "once the scene is ready",
+        )
     info = scene.info or {}
     if info.get("splits") or scene.state != "generating":
         return info

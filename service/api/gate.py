@@ -31,9 +31,13 @@ MAX_PATH_BODY = MAX_JSON_BODY + PATH_CAMERAS * CAMERA_JSON_BYTES
 CARRIES_A_PATH = re.compile(r"^/v1/jobs/[^/]+/renders$")
 CLOSE = {"connection": "close"}  # a refused body's remaining bytes are not read
 # the route streams its body and caps it at LECO_MAX_UPLOAD_BYTES
-STREAMED = {("POST", "/v1/scenes/upload")}
+STREAMED = {("POST", "/v1/scenes/upload"), ("POST", "/v1/scenes/photos")}
 # take a place in the scene pool
-REGISTERS = {("POST", "/v1/scenes/upload"), ("POST", "/v1/scenes/synthetic")}
+REGISTERS = {
+    ("POST", "/v1/scenes/upload"),
+    ("POST", "/v1/scenes/photos"),
+    ("POST", "/v1/scenes/synthetic"),
+}
 
 
 def token_ok(tokens: tuple[str, ...], authorization: str) -> bool:

@@ -32,7 +32,7 @@ def submitted_at(route: str | None) -> str:
 def list_job_kinds() -> JobKindList:
     return JobKindList(
         items=[
-            JobKindOut(name=k.name, trains=k.trains, submit=submitted_at(k.route))
+            JobKindOut(name=k.name, trains=k.trains, submit=k.submitted_at or submitted_at(k.route))
             for k in KINDS.values()
         ]
     )

@@ -234,7 +234,7 @@ def create_job(
         if scene.state == "failed":
             raise HTTPException(
                 409,
-                f"scene {scene.name!r} failed to generate ({scene.error}); it cannot be trained",
+                f"scene {scene.name!r} failed ({scene.error}); it cannot be trained",
             )
         job = enqueue(session, TRAIN, scene.id, cfg)
         session.flush()

@@ -1,13 +1,18 @@
-"""/v1/scenes: register a synthetic scene or upload an archive; list, show, delete."""
+"""/v1/scenes: register a synthetic scene, upload a dataset or photos to pose; list, show,
+delete."""
 
 from __future__ import annotations
 
+import json
 import tempfile
+from contextlib import asynccontextmanager
 from pathlib import Path
+from typing import AsyncIterator, Callable
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
+from pydantic import ValidationError
 from sqlalchemy import func, select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, object_session
 
 from service import scenes as registry
 from service.api.deps import MAX_INT, not_found, scene_pool_of, settings_of
@@ -15,16 +20,30 @@ from service.api.links import deleted_scene_links, links, scene_links
 from service.api.receiving import receive_body
 from service.api.schemas import NAME, SceneOut, SyntheticSceneRequest, id_like_name
 from service.db import reading, transaction
+from service.jobs.kinds import POSES
 from service.settings import Settings
 from service.tables import Job, Scene
 from service.workpool import WorkerLost, WorkPool
+from workers.poses.settings import PosesConfig
 
 router = APIRouter(prefix="/scenes", tags=["scenes"])
+# an upload's body: the archive's bytes
+ARCHIVE_BODY = {
+    "required": True,
+    "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
+}
 
 
 def scene_out(row: Scene) -> SceneOut:
     info = row.info or {}
+    session = object_session(row)
+    poses_job = None
+    if row.source == "photos" and session is not None:
+        poses_job = session.scalar(
+            select(func.max(Job.id)).where(Job.scene_id == row.id, Job.kind == POSES.name)
+        )
     return SceneOut(
+        poses_job=poses_job,
         id=row.id,
         name=row.name,
         source=row.source,
@@ -86,14 +105,7 @@ def create_synthetic(
     responses=links(201, scene_links()),
     summary="Upload a dataset archive (tar or zip of a Mega-NeRF, nerfstudio, Blender, LLFF or "
     "COLMAP folder)",
-    openapi_extra={
-        "requestBody": {
-            "required": True,
-            "content": {
-                "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}
-            },
-        }
-    },
+    openapi_extra={"requestBody": ARCHIVE_BODY},
 )
 async def upload(
     request: Request,
@@ -103,6 +115,20 @@ async def upload(
 ) -> SceneOut:
     if reason := id_like_name(name):
         raise HTTPException(422, reason)
+    async with _received(request, settings) as archive:
+        with pool.admitted():
+            scene_id = await _register(
+                settings, pool, lambda: registry.register_upload(settings, name, archive, pool)
+            )
+    return _created_scene(settings, scene_id)
+
+
+@asynccontextmanager
+async def _received(request: Request, settings: Settings) -> AsyncIterator[Path]:
+    """The request's body in a temporary file, removed afterwards. The body comes first, in a
+    receiving slot under deadlines (service/api/receiving.py); only then does the caller take a
+    place in the scene pool (Busy -> 429), so a slow client holds no place another registration
+    could use."""
     declared = request.headers.get("content-length")
     if declared and declared.isdigit() and int(declared) > settings.max_upload_bytes:
         raise HTTPException(
@@ -110,9 +136,6 @@ async def upload(
         )
     settings.scenes_dir.mkdir(parents=True, exist_ok=True)
     with tempfile.NamedTemporaryFile(dir=settings.scenes_dir, prefix=".archive-") as tmp:
-        # The body first, in a receiving slot under deadlines (service/api/receiving.py); only then
-        # a place in the scene pool (Busy -> 429), so a slow client holds no place another
-        # registration could use.
         with request.app.state.upload_slots.slot(request.client.host if request.client else ""):
             size = await receive_body(
                 request.stream(),
@@ -124,16 +147,20 @@ async def upload(
         tmp.flush()
         if size == 0:
             raise HTTPException(422, "empty upload: send the archive's bytes as the request body")
-        with pool.admitted():
-            scene_id = await _register(settings, name, Path(tmp.name), pool)
-    return _created_scene(settings, scene_id)
+        yield Path(tmp.name)
 
 
-async def _register(settings: Settings, name: str, archive: Path, pool: WorkPool) -> int:
+async def _register(settings: Settings, pool: WorkPool, register: Callable[[], int]) -> int:
+    """Runs a registration (service/scenes.py) in a running place of the scene pool, off the event
+    loop; what the user's upload got wrong is a 422, a taken name a 409."""
     from starlette.concurrency import run_in_threadpool
 
+    def run() -> int:
+        with pool.running():
+            return register()
+
     try:
-        return await run_in_threadpool(_register_when_running, pool, settings, name, archive)
+        return await run_in_threadpool(run)
     except registry.SceneConflict as error:
         raise HTTPException(409, str(error)) from None
     except WorkerLost as error:  # killed while reading it: the same archive would be killed again
@@ -145,9 +172,84 @@ async def _register(settings: Settings, name: str, archive: Path, pool: WorkPool
         ) from None
 
 
-def _register_when_running(pool: WorkPool, settings: Settings, name: str, archive: Path) -> int:
-    with pool.running():
-        return registry.register_upload(settings, name, archive, pool)
+POSES_PARAMETERS = [
+    {
+        "name": name,
+        "in": "query",
+        "required": False,
+        "description": schema.get("description", ""),
+        "schema": {k: v for k, v in schema.items() if k not in ("title", "description")},
+    }
+    for name, schema in PosesConfig.model_json_schema()["properties"].items()
+]
+
+
+def poses_config_of(request: Request) -> PosesConfig:
+    """The poses settings from the query (every field of workers/poses/settings.py's schema but
+    `name`): numbers as JSON, words as they are; an unknown parameter or a bad value is a 422
+    naming it."""
+    values: dict = {}
+    for key, text in request.query_params.items():
+        if key == "name":
+            continue
+        if key not in PosesConfig.model_fields:
+            raise HTTPException(
+                422,
+                [
+                    {
+                        "loc": ["query", key],
+                        "type": "extra_forbidden",
+                        "msg": f"unknown setting {key!r}: the poses settings are "
+                        f"{', '.join(PosesConfig.model_fields)}",
+                    }
+                ],
+            )
+        try:
+            values[key] = json.loads(text)
+        except json.JSONDecodeError:
+            values[key] = text
+    try:
+        return PosesConfig.model_validate(values)
+    except ValidationError as error:
+        raise HTTPException(
+            422,
+            [
+                {"loc": ["query", *map(str, e["loc"])], "type": e["type"], "msg": e["msg"]}
+                for e in error.errors()
+            ],
+        ) from None
+
+
+@router.post(
+    "/photos",
+    status_code=202,
+    response_model=SceneOut,
+    operation_id="uploadPhotos",
+    responses=links(202, scene_links()),
+    summary="Upload an archive of photos without poses (tar or zip); a poses job (COLMAP by "
+    "pycolmap) finds them, and the scene goes from 'posing' to 'ready'",
+    openapi_extra={
+        "parameters": POSES_PARAMETERS,
+        "requestBody": ARCHIVE_BODY,
+    },
+)
+async def upload_photos(
+    request: Request,
+    name: str = Query(..., pattern=NAME),
+    settings: Settings = Depends(settings_of),
+    pool: WorkPool = Depends(scene_pool_of),
+) -> SceneOut:
+    if reason := id_like_name(name):
+        raise HTTPException(422, reason)
+    config = poses_config_of(request)
+    async with _received(request, settings) as archive:
+        with pool.admitted():
+            scene_id = await _register(
+                settings,
+                pool,
+                lambda: registry.register_photos(settings, name, archive, config, pool)[0],
+            )
+    return _created_scene(settings, scene_id)
 
 
 @router.get(
@@ -177,25 +279,24 @@ def show_scene(scene: str, settings: Settings = Depends(settings_of)) -> SceneOu
     responses=links(204, deleted_scene_links()),
 )
 def delete_scene(scene: str, settings: Settings = Depends(settings_of)) -> None:
-    import shutil
 
     with transaction(settings.db_url) as session:
         row = find_scene(session, scene)
         if row is None:
             raise not_found("scene", scene)
-        if row.state == "generating":
+        if row.state in ("generating", "posing"):
             raise HTTPException(
-                409, f"scene {row.name!r} is still being generated; delete it when it is ready"
+                409,
+                f"scene {row.name!r} is still {row.state}; delete it when it is ready or failed",
             )
         jobs = session.scalar(select(func.count()).select_from(Job).where(Job.scene_id == row.id))
         if jobs:
             raise HTTPException(
                 409, f"scene {row.name!r} is used by {jobs} job(s); delete those jobs first"
             )
-        path, layout = Path(row.path), registry.layout_path(settings, row.id)
+        path, scene_id = Path(row.path), row.id
         session.delete(row)
-    shutil.rmtree(path, ignore_errors=True)
-    layout.unlink(missing_ok=True)
+    registry.remove_scene_files(settings, scene_id, path)
 
 
 @router.get(

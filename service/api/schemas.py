@@ -52,6 +52,9 @@ class SceneOut(BaseModel):
     generator: dict | None
     error: str | None
     created_at: datetime
+    poses_job: int | None = Field(
+        None, description="the job finding its poses, for a scene registered from photos"
+    )
 
 
 class JobRequest(TrainConfig):

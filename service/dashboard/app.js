@@ -233,6 +233,7 @@ async function showJob(id) {
       <div class="toolbar"><button id="cancel" class="danger">Cancel job</button>
         <label>x axis <select id="x-axis"><option value="step">step</option><option value="wall_time_s">training time</option></select></label></div>
       <p id="job-error" class="error"></p>
+      <table id="phases"><thead><tr><th>phase</th><th>state</th><th>progress</th></tr></thead><tbody></tbody></table>
       <div class="grid" id="charts"></div>
       <h2>Occupancy and throughput</h2><div class="grid" id="stats"></div>
       <div id="work-area"></div>
@@ -256,6 +257,9 @@ async function showJob(id) {
     step ${job.step}/${job.total_steps} · ${progressBar(job.percent)} ${eta(job.eta_s)} · attempt ${job.attempts}
     ${job.cancel_requested && !TERMINAL.includes(job.state) ? " · stopping (cancel requested)" : ""}`;
   document.getElementById("job-error").textContent = job.error ? `Error: ${job.error}` : "";
+  // each phase (a training phase, or a poses job's stage) with its own share done
+  document.querySelector("#phases tbody").innerHTML = job.phases.map(p => `<tr data-phase="${esc(p.name)}"><td>${esc(p.name)}</td>
+    <td>${stateBadge(p.state)}</td><td>${progressBar(100 * p.step / Math.max(p.steps_total, 1))} <span class="muted">${p.step}/${p.steps_total}</span></td></tr>`).join("");
   document.getElementById("cancel").disabled = TERMINAL.includes(job.state) || job.cancel_requested;
 
   const charts = document.getElementById("charts");
@@ -633,9 +637,10 @@ async function showScenes() {
   document.getElementById("view").innerHTML = `<h1>Scenes</h1><table id="scenes"><thead><tr><th>scene</th><th>state</th>
     <th>format</th><th>cameras</th><th>source</th><th></th></tr></thead><tbody>${scenes.map(s => `<tr data-scene="${s.id}">
     <td><a href="#/scenes/${s.id}">${esc(s.name)}</a></td><td>${stateBadge(s.state)}</td><td>${esc(s.format || "–")}</td>
-    <td>${s.cameras ?? "–"}</td><td>${esc(s.source)}</td><td><a href="#/compare/${s.id}">compare jobs</a></td></tr>`).join("")}</tbody></table>`;
+    <td>${s.cameras ?? "–"}</td><td>${esc(s.source)}${s.poses_job ? ` (<a href="#/jobs/${s.poses_job}">poses job ${s.poses_job}</a>)` : ""}</td>
+    <td><a href="#/compare/${s.id}">compare jobs</a></td></tr>`).join("")}</tbody></table>`;
   setStatus(`${scenes.length} scenes · updated ${new Date().toLocaleTimeString()}`);
-  if (scenes.some(s => s.state === "generating")) schedule(route);
+  if (scenes.some(s => s.state === "generating" || s.state === "posing")) schedule(route);
 }
 
 async function showScene(id) {

@@ -16,6 +16,7 @@ from model.errors import InvalidInput
 from model.memory_estimate import estimate_frames_bytes
 from model.methods import get_method
 from workers.config import TrainConfig
+from workers.poses.settings import STAGE_STEPS, STAGES, PosesConfig
 from workers.render.schemas import (
     EXPORT_PHASE,
     RENDER_PHASE,
@@ -78,6 +79,13 @@ class JobKind:
     # its peak memory, for the API's check against the slot (None: not estimated)
     memory: Callable[[BaseModel, Parent], Memory | None] = lambda cfg, parent: None
     description: str = ""  # of its submit route, in the OpenAPI document
+    # the method and profile a job on a scene is listed under (a kind made of a training job
+    # inherits its parent's)
+    labels: Callable[[BaseModel], tuple[str, str]] = lambda cfg: own_labels(cfg)
+    # where a job of a kind with its own submit route is submitted (the API's job-kind list)
+    submitted_at: str | None = None
+    # the states of its scene a queued job waits for before a dispatcher claims it
+    scene_states: tuple[str, ...] = ("ready",)
     # its 422s
     refusals: str = "the job has not succeeded or is not a training job; an invalid body"
 
@@ -92,6 +100,12 @@ class JobKind:
 
 
 KINDS: dict[str, JobKind] = {}
+
+
+def own_labels(cfg: BaseModel) -> tuple[str, str]:
+    """A training config's method and profile."""
+    data = cfg.model_dump()
+    return str(data["method"]), str(data["profile"])
 
 
 def register(kind: JobKind) -> JobKind:
@@ -237,5 +251,32 @@ register(
         "occupancy.ply), transform.json and export.json.",
         refusals="the job has not succeeded or is not a training job; an occupancy its method "
         "lacks",
+    )
+)
+
+
+def poses_phases(cfg: BaseModel, parent: Parent | None) -> list[tuple[str, int]]:
+    """The pipeline's stages, each counted in percent."""
+    return [(stage, STAGE_STEPS) for stage in STAGES]
+
+
+def poses_labels(cfg: BaseModel) -> tuple[str, str]:
+    assert isinstance(cfg, PosesConfig)
+    return "colmap", cfg.mapper
+
+
+# POST /v1/scenes/photos makes one with the scene it poses: its photos become a scene with poses.
+POSES = register(
+    JobKind(
+        "poses",
+        PosesConfig,
+        "service.jobs.poses:poses",
+        poses_phases,
+        labels=poses_labels,
+        submitted_at="POST /v1/scenes/photos",
+        scene_states=("posing",),  # it makes its scene ready
+        description="Camera poses for an uploaded archive of photos (COLMAP by pycolmap): "
+        "features, matching, mapping, alignment to GPS metres, export; the scene becomes ready "
+        "when it succeeds.",
     )
 )

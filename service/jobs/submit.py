@@ -23,9 +23,8 @@ def submit(
     profile)."""
     phases, config = kind.phases(cfg, parent_info), cfg.model_dump(mode="json")
     if parent is None:
-        return queue.enqueue(
-            session, kind.name, scene_id, config["method"], config["profile"], config, phases
-        )
+        method, profile = kind.labels(cfg)
+        return queue.enqueue(session, kind.name, scene_id, method, profile, config, phases)
     return queue.enqueue(
         session,
         kind.name,

@@ -6,8 +6,6 @@ import hashlib
 import json
 import os
 import signal
-import subprocess
-import sys
 import threading
 import time
 
@@ -20,9 +18,9 @@ from service.tables import Artifact
 from tests.helpers import (
     ON_POSTGRESQL,
     ON_SQLITE,
-    ROOT,
     api_client,
     attempt_processes,
+    dispatch_process,
     ready_scene,
     steps_of,
     wait_for,
@@ -135,32 +133,10 @@ def test_a_killed_dispatcher_loses_its_lease_and_the_job_resumes_once(api, servi
         "overrides": {"main_steps": 300},
     }
     job_id = api.post("/v1/jobs", json=body).json()["id"]
-    env = {
-        **os.environ,
-        "DATABASE_URL": service_settings.db_url,
-        "LECO_DATA_DIR": str(service_settings.data_dir),
-        "LECO_LEASE_S": "4",
-        "LECO_LOCAL_CPUS": "2",
-        "RAY_ADDRESS": "",
-    }
-    first = subprocess.Popen(
-        [sys.executable, "-m", "cli", "dispatch"],
-        cwd=ROOT,
-        env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,
-    )
-    try:
+    with dispatch_process(service_settings) as first:
         killed_at = wait_for(api, job_id, lambda j: j["step"] >= 70)["step"]
         os.kill(first.pid, signal.SIGKILL)  # the dispatcher, with its local Ray, dies mid-job
         first.wait(10)
-    finally:
-        try:  # Ray's agents of the dead dispatcher outlive it in its process group:
-            # clear them, as a container stop would
-            os.killpg(first.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
     assert killed_at < 300
     second = Dispatcher(service_settings, poll_s=0.2)
     thread = threading.Thread(target=second.run_forever, daemon=True)
@@ -196,24 +172,7 @@ def test_a_dispatcher_killed_mid_render_hands_it_back_and_one_video_is_stored(se
             trainer.stop(wait=True)
         render = {"frames": 60, "width": 160, "height": 120}
         job_id = api.post(f"/v1/jobs/{parent}/renders", json=render).json()["id"]
-        env = {
-            **os.environ,
-            "DATABASE_URL": settings.db_url,
-            "LECO_DATA_DIR": str(settings.data_dir),
-            "LECO_LEASE_S": "4",
-            "LECO_LOCAL_CPUS": "2",
-            "LECO_BACKEND": "local",
-            "RAY_ADDRESS": "",
-        }
-        first = subprocess.Popen(
-            [sys.executable, "-m", "cli", "dispatch"],
-            cwd=ROOT,
-            env=env,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-            start_new_session=True,
-        )
-        try:
+        with dispatch_process(settings, LECO_BACKEND="local") as first:
             killed_at = wait_for(api, job_id, lambda j: j["step"] >= 2)["step"]
             assert attempt_processes(job_id, 1)  # the render runs in the dispatcher's child
             os.kill(first.pid, signal.SIGKILL)
@@ -222,11 +181,6 @@ def test_a_dispatcher_killed_mid_render_hands_it_back_and_one_video_is_stored(se
             while attempt_processes(job_id, 1) and time.monotonic() < gone_by:
                 time.sleep(0.1)
             assert attempt_processes(job_id, 1) == []
-        finally:
-            try:
-                os.killpg(first.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
         assert killed_at < 60
         second = Dispatcher(settings, poll_s=0.2)
         threading.Thread(target=second.run_forever, daemon=True).start()

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from model.scenes import values
 from model.scenes.errors import SceneError
+from model.scenes.formats.jsonfile import read_json
 from model.scenes.formats.points import (
     read_colmap_points,
     read_colmap_points_text,
@@ -30,6 +31,7 @@ from model.scenes.source import (
 )
 
 MODEL = Path("sparse") / "0"
+GEOREFERENCE = "georeference.json"
 VAL_EVERY = 8  # every 8th image by sorted name is held out, as for LLFF
 MAX_IMAGES = 100_000  # registered images (and so cameras) of one model
 MAX_NAME_BYTES = 4096
@@ -452,5 +454,30 @@ def load_colmap(root: Path, downscale: int) -> SourceScene:
             "camera_models": sorted({cameras[im.camera_id].model for im in images}),
         },
     )
+    georeference = read_georeference(root)
+    if georeference is not None:  # east-north-up metres (`leco scene poses` with GPS): z is up
+        source.units = "metres"
+        source.extras["georeference"] = georeference
+        return source
     all_c2w = torch.cat([s.cameras.c2w for s in source.splits.values()])
     return rotate_source(source, up_alignment(all_c2w))
+
+
+def read_georeference(root: Path) -> dict | None:
+    """georeference.json beside sparse/, which `leco scene poses` writes when the photos' GPS
+    placed the model in local east-north-up metres; None when there is none."""
+    path = root / GEOREFERENCE
+    if not path.is_file():
+        return None
+    info = read_json(scene_file(root, path))
+    if not isinstance(info, dict) or info.get("frame") != "ENU" or info.get("units") != "metres":
+        raise SceneError(path, 'expected {"frame": "ENU", "units": "metres", ...}')
+    origin = info.get("origin")
+    if not isinstance(origin, dict) or not all(
+        isinstance(origin.get(k), (int, float)) for k in ("latitude", "longitude", "altitude")
+    ):
+        raise SceneError(path, "origin must give latitude, longitude and altitude as numbers")
+    return {
+        "frame": "ENU",
+        "origin": {k: float(origin[k]) for k in ("latitude", "longitude", "altitude")},
+    }

@@ -3,6 +3,7 @@ round a cluster of points): camera models and distortion, poses against the cent
 written, the split, downscale, the sparse points, detection, and every bad input refused naming the
 file."""
 
+import json
 import struct
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -582,3 +583,39 @@ def test_images_txt_needs_its_points2d_lines(tmp_path):
     # the last image without its POINTS2D line
     path.write_text("\n".join(lines[:-2]) + "\n")
     expect(root, r"image 102 \(line 7\) has no POINTS2D line after it", "images.txt")
+
+
+# --- a georeferenced model (`leco scene poses` with GPS) ------------------------------------------
+
+
+def test_a_georeferenced_model_keeps_its_east_north_up_metres(tmp_path, form):
+    """With georeference.json the model's frame is already z up in metres: no camera-up rotation,
+    and the scene says metres and where its origin lies."""
+    root = write_scene(tmp_path / "geo", tiny_model(), form)
+    origin = {"latitude": 47.3769, "longitude": 8.5417, "altitude": 408.0}
+    (root / "georeference.json").write_text(
+        json.dumps({"frame": "ENU", "units": "metres", "origin": origin, "scale": 1.0})
+    )
+    scene = load_scene(root)
+    assert scene.normalization.units == "metres"
+    assert torch.equal(scene.normalization.axes, torch.eye(3))
+    assert scene.extras["georeference"] == {"frame": "ENU", "origin": origin}
+    plain = load_scene(write_scene(tmp_path / "plain", tiny_model(), form))
+    assert plain.normalization.units == "source units"
+    assert not torch.equal(plain.normalization.axes, torch.eye(3))
+
+
+@pytest.mark.parametrize(
+    "content, problem",
+    [
+        ('{"frame": "ECEF", "units": "metres"}', "expected"),
+        ('{"frame": "ENU", "units": "metres", "origin": {"latitude": "north"}}', "origin"),
+        ("[1, 2", "JSON"),
+    ],
+)
+def test_a_broken_georeference_is_named(tmp_path, content, problem):
+    root = write_scene(tmp_path / "geo", tiny_model())
+    (root / "georeference.json").write_text(content)
+    with pytest.raises(SceneError, match=problem) as info:
+        load_scene(root)
+    assert "georeference.json" in str(info.value)

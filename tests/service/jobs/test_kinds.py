@@ -139,13 +139,14 @@ def test_the_registry_refuses_a_second_owner_of_a_name_and_a_name_the_table_cann
         register(JobKind("train", InventoryConfig, inventory, lambda cfg, parent: [("x", 1)]))
     with pytest.raises(ValueError, match="1-16 lowercase"):
         register(JobKind("Inventory", InventoryConfig, inventory, lambda cfg, parent: [("x", 1)]))
-    assert list(KINDS) == ["train", "render", "export"]
+    assert list(KINDS) == ["train", "render", "export", "poses"]
 
 
 def test_an_unknown_kind_filter_is_refused_naming_the_kinds(service_settings):
     with api_client(service_settings) as api:
         refused = api.get("/v1/jobs", params={"kind": "nope"})
-    assert refused.status_code == 422 and "choose one of train, render, export" in refused.text
+    assert refused.status_code == 422
+    assert "choose one of train, render, export, poses" in refused.text
 
 
 # Modules that queue, run, list and serve every kind: none may compare a job's kind with a kind's
