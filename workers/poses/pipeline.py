@@ -117,6 +117,13 @@ class Run:
         self.lock.close()
         return summary
 
+    def _camera_mode(self) -> Any:
+        """One camera for photos of one size from one camera (or with no camera EXIF at all: the
+        frames of a video); else COLMAP's own grouping, a camera per size and EXIF camera (it would
+        give every photo without EXIF a camera of its own)."""
+        one = self.photos.summary()["cameras"] == 1
+        return self.colmap.CameraMode.SINGLE if one else self.colmap.CameraMode.AUTO
+
     def _reader_options(self) -> Any:
         return self.colmap.ImageReaderOptions(camera_model=self.config.camera_model)
 
@@ -129,7 +136,7 @@ class Run:
             pycolmap.import_images(
                 self.database,
                 self.photos.folder,
-                camera_mode=pycolmap.CameraMode.AUTO,
+                camera_mode=self._camera_mode(),
                 image_names=names,
                 options=self._reader_options(),
             )
@@ -151,7 +158,7 @@ class Run:
                 self.database,
                 self.photos.folder,
                 image_names=chunk,
-                camera_mode=pycolmap.CameraMode.AUTO,
+                camera_mode=self._camera_mode(),
                 reader_options=self._reader_options(),
                 extraction_options=options,
                 device=pycolmap.Device.cpu,
