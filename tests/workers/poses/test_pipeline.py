@@ -78,11 +78,22 @@ def test_the_posed_folder_is_a_scene_in_metres(posed):
     assert not work_folder(out).exists()
 
 
-def test_without_gps_the_cameras_keep_their_own_frame(flight, tmp_path):
-    out = tmp_path / "scene"
-    summary = find_poses(flight / "photos", out, CONFIG.model_copy(update={"gps": "off"}), Events())
+def test_photos_without_exif_share_one_camera_and_keep_their_own_frame(flight, tmp_path):
+    """The flight's photos saved again without EXIF (as frames cut from a video are): no GPS, no
+    focal length (COLMAP's default, said in a warning), one shared camera, every pair matched."""
+    from PIL import Image
+
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for photo in sorted((flight / "photos").iterdir()):
+        with Image.open(photo) as image:
+            image.convert("RGB").save(bare / photo.name, quality=95)
+    out, events = tmp_path / "scene", Events()
+    summary = find_poses(bare, out, CONFIG, events)
     errors = pose_errors(truth_of(flight), out)
     assert summary["georeference"] is None and summary["matcher"]["name"] == "exhaustive"
+    assert summary["cameras"] == 1 and summary["registered"] == 30
+    assert "no usable EXIF focal length" in " ".join(summary["warnings"])
     assert errors["centre_error_share"]["max"] < 0.01
     assert errors["rotation_error_deg"]["max"] < 1.0
     assert not (out / "georeference.json").exists()
