@@ -80,7 +80,8 @@ def test_the_posed_folder_is_a_scene_in_metres(posed):
 
 def test_photos_without_exif_share_one_camera_and_keep_their_own_frame(flight, tmp_path):
     """The flight's photos saved again without EXIF (as frames cut from a video are): no GPS, no
-    focal length (COLMAP's default, said in a warning), one shared camera, every pair matched."""
+    focal length (COLMAP's default, said in a warning), one shared camera. Numbered names without
+    camera EXIF read as a video: auto picks sequential pairs (here every pair is asked for)."""
     from PIL import Image
 
     bare = tmp_path / "bare"
@@ -89,7 +90,7 @@ def test_photos_without_exif_share_one_camera_and_keep_their_own_frame(flight, t
         with Image.open(photo) as image:
             image.convert("RGB").save(bare / photo.name, quality=95)
     out, events = tmp_path / "scene", Events()
-    summary = find_poses(bare, out, CONFIG, events)
+    summary = find_poses(bare, out, CONFIG.model_copy(update={"matcher": "exhaustive"}), events)
     errors = pose_errors(truth_of(flight), out)
     assert summary["georeference"] is None and summary["matcher"]["name"] == "exhaustive"
     assert summary["cameras"] == 1 and summary["registered"] == 30
