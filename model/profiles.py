@@ -53,6 +53,12 @@ class BackgroundConfig(Frozen):
     width: int = Field(128, ge=8, le=2048, description="hidden units per layer")
     layers: int = Field(4, ge=1, le=16, description="hidden layers")
     samples: int = Field(64, ge=1, le=1024, description="samples per ray beyond the box")
+    sky_at_infinity: bool = Field(
+        False,
+        description="the opaque last background sample is taken at infinity, so the sky is a "
+        "function of the direction alone, the same for every view (off: at 2 x samples x the "
+        "box's exit distance, where each camera sees it through other points)",
+    )
 
 
 class OccupancyPhaseConfig(Frozen):

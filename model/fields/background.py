@@ -3,7 +3,13 @@
 A background point x is described by its direction from the scene centre and its inverse distance,
 (x / |x|, 1 / |x|): the inverted sphere, so infinity is a finite input. Samples along a ray are
 uniform in inverse depth from the foreground exit to infinity; the last one is made opaque, so the
-background always covers whatever the foreground leaves (the sky included)."""
+background always covers whatever the foreground leaves (the sky included).
+
+That last sample lies at 2n times the exit distance, so two cameras that look the same way see the
+sky through different points: a far field that does not interpolate between them (a hash grid)
+paints each view its own sky. With `sky_at_infinity` the opaque sample is evaluated at infinity
+instead (its interval unchanged), where every ray of a direction meets the same point: the sky
+becomes a function of the direction alone, shared by every view."""
 
 from __future__ import annotations
 
@@ -15,11 +21,16 @@ from model.fields.heads import density_activation
 from model.render.noise import Noise
 
 MIN_START = 1e-2  # world units: rays that miss the box are background from (almost) the camera on
+# world units: "infinity" for the sky's sample (a point there contracts to the unit direction's
+# image, 1 / r to 1e-8: no field tells it from a true infinity, and float32 holds it)
+SKY_DISTANCE = 1e8
 
 
-def background_samples(far: Tensor, n: int, noise: Noise | None) -> tuple[Tensor, Tensor]:
+def background_samples(
+    far: Tensor, n: int, noise: Noise | None, sky_at_infinity: bool = False
+) -> tuple[Tensor, Tensor]:
     """(t_mid, deltas) of n samples per ray from the foreground exit `far` to infinity, (R, n)
-    each."""
+    each; `sky_at_infinity`: the opaque last sample at SKY_DISTANCE (see the module docstring)."""
     start = far.clamp(min=MIN_START)
     u = (torch.arange(n, device=far.device, dtype=far.dtype) + 0.5) / n
     if noise is not None:
@@ -27,6 +38,8 @@ def background_samples(far: Tensor, n: int, noise: Noise | None) -> tuple[Tensor
     inverse = (1.0 - u) / start[:, None]  # from 1 / start down towards 0
     t = 1.0 / inverse.clamp(min=1e-6)
     deltas = torch.cat([t[:, 1:] - t[:, :-1], torch.full_like(t[:, :1], 1e10)], dim=-1)
+    if sky_at_infinity:
+        t = torch.cat([t[:, :-1], torch.full_like(t[:, :1], SKY_DISTANCE)], dim=-1)
     return t, deltas
 
 
@@ -40,8 +53,10 @@ class BackgroundField(nn.Module):
         dir_frequencies: int = 4,
         appearance_dim: int = 48,
         density_noise: float = 1.0,
+        sky_at_infinity: bool = False,
     ):
         super().__init__()
+        self.sky_at_infinity = sky_at_infinity  # read by whoever places its samples
         self.point_encoding = FrequencyEncoding(frequencies, in_dim=4)
         self.dir_encoding = FrequencyEncoding(dir_frequencies)
         self.appearance = nn.Embedding(num_images, appearance_dim)

@@ -150,8 +150,11 @@ class NGPBackground(nn.Module):
     centre: Tensor  # buffers, registered below
     radius: Tensor
 
-    def __init__(self, num_images: int, aabb: Tensor, **hash_field: int):
+    def __init__(
+        self, num_images: int, aabb: Tensor, sky_at_infinity: bool = False, **hash_field: int
+    ):
         super().__init__()
+        self.sky_at_infinity = sky_at_infinity  # read by whoever places its samples
         aabb = aabb.detach().float()
         self.register_buffer("centre", aabb.mean(0))
         self.register_buffer("radius", (aabb[1] - aabb[0]).norm() / 2)

@@ -80,6 +80,7 @@ def background(profile: Profile, num_images: int) -> BackgroundField:
         dir_frequencies=n.dir_frequencies,
         appearance_dim=n.appearance_dim,
         density_noise=n.density_noise,
+        sky_at_infinity=b.sky_at_infinity,
     )
 
 

@@ -175,7 +175,7 @@ def render_background_cascaded(
     skips empty space beyond the box too): a sample in a free cell is dropped, one beyond the
     outermost level is kept. A dropped sample had no density, so compositing the kept ones with
     their own intervals is the same integral. Returns the colour and the kept share."""
-    t, deltas = background_samples(rays.far, samples, noise)
+    t, deltas = background_samples(rays.far, samples, noise, background.sky_at_infinity)
     xyz = rays.origins[:, None, :] + rays.directions[:, None, :] * t[..., None]
     flat = xyz.reshape(-1, 3)
     with torch.no_grad():

@@ -44,7 +44,8 @@ def ngp_networks(profile: Profile, num_images: int, aabb: Tensor) -> tuple[NGPFi
     fore, back = hash_fields(profile)
     if profile.ngp.background == "mlp":  # the Switch-NeRF methods' far field
         return NGPField(num_images, aabb, **fore), background(profile, num_images)
-    return NGPField(num_images, aabb, **fore), NGPBackground(num_images, aabb, **back)
+    sky = profile.background.sky_at_infinity
+    return NGPField(num_images, aabb, **fore), NGPBackground(num_images, aabb, sky, **back)
 
 
 class HashGridNetworks:

@@ -33,7 +33,7 @@ def render_background(
     background: BackgroundField, rays: RayBatch, samples: int, noise: Noise | None
 ) -> Rendered:
     with stage("background"):
-        t, deltas = background_samples(rays.far, samples, noise)
+        t, deltas = background_samples(rays.far, samples, noise, background.sky_at_infinity)
         xyz = rays.origins[:, None, :] + rays.directions[:, None, :] * t[..., None]
         r = len(rays)
         sigma, rgb = background(

@@ -55,3 +55,32 @@ def test_the_fields_answer_every_point_and_their_gradients_reach_the_tables():
         table = model.hash_field.encoding.table
         assert torch.isfinite(table.grad).all() and (table.grad != 0).any()
         assert model.appearance.weight.grad is not None
+
+
+def test_with_the_sky_at_infinity_two_cameras_looking_one_way_see_one_sky():
+    """The opaque last background sample (the sky) lies at 2n x the box's exit distance by default,
+    so cameras at different places meet it at different points of the far field; at infinity every
+    ray of a direction meets one point of the contracted space, and the far field paints one colour
+    there."""
+    from model.fields.background import background_samples
+    from model.fields.contraction import contracted_unit
+
+    torch.manual_seed(0)
+    background = NGPBackground(1, AABB, **SMALL)
+    origins = torch.tensor([[0.0, 0.0, 0.0], [0.5, -0.3, 0.1]])
+    dirs = torch.nn.functional.normalize(torch.tensor([[0.3, 0.2, 1.0]] * 2), dim=-1)
+    far = torch.tensor([0.4, 0.9])  # each camera leaves the box at its own distance
+    base, _ = background_samples(far, 8, None)
+    sky = {}
+    for at_infinity in (False, True):
+        t, deltas = background_samples(far, 8, None, sky_at_infinity=at_infinity)
+        assert deltas[:, -1].eq(1e10).all() and (t.diff(dim=-1) > 0).all()
+        assert torch.equal(t[:, :-1], base[:, :-1])  # only the opaque sample moves
+        last = origins + dirs * t[:, -1:]
+        sky[at_infinity] = contracted_unit((last - background.centre) / background.radius)
+        _, rgb = background(last, dirs, torch.zeros(2, dtype=torch.long))
+        assert torch.isfinite(rgb).all()
+        if at_infinity:
+            assert torch.allclose(rgb[0], rgb[1], atol=1e-6)
+    assert (sky[False][0] - sky[False][1]).abs().max() > 0.01
+    assert torch.allclose(sky[True][0], sky[True][1], atol=1e-6)
