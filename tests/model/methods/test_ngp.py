@@ -113,6 +113,11 @@ def test_an_mlp_far_field_trains_at_the_mlps_rate_beside_the_hash_tables(method,
     m, models, objects = built()
     assert isinstance(models.background, NGPBackground)
     assert [g["lr_scale"] for g in objects.optimizer.param_groups] == [1.0]
+    assert not models.background.sky_at_infinity
+    # background.sky_at_infinity reaches whichever far field the profile builds
+    for far_field in ("hash", "mlp"):
+        sky = {"ngp.background": far_field, "background.sky_at_infinity": True}
+        assert built(**sky)[1].background.sky_at_infinity
     m, models, objects = built(**{"ngp.background": "mlp"})
     assert isinstance(models.background, BackgroundField)
     main, far = objects.optimizer.param_groups
@@ -125,13 +130,14 @@ def test_an_mlp_far_field_trains_at_the_mlps_rate_beside_the_hash_tables(method,
 
 
 @pytest.mark.parametrize("method", FAMILY)
-def test_each_sampler_trains_with_the_mlp_far_field_and_the_distortion_loss(
+def test_each_sampler_trains_with_the_mlp_far_field_the_sky_at_infinity_and_the_distortion_loss(
     method, tiny_scene, tmp_path
 ):
     out = tmp_path / "run"
     args = ["train", "--scene", str(tiny_scene.root), "--method", method, "--profile", "smoke"]
     args += ["--out", str(out), "--backend", "local", "--set", "main_steps=6"]
     args += ["--set", "ngp.background=mlp", "--set", "ngp.distortion_weight=0.01"]
+    args += ["--set", "background.sky_at_infinity=true"]
     assert main(args) == 0
     logged = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     distortion = [r["distortion_loss"] for r in logged if "distortion_loss" in r]
