@@ -5,11 +5,11 @@ A background point x is described by its direction from the scene centre and its
 uniform in inverse depth from the foreground exit to infinity; the last one is made opaque, so the
 background always covers whatever the foreground leaves (the sky included).
 
-That last sample lies at 2n times the exit distance, so two cameras that look the same way see the
-sky through different points: a far field that does not interpolate between them (a hash grid)
-paints each view its own sky. With `sky_at_infinity` the opaque sample is evaluated at infinity
-instead (its interval unchanged), where every ray of a direction meets the same point: the sky
-becomes a function of the direction alone, shared by every view."""
+That last sample lies near 2n times the exit distance (jittered in training), so two cameras that
+look the same way see the sky through different points: a far field that does not interpolate
+between them (a hash grid) paints each view its own sky. With `sky_at_infinity` the opaque sample
+is evaluated at infinity instead (its interval unchanged), where every ray of a direction meets the
+same point: the sky becomes a function of the direction alone, shared by every view."""
 
 from __future__ import annotations
 
