@@ -1,0 +1,148 @@
+"""Where does O lose the cells it misses? A finished LeCO run's O scored against the scene's exact
+occupancy under several decision rules: keep thresholds on p(E_e), O's top-1, and each of those
+grown by a cell in every direction (a miss that a one-cell dilation recovers is a near miss, not a
+structure O never learned).
+
+    python -m bench.occupancy_rules --run RUN [--thresholds 0.9,0.97,0.99,0.999] [--dilate 1]
+
+RUN is a `leco train` or `leco bench` run folder of a method with an occupancy network, on a scene
+with exact ground truth (the synthetic presets). One row a rule: recall, precision and F1 on the
+cells the validation views observe (the paper's protocol, as `leco eval` scores it), the ground's
+recall and the recall of each height layer, bottom first. Prints a markdown table; `--json` writes
+the rows too."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+DEFAULT_THRESHOLDS = "0.9,0.97,0.99,0.999"
+
+
+def occupancy_probability_grid(network, aabb, resolution: int, subdivisions: int = 2):
+    """(R, R, R): the largest 1 - p(E_e) over each cell's sub-cell centres, and whether O's top-1
+    is a scene expert at any of them. A threshold rule is then one comparison of the first (keep
+    where p(E_e) < t at some sub-cell <=> max(1 - p(E_e)) > 1 - t), as the evaluation samples a
+    predictor (model/evaluation/occupancy.py `predicted_grid`)."""
+    import torch
+
+    axis = (torch.arange(resolution, dtype=torch.float32) + 0.5) / resolution
+    centres = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    sub = (
+        (torch.arange(subdivisions, dtype=torch.float32) + 0.5) / subdivisions - 0.5
+    ) / resolution
+    offsets = torch.stack(torch.meshgrid(sub, sub, sub, indexing="ij"), -1).reshape(-1, 3)
+    lo, size = aabb[0].float(), (aabb[1] - aabb[0]).float()
+    keep_p = torch.zeros(len(centres))
+    top1 = torch.zeros(len(centres), dtype=torch.bool)
+    empty = network.empty_index
+    with torch.no_grad():
+        for offset in offsets:
+            points = lo + (centres + offset) * size
+            for s in range(0, len(points), 1 << 16):
+                logits = network(points[s : s + (1 << 16)]).float()
+                p = 1.0 - torch.softmax(logits, dim=-1)[:, empty]
+                keep_p[s : s + len(p)] = torch.maximum(keep_p[s : s + len(p)], p)
+                top1[s : s + len(p)] |= logits.argmax(dim=-1) != empty
+    shape = (resolution,) * 3
+    return keep_p.reshape(shape), top1.reshape(shape)
+
+
+def dilated(grid, cells: int):
+    """A boolean grid grown by `cells` in every direction (a (2c+1)^3 max-pool)."""
+    import torch.nn.functional as F
+
+    if cells <= 0:
+        return grid
+    k = 2 * cells + 1
+    pooled = F.max_pool3d(grid[None, None].float(), kernel_size=k, stride=1, padding=cells)
+    return pooled[0, 0] > 0
+
+
+def score_rules(run: Path, thresholds: list[float], dilate: int) -> list[dict]:
+    import torch
+
+    from model.evaluation.occupancy import predicted_grid, reference_from_depth, score_grid
+    from workers.train.evaluate import OCCUPANCY_RESOLUTION, load_final
+
+    cfg, scene, method, models = load_final(run, torch.device("cpu"))
+    predictor = getattr(method, "predictor", None)
+    if predictor is None:
+        raise SystemExit(f"{run}: the run's method ({cfg.method}) has no occupancy network O")
+    if scene.occupancy is None:
+        raise SystemExit(f"{run}: the scene has no exact occupancy (a synthetic preset has one)")
+    views = scene.splits.get("val", scene.train)
+    truth = scene.occupancy
+    aabb = truth.aabb.float()
+    resolution = OCCUPANCY_RESOLUTION
+    reference = predicted_grid(truth.lookup, aabb, resolution)
+    _, observed = reference_from_depth(views, aabb, resolution)
+    keep_p, top1 = occupancy_probability_grid(predictor.network, aabb, resolution)
+    rules = {f"p(E_e) < {t:g}": keep_p > 1.0 - t for t in thresholds}
+    rules["top-1 (the paper)"] = top1
+    rows = []
+    for name, grid in rules.items():
+        for cells in sorted({0, dilate}):
+            scores = score_grid(dilated(grid, cells), reference, observed)
+            rows.append(
+                {
+                    "rule": name + (f", dilated {cells}" if cells else ""),
+                    "recall": scores["recall"],
+                    "precision": scores["precision"],
+                    "f1": scores["f1"],
+                    "ground_recall": scores["ground_recall"],
+                    "layers": [layer["recall"] for layer in scores["layers"]],
+                    "layer_cells": [layer["reference_cells"] for layer in scores["layers"]],
+                }
+            )
+    return rows
+
+
+def table(rows: list[dict]) -> str:
+    def cell(x) -> str:
+        return "-" if x is None else f"{x:.2f}"
+
+    lines = [
+        "| rule | recall | precision | F1 | ground | layer recall, bottom first |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        layers = " ".join(cell(x) for x in r["layers"])
+        lines.append(
+            f"| {r['rule']} | {cell(r['recall'])} | {cell(r['precision'])} | {r['f1']:.3f} | "
+            f"{cell(r['ground_recall'])} | {layers} |"
+        )
+    if rows:
+        lines.append(f"\nobserved occupied cells by layer: {rows[0]['layer_cells']}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--run", required=True, help="a finished run folder")
+    parser.add_argument(
+        "--thresholds",
+        default=DEFAULT_THRESHOLDS,
+        help=f"keep thresholds on p(E_e), comma-separated (default {DEFAULT_THRESHOLDS})",
+    )
+    parser.add_argument("--dilate", type=int, default=1, help="also each rule grown by N cells")
+    parser.add_argument("--json", default=None, help="also write the rows here")
+    args = parser.parse_args(argv)
+    try:
+        thresholds = [float(t) for t in args.thresholds.split(",") if t.strip()]
+    except ValueError:
+        parser.error(f"--thresholds {args.thresholds!r}: expected numbers, e.g. 0.9,0.99")
+    if any(not 0.0 < t < 1.0 for t in thresholds):
+        parser.error(f"--thresholds {args.thresholds!r}: each must lie in (0, 1)")
+    if args.dilate < 0:
+        parser.error("--dilate must be 0 or more")
+    rows = score_rules(Path(args.run), thresholds, args.dilate)
+    print(table(rows))
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,42 @@
+"""The occupancy-rules diagnostic scores O's decisions as the evaluation samples them: a threshold
+rule read off the max-probability grid equals the predictor sampled into the grid, and a dilation
+grows a cell into its 3^3 neighbourhood, clipped at the box."""
+
+import pytest
+import torch
+
+from bench.occupancy_rules import dilated, main, occupancy_probability_grid
+from model.evaluation.occupancy import predicted_grid
+from model.fields.hmoe import OccupancyNetwork
+
+
+@pytest.mark.parametrize("threshold", [0.5, 0.9, 0.99])
+def test_a_threshold_on_the_probability_grid_is_the_predictor_sampled_into_the_grid(threshold):
+    torch.manual_seed(0)
+    network = OccupancyNetwork(num_scene_experts=2, width=16, xyz_frequencies=2).eval()
+    with torch.no_grad():  # logits spread wide and E_e favoured: O keeps a part of the box
+        network.output.weight.mul_(20.0)
+        network.output.bias[network.empty_index] += 25.0
+    aabb = torch.tensor([[-2.0, -1.0, 0.0], [2.0, 1.0, 3.0]])
+    keep_p, top1 = occupancy_probability_grid(network, aabb, resolution=8)
+    expected = predicted_grid(lambda x: network.occupied(x, threshold), aabb, 8)
+    assert torch.equal(keep_p > 1.0 - threshold, expected)
+    assert torch.equal(top1, predicted_grid(lambda x: network.occupied(x, None), aabb, 8))
+    # a random O keeps some cells and drops others at these thresholds: the test compares something
+    assert 0 < int(expected.sum()) < 8**3
+
+
+def test_a_dilation_grows_a_cell_into_its_neighbourhood_clipped_at_the_box():
+    grid = torch.zeros(7, 7, 7, dtype=torch.bool)
+    grid[3, 3, 3] = True
+    grid[0, 0, 0] = True  # a corner: its neighbourhood inside the box is 2^3
+    grown = dilated(grid, 1)
+    assert int(grown.sum()) == 27 + 8
+    assert grown[2:5, 2:5, 2:5].all() and grown[:2, :2, :2].all() and not grown[6, 6, 6]
+    assert torch.equal(dilated(grid, 0), grid)
+
+
+def test_bad_thresholds_are_named(capsys):
+    with pytest.raises(SystemExit):
+        main(["--run", "nowhere", "--thresholds", "0.9,1.5"])
+    assert "each must lie in (0, 1)" in capsys.readouterr().err
