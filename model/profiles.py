@@ -211,6 +211,12 @@ class GuidedConfig(Frozen):
         description="online: a kept bin is labelled free only on rays whose foreground opacity "
         "reaches this, so O is not taught to drop what the background paints (0: off)",
     )
+    online_surface_points: bool = Field(
+        False,
+        description="online: O is also taught to keep each opaque ray's most visible main sample, "
+        "at its own point (a bin's label reaches O at one random point of the bin, where a thin "
+        "surface may not be)",
+    )
     queries_per_bin: int = Field(
         1,
         ge=1,

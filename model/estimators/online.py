@@ -10,10 +10,17 @@ interlevel loss:
 Bins the sampler skipped, and bins hidden behind what the ray already hit, teach nothing: the first
 because the main network never looked there, the second because another view may see a surface
 there. Dilation, jittered queries and the fallback keep showing the main network bins O does not yet
-keep, so a surface O missed in phase 1 can be found and learned."""
+keep, so a surface O missed in phase 1 can be found and learned.
+
+A bin's label speaks for the whole bin but O is asked at one point of it, so a thin surface (a
+tree's crown, a silo's top) that fills a sliver of a long bin is taught "keep" at points of empty
+air, and "drop" there by every ray that grazes past: O smooths it away. With `surface_points`, O is
+also taught to keep the very point each ray shows most (its main sample of largest weight, on rays
+whose foreground is opaque), where the surface is."""
 
 from __future__ import annotations
 
+import torch
 import torch.nn.functional as F
 from torch import Tensor
 
@@ -23,6 +30,10 @@ from model.fields.hmoe import OccupancyNetwork
 from model.render.accounting import reached_bins
 from model.render.samples import PackedSamples
 from model.scenes.rays import RayBatch
+
+# surface_points: a ray teaches O where its surface is only when its foreground shows more than
+# the background does (a ray into the sky has no surface to teach)
+SHOWN_OPACITY = 0.5
 
 
 class OnlineOccupancy(OccupancyQuery):
@@ -36,6 +47,7 @@ class OnlineOccupancy(OccupancyQuery):
         surface_weight: float = 0.05,
         seen_through: float = 0.5,
         free_opacity: float = 0.0,
+        surface_points: bool = False,
     ):
         super().__init__(network, empty_threshold)
         self.learn = True
@@ -44,6 +56,7 @@ class OnlineOccupancy(OccupancyQuery):
             seen_through,
             free_opacity,
         )
+        self.surface_points = surface_points
 
     def bin_targets(
         self, samples: PackedSamples, weights: Tensor, rays: RayBatch, num_coarse: int
@@ -82,4 +95,29 @@ class OnlineOccupancy(OccupancyQuery):
         logit = self.decision_logit(self.logits).reshape(*target.shape, -1).amax(dim=-1)
         nll = F.binary_cross_entropy_with_logits(logit, target, reduction="none")
         self.logits = None
-        return (nll * mask).sum() / mask.sum().clamp(min=1)
+        loss = (nll * mask).sum() / mask.sum().clamp(min=1)
+        if self.surface_points:
+            loss = loss + self.point_loss(samples, weights, rays)
+        return loss
+
+    def shown_points(self, samples: PackedSamples, weights: Tensor, rays: RayBatch) -> Tensor:
+        """(P, 3): on each ray whose foreground opacity reaches SHOWN_OPACITY, the mid-point
+        of its main sample of largest weight (ties keep every tied sample)."""
+        weights = weights.detach().reshape(-1)
+        count = len(rays.origins)
+        best = torch.zeros(count, dtype=weights.dtype, device=weights.device)
+        best = best.scatter_reduce(0, samples.ray_index, weights, "amax", include_self=True)
+        opacity = torch.zeros_like(best).index_add_(0, samples.ray_index, weights)
+        ray = samples.ray_index
+        shown = (weights == best[ray]) & (weights > 0) & (opacity[ray] >= SHOWN_OPACITY)
+        rows = ray[shown]
+        return rays.origins[rows] + rays.directions[rows] * samples.mids[shown, None]
+
+    def point_loss(self, samples: PackedSamples, weights: Tensor, rays: RayBatch) -> Tensor:
+        """Binary cross-entropy pushing O to keep the points the rays show (`shown_points`)."""
+        points = self.shown_points(samples, weights, rays)
+        if not len(points):
+            return weights.sum() * 0.0
+        logits, _ = self.network.query(points)
+        logit = self.decision_logit(logits)
+        return F.binary_cross_entropy_with_logits(logit, torch.ones_like(logit))

@@ -167,7 +167,11 @@ class LeCOMethod(Method):
         if self.o_learns():  # O keeps learning, so the predictor shares the live network
             gate = models.hmoe.gate.requires_grad_(True)
             self.query = OnlineOccupancy(
-                gate, g.empty_threshold, g.online_surface, free_opacity=g.online_free_opacity
+                gate,
+                g.empty_threshold,
+                g.online_surface,
+                free_opacity=g.online_free_opacity,
+                surface_points=g.online_surface_points,
             )
             self.predictor = OccupancyPredictor(
                 gate, empty_threshold=g.empty_threshold, frozen=False

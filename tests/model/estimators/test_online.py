@@ -7,6 +7,7 @@ import json
 import pytest
 import torch
 
+from model.estimators import online as online_module
 from model.estimators.guided import guided_samples
 from model.estimators.occupancy import OccupancyPredictor
 from model.estimators.online import OnlineOccupancy
@@ -244,3 +245,76 @@ def test_the_decision_logit_is_positive_exactly_where_the_sampler_keeps_the_poin
     for threshold in (None, 0.5, 0.9):
         online = OnlineOccupancy(network, empty_threshold=threshold)
         assert torch.equal(online.decision_logit(logits) > 0, network.decide(logits, threshold))
+
+
+def test_surface_points_are_each_opaque_rays_most_visible_sample():
+    # ray 0 is opaque and shows its second sample most; ray 1's foreground holds 0.3 (the
+    # background paints the rest): it teaches no point
+    rays = ray_batch(2)
+    samples = PackedSamples(
+        torch.tensor([0.5, 4.4, 6.0, 0.5, 2.5]),
+        torch.tensor([1.0, 4.6, 6.5, 1.0, 3.0]),
+        torch.tensor([0, 0, 0, 1, 1]),
+    )
+    weights = torch.tensor([0.01, 0.85, 0.10, 0.01, 0.29])
+    online = OnlineOccupancy(OccupancyNetwork(2, 16, 4), 0.9, surface_points=True)
+    points = online.shown_points(samples, weights, rays)
+    assert points.shape == (1, 3)
+    expected = rays.origins[0] + rays.directions[0] * 4.5
+    assert torch.allclose(points[0], expected)
+
+
+def test_the_point_loss_teaches_o_to_keep_the_point_a_ray_shows():
+    torch.manual_seed(0)
+    network = OccupancyNetwork(num_scene_experts=2, width=32, xyz_frequencies=4)
+    with torch.no_grad():
+        network.output.bias[network.empty_index] = 8.0  # O starts sure that everything is empty
+    rays = ray_batch(64)
+    # every ray shows a thin wall at x = 4.5 (a sliver of bin 4 of 8)
+    samples = PackedSamples(
+        torch.tensor([0.5, 4.45]).repeat(64),
+        torch.tensor([1.0, 4.55]).repeat(64),
+        torch.arange(64).repeat_interleave(2),
+    )
+    weights = torch.tensor([0.0, 0.95]).repeat(64)
+    online = OnlineOccupancy(network, 0.9, surface_points=True)
+    wall = online.shown_points(samples, weights, rays)
+    assert len(wall) == 64 and not network.occupied(wall, 0.9).any()
+    optimizer = torch.optim.Adam(network.parameters(), lr=1e-2)
+    for _ in range(60):
+        loss = online.point_loss(samples, weights, rays)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    assert network.occupied(wall, 0.9).float().mean() >= 0.9
+
+
+def test_a_leco_run_with_surface_points_trains_and_adds_the_point_loss(
+    tiny_scene, tmp_path, monkeypatch
+):
+    # a smoke model ten steps in is nowhere opaque: every ray with foreground teaches its point
+    monkeypatch.setattr(online_module, "SHOWN_OPACITY", 0.0)
+    first = {}
+    for points in (False, True):
+        cfg = TrainConfig(
+            method="leco",
+            profile="smoke",
+            metrics_every=1,
+            seed=0,
+            overrides={
+                "occupancy.steps": 10,
+                "main_steps": 6,
+                "guided.online": True,
+                "guided.online_warmup": 2,
+                "guided.online_surface_points": points,
+                "guided.empty_threshold": 0.9,
+            },
+        )
+        run = tmp_path / f"run-{points}"
+        run_training(cfg, tiny_scene.root, run, backend="local")
+        rows = [r for r in read_metrics(run / "metrics.jsonl") if r["phase"] == "main"]
+        losses = [r["occupancy_online_loss"] for r in rows if "occupancy_online_loss" in r]
+        assert len(losses) == 4 and all(torch.isfinite(torch.tensor(x)) for x in losses)
+        first[points] = losses[0]
+    # same seed: the first step O learns on is the same step, and the point loss adds to it
+    assert first[True] > first[False]
