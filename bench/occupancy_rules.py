@@ -27,19 +27,14 @@ def occupancy_probability_grid(network, aabb, resolution: int, subdivisions: int
     predictor (model/evaluation/occupancy.py `predicted_grid`)."""
     import torch
 
-    axis = (torch.arange(resolution, dtype=torch.float32) + 0.5) / resolution
-    centres = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
-    sub = (
-        (torch.arange(subdivisions, dtype=torch.float32) + 0.5) / subdivisions - 0.5
-    ) / resolution
-    offsets = torch.stack(torch.meshgrid(sub, sub, sub, indexing="ij"), -1).reshape(-1, 3)
-    lo, size = aabb[0].float(), (aabb[1] - aabb[0]).float()
-    keep_p = torch.zeros(len(centres))
-    top1 = torch.zeros(len(centres), dtype=torch.bool)
+    from model.evaluation.occupancy import subcell_points
+
+    count = resolution**3
+    keep_p = torch.zeros(count)
+    top1 = torch.zeros(count, dtype=torch.bool)
     empty = network.empty_index
     with torch.no_grad():
-        for offset in offsets:
-            points = lo + (centres + offset) * size
+        for points in subcell_points(aabb, resolution, subdivisions):
             for s in range(0, len(points), 1 << 16):
                 logits = network(points[s : s + (1 << 16)]).float()
                 p = 1.0 - torch.softmax(logits, dim=-1)[:, empty]

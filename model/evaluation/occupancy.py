@@ -14,7 +14,7 @@ same occupancy scored on the same reference."""
 
 from __future__ import annotations
 
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import torch
 from torch import Tensor
@@ -81,12 +81,9 @@ def reference_from_depth(
     return occupied.reshape(shape), observed.reshape(shape)
 
 
-def predicted_grid(
-    occupied: Callable[[Tensor], Tensor], aabb: Tensor, resolution: int, subdivisions: int = 2
-) -> Tensor:
-    """A cell is occupied when any of its subdivisions^3 sub-cell centres is: the predictor sampled
-    into the grid, as in the paper. Sub-cells (not just the centre) keep thin surfaces from falling
-    between samples."""
+def subcell_points(aabb: Tensor, resolution: int, subdivisions: int = 2) -> Iterator[Tensor]:
+    """For each of the subdivisions^3 sub-cell offsets, the (resolution^3, 3) world points at that
+    offset in every cell of the grid over aabb (flat index order, i slowest)."""
     axis = (torch.arange(resolution, dtype=torch.float32) + 0.5) / resolution
     centres = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
     sub = (
@@ -94,9 +91,19 @@ def predicted_grid(
     ) / resolution
     offsets = torch.stack(torch.meshgrid(sub, sub, sub, indexing="ij"), -1).reshape(-1, 3)
     lo, size = aabb[0].float(), (aabb[1] - aabb[0]).float()
-    result = torch.zeros(len(centres), dtype=torch.bool)
     for offset in offsets:
-        result |= occupied(lo + (centres + offset) * size).cpu()
+        yield lo + (centres + offset) * size
+
+
+def predicted_grid(
+    occupied: Callable[[Tensor], Tensor], aabb: Tensor, resolution: int, subdivisions: int = 2
+) -> Tensor:
+    """A cell is occupied when any of its subdivisions^3 sub-cell centres is: the predictor sampled
+    into the grid, as in the paper. Sub-cells (not just the centre) keep thin surfaces from falling
+    between samples."""
+    result = torch.zeros(resolution**3, dtype=torch.bool)
+    for points in subcell_points(aabb, resolution, subdivisions):
+        result |= occupied(points).cpu()
     return result.reshape((resolution,) * 3)
 
 
