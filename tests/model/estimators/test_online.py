@@ -126,36 +126,43 @@ def test_o_that_keeps_nothing_learns_the_wall_the_main_network_sees():
     assert network.occupied(free, 0.9).float().mean() <= 0.2
 
 
+def online_losses(tiny_scene, run, overrides: dict) -> dict[int, float]:
+    """A smoke LeCO run keeping bins where p(E_e) < 0.9 with `overrides`: O's online loss by the
+    main-phase step it learned on."""
+    cfg = TrainConfig(
+        method="leco",
+        profile="smoke",
+        metrics_every=1,
+        seed=0,
+        overrides={"guided.empty_threshold": 0.9, **overrides},
+    )
+    run_training(cfg, tiny_scene.root, run, backend="local")
+    rows = [r for r in read_metrics(run / "metrics.jsonl") if r["phase"] == "main"]
+    return {
+        r["phase_step"]: r["occupancy_online_loss"] for r in rows if "occupancy_online_loss" in r
+    }
+
+
 def test_a_leco_run_with_online_o_trains_it_saves_it_and_reports_its_loss(tiny_scene, tmp_path):
     final_o = {}
     # O learns from the 5th main step (warm-up 4), then every step or every 3rd one
     expected = {(False, 1): [], (True, 1): list(range(5, 11)), (True, 3): [5, 8]}
     for (online, every), learns_at in expected.items():
-        cfg = TrainConfig(
-            method="leco",
-            profile="smoke",
-            metrics_every=1,
-            seed=0,
-            overrides={
+        run = tmp_path / f"run-{online}-{every}"
+        learned = online_losses(
+            tiny_scene,
+            run,
+            {
                 "occupancy.steps": 20,
                 "main_steps": 10,
                 "guided.online": online,
                 "guided.online_warmup": 4,
                 "guided.online_every": every,
                 "guided.fallback": True,
-                "guided.empty_threshold": 0.9,
             },
         )
-        run = tmp_path / f"run-{online}-{every}"
-        run_training(cfg, tiny_scene.root, run, backend="local")
-        rows = [r for r in read_metrics(run / "metrics.jsonl") if r["phase"] == "main"]
-        learned = [r["phase_step"] for r in rows if "occupancy_online_loss" in r]
-        assert learned == learns_at
-        assert all(
-            torch.isfinite(torch.tensor(r["occupancy_online_loss"]))
-            for r in rows
-            if r["phase_step"] in learned
-        )
+        assert list(learned) == learns_at
+        assert all(torch.isfinite(torch.tensor(x)) for x in learned.values())
         saved = OccupancyPredictor.load(run / "final" / "occupancy.pt")
         models = torch.load(run / "final" / "models.pt", weights_only=False)["models"]
         # the saved O is the HMoE's gate as it ended
@@ -296,25 +303,19 @@ def test_a_leco_run_with_surface_points_trains_and_adds_the_point_loss(
     monkeypatch.setattr(online_module, "SHOWN_OPACITY", 0.0)
     first = {}
     for points in (False, True):
-        cfg = TrainConfig(
-            method="leco",
-            profile="smoke",
-            metrics_every=1,
-            seed=0,
-            overrides={
+        losses = online_losses(
+            tiny_scene,
+            tmp_path / f"run-{points}",
+            {
                 "occupancy.steps": 10,
                 "main_steps": 6,
                 "guided.online": True,
                 "guided.online_warmup": 2,
                 "guided.online_surface_points": points,
-                "guided.empty_threshold": 0.9,
             },
         )
-        run = tmp_path / f"run-{points}"
-        run_training(cfg, tiny_scene.root, run, backend="local")
-        rows = [r for r in read_metrics(run / "metrics.jsonl") if r["phase"] == "main"]
-        losses = [r["occupancy_online_loss"] for r in rows if "occupancy_online_loss" in r]
-        assert len(losses) == 4 and all(torch.isfinite(torch.tensor(x)) for x in losses)
-        first[points] = losses[0]
+        assert list(losses) == [3, 4, 5, 6]
+        assert all(torch.isfinite(torch.tensor(x)) for x in losses.values())
+        first[points] = losses[3]
     # same seed: the first step O learns on is the same step, and the point loss adds to it
     assert first[True] > first[False]
