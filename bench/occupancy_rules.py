@@ -132,7 +132,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--thresholds {args.thresholds!r}: each must lie in (0, 1)")
     if args.dilate < 0:
         parser.error("--dilate must be 0 or more")
-    rows = score_rules(Path(args.run), thresholds, args.dilate)
+    try:
+        rows = score_rules(Path(args.run), thresholds, args.dilate)
+    except (FileNotFoundError, ValueError) as error:  # no finished run there, or not a run folder
+        parser.exit(2, f"occupancy_rules: {error}\n")
     print(table(rows))
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))

@@ -40,3 +40,10 @@ def test_bad_thresholds_are_named(capsys):
     with pytest.raises(SystemExit):
         main(["--run", "nowhere", "--thresholds", "0.9,1.5"])
     assert "each must lie in (0, 1)" in capsys.readouterr().err
+
+
+def test_a_folder_without_a_finished_run_is_named(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit:
+        main(["--run", str(tmp_path)])
+    assert exit.value.code == 2
+    assert str(tmp_path) in capsys.readouterr().err
