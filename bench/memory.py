@@ -9,6 +9,7 @@ frame): the peak against `estimate_frames_bytes`, and the bytes a pixel costs be
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
 import resource
 import subprocess
@@ -83,11 +84,14 @@ def one_frame(scene: Path, cfg: TrainConfig, width: int, height: int) -> dict:
         width=torch.full((n,), width),
         height=torch.full((n,), height),
     )
+    setup_peak = peak_rss_mb()
+    before = restart_peak()
     frame = render_frame(trained, sized, 0, appearance_row(trained, "mean"))
     to_uint8(frame.rgb).numpy()
     depth_range(frame)
     frame.surface_points(0.0)
-    return {"peak_rss_mb": peak_rss_mb()}
+    frame_peak = peak_rss_mb()
+    return {"peak_rss_mb": max(setup_peak, frame_peak), "frame_mb": frame_peak - before}
 
 
 def peak_rss_mb() -> float:
@@ -100,6 +104,20 @@ def peak_rss_mb() -> float:
             if line.startswith("VmHWM:"):
                 return int(line.split()[1]) / 1024
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def restart_peak() -> float:
+    """Hands the heap's free pages back and restarts the peak at the RSS now (Linux's clear_refs
+    5), which it returns (MiB). Without it a frame's buffers land in pages an earlier step freed
+    and its cost hides under that step's peak: 800x600 measured -11 to 335 bytes a pixel."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass  # no glibc or no /proc: the frame's cost is measured over the earlier peak
+    status = Path("/proc/self/status")
+    rss = [line for line in status.read_text().splitlines() if line.startswith("VmRSS:")]
+    return int(rss[0].split()[1]) / 1024 if rss else peak_rss_mb()
 
 
 def scene_shape(scene: Path) -> tuple[int, float]:
@@ -118,16 +136,17 @@ def estimate_mb(shape: tuple[int, float], cfg: TrainConfig) -> float:
     return estimate_peak_bytes(cfg.method, cfg.resolved_profile(), *shape)["total"] / 2**20
 
 
-def child_peak(*words: str) -> float | None:
-    """`python -m bench.memory WORDS` in a fresh process: its peak RSS (MiB), or None (its error
-    printed) when it failed."""
+def child_peak(*words: str) -> dict | None:
+    """`python -m bench.memory WORDS` in a fresh process: what it measured (its peak RSS, MiB, and
+    for a frame the frame's own peak over the RSS before it), or None (its error printed) when it
+    failed."""
     child = subprocess.run(
         [sys.executable, "-m", "bench.memory", *words], capture_output=True, text=True
     )
     if child.returncode != 0:
         print(child.stderr[-2000:], file=sys.stderr)
         return None
-    return json.loads(child.stdout.strip().splitlines()[-1])["peak_rss_mb"]
+    return json.loads(child.stdout.strip().splitlines()[-1])
 
 
 def frames_command(
@@ -141,26 +160,28 @@ def frames_command(
     rows = []
     print(
         f"{'method':15s} {'frame':>10s} {'estimate MiB':>13s} {'peak RSS MiB':>13s} "
-        f"{'ratio':>6s} {'bytes/pixel':>12s}"
+        f"{'ratio':>6s} {'frame MiB':>9s} {'bytes/pixel':>12s}"
     )
     for method in methods:
         cfg = TrainConfig(method=method, profile=args.profile, overrides=overrides)
         profile = cfg.resolved_profile()
         previous: tuple[int, float] | None = None
         for width, height in sizes:
-            peak = child_peak(
+            measured = child_peak(
                 "--one-frame", str(scene), cfg.model_dump_json(), str(width), str(height)
             )
-            if peak is None:
+            if measured is None:
                 return 1
+            peak, frame = measured["peak_rss_mb"], measured["frame_mb"]
             pixels = width * height
             estimate = estimate_frames_bytes(method, profile, images, pixels)["total"] / 2**20
+            # what a pixel costs: the frames' own peaks (each over the RSS before it) between sizes
             slope: float | None = (
-                (peak - previous[1]) * 2**20 / (pixels - previous[0])
+                (frame - previous[1]) * 2**20 / (pixels - previous[0])
                 if previous and pixels != previous[0]
                 else None
             )
-            previous = (pixels, peak)
+            previous = (pixels, frame)
             rows.append(
                 {
                     "method": method,
@@ -168,12 +189,13 @@ def frames_command(
                     "height": height,
                     "estimate_mb": estimate,
                     "peak_rss_mb": peak,
+                    "frame_mb": frame,
                     "bytes_per_pixel": slope,
                 }
             )
             print(
                 f"{method:15s} {f'{width}x{height}':>10s} {estimate:13,.0f} {peak:13,.0f} "
-                f"{peak / estimate:6.2f} {'' if slope is None else f'{slope:12,.0f}'}"
+                f"{peak / estimate:6.2f} {frame:9,.0f} {'' if slope is None else f'{slope:12,.0f}'}"
             )
     over = [r for r in rows if r["peak_rss_mb"] > TARGET * r["estimate_mb"]]
     print(
@@ -209,9 +231,10 @@ def memory_command(args: argparse.Namespace) -> int:
         for rays in sizes:
             cfg = run_config(method, args.profile, rays, args.steps, overrides)
             with tempfile.TemporaryDirectory(prefix="leco-memory-") as tmp:
-                peak = child_peak("--one", str(scene), tmp, cfg.model_dump_json())
-            if peak is None:
+                measured = child_peak("--one", str(scene), tmp, cfg.model_dump_json())
+            if measured is None:
                 return 1
+            peak = measured["peak_rss_mb"]
             estimate = estimate_mb(shape, cfg)
             rows.append(
                 {"method": method, "rays": rays, "estimate_mb": estimate, "peak_rss_mb": peak}

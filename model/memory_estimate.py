@@ -97,8 +97,8 @@ def estimate_peak_bytes(
 # A finished run's frames (a render's, an export's views): rendered FRAME_CHUNK rays at a time
 # without gradient (workers/render/frames.py CHUNK), with the whole frame's rays, outputs and their
 # conversions held at once, and the allocator's growth over a frame's chunks: FRAME_BYTES_PER_PIXEL
-# is the most a pixel was measured to cost, vanilla's (`leco bench-memory --frames`: 116-519 bytes
-# over the methods, docs/BENCHMARKS.md).
+# is the most a pixel was measured to cost before the renderer wrote its outputs in place (vanilla's
+# 519); since then `leco bench-memory --frames` measures 55-318 over the methods (BENCHMARKS.md).
 FRAME_CHUNK = 8192
 FRAME_BYTES_PER_PIXEL = 520
 # a point cloud's kept points: float64 position, colour, sampling key and order, twice while a

@@ -62,19 +62,23 @@ def render_rays(
     """`rays` rendered with the networks of `phase`, on the CPU."""
     was = models.training
     models.eval()
-    rgb, depth, opacity, samples = [], [], [], 0
+    # the outputs are allocated once, before the chunks: a frame holds its pixels once (no
+    # concatenation's second copy), and no chunk's output lands between two chunks' activations,
+    # so the heap those activations freed is reused as it is (the peak is one chunk over the pixels)
+    n = len(rays)
+    rgb, depth, opacity = torch.empty(n, 3), torch.empty(n), torch.empty(n)
+    samples = 0
     try:
-        for part in chunks(rays, chunk):
+        for start, part in zip(range(0, n, chunk), chunks(rays, chunk)):
             out = method.render(models, phase, part.to(device))
-            rgb.append(out.rgb.float().clamp(0, 1).cpu())
-            depth.append(out.depth.float().cpu())
-            opacity.append(out.opacity.float().cpu())
+            end = start + len(part)
+            rgb[start:end] = out.rgb.float().clamp(0, 1).cpu()
+            depth[start:end] = out.depth.float().cpu()
+            opacity[start:end] = out.opacity.float().cpu()
             samples += out.weights.numel()
     finally:
         models.train(was)
-    if not rgb:
-        return Rendering(torch.zeros(0, 3), torch.zeros(0), torch.zeros(0), 0.0)
-    return Rendering(torch.cat(rgb), torch.cat(depth), torch.cat(opacity), samples / len(rays))
+    return Rendering(rgb, depth, opacity, samples / n if n else 0.0)
 
 
 def camera_rays(cameras: Cameras, index: int, aabb: Tensor, appearance: int) -> RayBatch:
