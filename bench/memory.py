@@ -98,12 +98,19 @@ def peak_rss_mb() -> float:
     """This process's peak resident set. /proc's VmHWM belongs to the address space exec made;
     getrusage's ru_maxrss also keeps the parent's peak at the fork (a child of a 10 GB process
     starts at 10 GB)."""
+    peak = proc_status_mb("VmHWM")
+    return peak if peak is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def proc_status_mb(key: str) -> float | None:
+    """A size /proc/self/status reports (VmHWM, VmRSS) in MiB; None without /proc."""
     status = Path("/proc/self/status")
-    if status.exists():
-        for line in status.read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    if not status.exists():
+        return None
+    for line in status.read_text().splitlines():
+        if line.startswith(f"{key}:"):
+            return int(line.split()[1]) / 1024
+    return None
 
 
 def restart_peak() -> float:
@@ -115,9 +122,8 @@ def restart_peak() -> float:
         Path("/proc/self/clear_refs").write_text("5")
     except OSError:
         pass  # no glibc or no /proc: the frame's cost is measured over the earlier peak
-    status = Path("/proc/self/status")
-    rss = [line for line in status.read_text().splitlines() if line.startswith("VmRSS:")]
-    return int(rss[0].split()[1]) / 1024 if rss else peak_rss_mb()
+    rss = proc_status_mb("VmRSS")
+    return rss if rss is not None else peak_rss_mb()
 
 
 def scene_shape(scene: Path) -> tuple[int, float]:
