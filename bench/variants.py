@@ -193,6 +193,7 @@ CONFIGURATIONS: dict[str, Variant] = {
             "ngp_leco.guided.placement": True,
             "ngp_leco.guided.placement_in_phase1": True,
             "ngp_leco.guided.online_warmup": 500,
+            "ngp_leco.guided.online_surface_points": False,
         },
     ),
 }
