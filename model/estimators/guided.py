@@ -32,6 +32,9 @@ class BinOptions:
     # O is asked at this many points of each bin and the bin is kept when any of them is, so a
     # surface that fills only part of a bin is found (guided.queries_per_bin)
     queries: int = 1
+    # while training, each ray also samples this many bins O dropped, at random, so the main network
+    # renders (and O's online loss labels) a surface O missed (guided.explore_bins)
+    explore: int = 0
 
     @classmethod
     def of(cls, g: GuidedConfig) -> "BinOptions":
@@ -43,6 +46,7 @@ class BinOptions:
             g.fallback,
             g.fallback_topk,
             g.queries_per_bin,
+            g.explore_bins,
         )
 
 
@@ -76,6 +80,14 @@ def select_bins(
         chosen = torch.zeros_like(keep).scatter_(1, best, True)
         return keep | (chosen & lost[:, None]), lost
     return keep | lost[:, None], lost
+
+
+def explored_bins(keep: Tensor, count: int, noise: Noise) -> Tensor:
+    """`count` bins per ray that `keep` (R, n) drops, drawn uniformly among them (fewer where
+    fewer are dropped): the largest of a uniform draw per dropped bin, without a host read."""
+    draw = noise.rand(*keep.shape, device=keep.device).masked_fill(keep, -1.0)
+    picked = draw.topk(min(count, keep.shape[1]), dim=1).indices
+    return torch.zeros_like(keep).scatter_(1, picked, True) & ~keep
 
 
 @dataclass
@@ -180,6 +192,8 @@ def draw_guided(
     counts = torch.full_like(keep, split, dtype=torch.long)
     if options.topk == 0:
         counts[lost] = 1
+    if options.explore and noise is not None and keep.shape[1]:
+        keep = keep | (explored_bins(keep, options.explore, noise) & (far > near)[:, None])
     ray, bin_ = torch.nonzero(keep, as_tuple=True)  # row-major: grouped by ray, increasing t
     samples = split_bins(
         edges[ray, bin_],

@@ -9,8 +9,9 @@ interlevel loss:
   `seen_through`), is free space this view looked through: O is pushed to drop it.
 Bins the sampler skipped, and bins hidden behind what the ray already hit, teach nothing: the first
 because the main network never looked there, the second because another view may see a surface
-there. Dilation, jittered queries and the fallback keep showing the main network bins O does not yet
-keep, so a surface O missed in phase 1 can be found and learned.
+there. Dilation, jittered queries, the fallback and the explored bins (guided.explore_bins) keep
+showing the main network bins O does not yet keep, so a surface O missed in phase 1 can be found
+and learned.
 
 A bin's label speaks for the whole bin but O is asked at one point of it, so a thin surface (a
 tree's crown, a silo's top) that fills a sliver of a long bin is taught "keep" at points of empty

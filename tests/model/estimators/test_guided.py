@@ -66,6 +66,7 @@ def check_invariants(samples, near, far):
         {"dilate": 1},
         {"fallback": True},
         {"jitter": True, "dilate": 2, "fallback": True},
+        {"dilate": 1, "fallback": True, "topk": 2, "explore": 2},
     ],
 )
 def test_every_option_keeps_samples_sorted_and_inside_the_segment(options):
@@ -337,3 +338,30 @@ def test_the_top_k_fallback_samples_the_bins_o_scores_highest():
     span = (far - near)[samples.ray_index]
     position = (samples.mids - near[samples.ray_index]) / span
     assert (position >= 6 / 8 - 1e-6).all()  # inside the last two coarse bins
+
+
+def test_explored_bins_are_dropped_bins_drawn_at_random_while_training_only():
+    near, far, origins, dirs = rays()
+    # O keeps only the bin holding the wall (bin 2 of 8 on most rays)
+    kept, _ = guided_samples(near, far, origins, dirs, wall, 8, 4, None)
+    noise = Noise(torch.Generator().manual_seed(3))
+    explored, _ = guided_samples(near, far, origins, dirs, wall, 8, 4, noise, explore=2)
+    check_invariants(explored, near, far)
+    per_ray = torch.bincount(explored.ray_index, minlength=len(near))
+    before = torch.bincount(kept.ray_index, minlength=len(near))
+    assert per_ray[:4].sum() == 0, "rays that miss the box get nothing"
+    assert (per_ray[4:] == before[4:] + 2 * 4).all(), "two more bins a hit ray, split in 4"
+    # over many steps every dropped bin of a ray is explored, none twice in one step
+    seen = torch.zeros(8, dtype=torch.long)
+    for _ in range(40):
+        one, _ = guided_samples(
+            near[4:5], far[4:5], origins[4:5], dirs[4:5], wall, 8, 1, noise, explore=2
+        )
+        bins = ((one.mids - near[4]) / (far[4] - near[4]) * 8).long()
+        assert len(bins.unique()) == len(bins)
+        seen[bins] += 1
+    assert (seen > 0).all()
+    # without noise (a validation render) nothing is explored
+    assert guided_samples(near, far, origins, dirs, wall, 8, 4, None, explore=2)[0].starts.equal(
+        kept.starts
+    )

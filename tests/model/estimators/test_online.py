@@ -126,6 +126,75 @@ def test_o_that_keeps_nothing_learns_the_wall_the_main_network_sees():
     assert network.occupied(free, 0.9).float().mean() <= 0.2
 
 
+# a ground in the last bin and a wall far in front of it: an O that learned only the ground keeps
+# bins 6-7 (dilated) and, jittered queries and all, never shows the main network bin 2
+GROUND, FRONT = (7.2, 7.8), (2.2, 2.8)
+
+
+def slab_density(points: torch.Tensor, slabs: list[tuple[float, float]]) -> torch.Tensor:
+    x = points[:, 0]
+    inside = torch.zeros_like(x, dtype=torch.bool)
+    for lo, hi in slabs:
+        inside |= (x > lo) & (x < hi)
+    return torch.where(inside, 50.0, 0.0)
+
+
+def online_steps(online, optimizer, rays, noise, slabs, steps: int, explore: int) -> None:
+    """`steps` of O's online loss under LeCO's `cpu` sampler (jitter, dilation 1, the top-2
+    fallback) on a main network that is exactly the given slabs."""
+    for _ in range(steps):
+        samples, _ = guided_samples(
+            rays.near,
+            rays.far,
+            rays.origins,
+            rays.directions,
+            online.occupied,
+            8,
+            4,
+            noise,
+            online.scores,
+            jitter=True,
+            dilate=1,
+            fallback=True,
+            topk=2,
+            explore=explore,
+        )
+        xyz = (
+            rays.origins[samples.ray_index]
+            + rays.directions[samples.ray_index] * samples.mids[:, None]
+        )
+        density = slab_density(xyz, slabs)
+        weights, _ = packed_weights(density, samples.deltas, samples.ray_index, len(rays))
+        loss = online.loss(samples, weights, rays, num_coarse=8)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+
+
+@pytest.mark.parametrize("explore", [0, 2])
+def test_explored_bins_teach_o_a_wall_its_keep_never_shows(explore):
+    # O first learns a scene that is only the ground; then a wall appears in front of it (a tree
+    # crown the main network learns late). O keeps bins 6-7, so without exploration no ray samples
+    # bin 2 and O stays blind to the wall; two random dropped bins a ray find it and teach it.
+    torch.manual_seed(0)
+    network = OccupancyNetwork(num_scene_experts=2, width=32, xyz_frequencies=4)
+    online = OnlineOccupancy(network, empty_threshold=0.9)
+    optimizer = torch.optim.Adam(network.parameters(), lr=1e-2)
+    rays, noise = ray_batch(128), Noise(torch.Generator().manual_seed(1))
+    line = lambda lo, hi: torch.stack(  # noqa: E731
+        [torch.linspace(lo + 0.02, hi - 0.02, 50), torch.zeros(50), torch.zeros(50)], -1
+    )
+    online_steps(online, optimizer, rays, noise, [GROUND], 150, explore=0)
+    assert network.occupied(line(*GROUND), 0.9).float().mean() >= 0.9
+    assert network.occupied(line(*FRONT), 0.9).float().mean() <= 0.1
+    online_steps(online, optimizer, rays, noise, [FRONT, GROUND], 150, explore=explore)
+    kept = network.occupied(line(*FRONT), 0.9).float().mean()
+    if explore:
+        assert kept >= 0.9
+    else:
+        assert kept <= 0.1
+
+
 def online_losses(tiny_scene, run, overrides: dict) -> dict[int, float]:
     """A smoke LeCO run keeping bins where p(E_e) < 0.9 with `overrides`: O's online loss by the
     main-phase step it learned on."""

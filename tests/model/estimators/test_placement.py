@@ -237,6 +237,13 @@ def test_a_guided_option_without_its_switch_is_refused_naming_both():
         ValidationError, match="guided.placement_explore needs guided.placement=true"
     ):
         GuidedConfig(placement_explore=0.05)
+    with pytest.raises(ValidationError, match="use guided.placement_explore instead"):
+        GuidedConfig(placement=True, explore_bins=2)
+    from model.profiles import LeCOPropConfig
+
+    with pytest.raises(ValidationError, match="look outside O's bound with leco_prop.explore"):
+        LeCOPropConfig(guided=GuidedConfig(explore_bins=2))
+    assert GuidedConfig(explore_bins=2).explore_bins == 2
     assert (
         GuidedConfig(
             fallback=True, fallback_topk=2, placement=True, placement_in_phase1=True
