@@ -80,9 +80,46 @@ def test_no_bin_is_free_on_a_ray_whose_foreground_is_semi_transparent():
     assert mask.tolist() == [[True, True, False, False], [False, True, False, False]]
 
 
-def wall_density(points: torch.Tensor) -> torch.Tensor:
+def slab_density(points: torch.Tensor, slabs: list[tuple[float, float]]) -> torch.Tensor:
     x = points[:, 0]
-    return torch.where((x > WALL[0]) & (x < WALL[1]), 50.0, 0.0)
+    inside = torch.zeros_like(x, dtype=torch.bool)
+    for lo, hi in slabs:
+        inside |= (x > lo) & (x < hi)
+    return torch.where(inside, 50.0, 0.0)
+
+
+def online_steps(
+    online, optimizer, rays, noise, slabs, steps: int, explore: int = 0, topk: int = 2
+) -> None:
+    """`steps` of O's online loss under LeCO's sampler (jitter, dilation 1, the fallback: with
+    `topk` 2, `cpu`'s) on a main network that is exactly the given slabs."""
+    for _ in range(steps):
+        samples, _ = guided_samples(
+            rays.near,
+            rays.far,
+            rays.origins,
+            rays.directions,
+            online.occupied,
+            8,
+            4,
+            noise,
+            online.scores,
+            jitter=True,
+            dilate=1,
+            fallback=True,
+            topk=topk,
+            explore=explore,
+        )
+        xyz = (
+            rays.origins[samples.ray_index]
+            + rays.directions[samples.ray_index] * samples.mids[:, None]
+        )
+        density = slab_density(xyz, slabs)
+        weights, _ = packed_weights(density, samples.deltas, samples.ray_index, len(rays))
+        loss = online.loss(samples, weights, rays, num_coarse=8)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
 
 
 def test_o_that_keeps_nothing_learns_the_wall_the_main_network_sees():
@@ -99,29 +136,8 @@ def test_o_that_keeps_nothing_learns_the_wall_the_main_network_sees():
         [torch.linspace(WALL[0] + 0.02, WALL[1] - 0.02, 50), torch.zeros(50), torch.zeros(50)], -1
     )
     assert not network.occupied(wall, 0.9).any()
-    for _ in range(150):
-        samples, _ = guided_samples(
-            rays.near,
-            rays.far,
-            rays.origins,
-            rays.directions,
-            online.occupied,
-            8,
-            4,
-            noise,
-            jitter=True,
-            dilate=1,
-            fallback=True,
-        )
-        xyz = (
-            rays.origins[samples.ray_index]
-            + rays.directions[samples.ray_index] * samples.mids[:, None]
-        )
-        weights, _ = packed_weights(wall_density(xyz), samples.deltas, samples.ray_index, len(rays))
-        loss = online.loss(samples, weights, rays, num_coarse=8)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+    # the fallback samples every bin of a ray O keeps nothing of
+    online_steps(online, optimizer, rays, noise, [WALL], 150, topk=0)
     assert network.occupied(wall, 0.9).float().mean() >= 0.9
     assert network.occupied(free, 0.9).float().mean() <= 0.2
 
@@ -129,46 +145,6 @@ def test_o_that_keeps_nothing_learns_the_wall_the_main_network_sees():
 # a ground in the last bin and a wall far in front of it: an O that learned only the ground keeps
 # bins 6-7 (dilated) and, jittered queries and all, never shows the main network bin 2
 GROUND, FRONT = (7.2, 7.8), (2.2, 2.8)
-
-
-def slab_density(points: torch.Tensor, slabs: list[tuple[float, float]]) -> torch.Tensor:
-    x = points[:, 0]
-    inside = torch.zeros_like(x, dtype=torch.bool)
-    for lo, hi in slabs:
-        inside |= (x > lo) & (x < hi)
-    return torch.where(inside, 50.0, 0.0)
-
-
-def online_steps(online, optimizer, rays, noise, slabs, steps: int, explore: int) -> None:
-    """`steps` of O's online loss under LeCO's `cpu` sampler (jitter, dilation 1, the top-2
-    fallback) on a main network that is exactly the given slabs."""
-    for _ in range(steps):
-        samples, _ = guided_samples(
-            rays.near,
-            rays.far,
-            rays.origins,
-            rays.directions,
-            online.occupied,
-            8,
-            4,
-            noise,
-            online.scores,
-            jitter=True,
-            dilate=1,
-            fallback=True,
-            topk=2,
-            explore=explore,
-        )
-        xyz = (
-            rays.origins[samples.ray_index]
-            + rays.directions[samples.ray_index] * samples.mids[:, None]
-        )
-        density = slab_density(xyz, slabs)
-        weights, _ = packed_weights(density, samples.deltas, samples.ray_index, len(rays))
-        loss = online.loss(samples, weights, rays, num_coarse=8)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
 
 
 @pytest.mark.parametrize("explore", [0, 2])
