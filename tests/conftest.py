@@ -8,6 +8,8 @@ import pytest
 
 from tests.helpers import drop_postgres_database, fresh_postgres_database
 
+pytest_plugins = ["tests.crash_report"]
+
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "datasets"
 
 

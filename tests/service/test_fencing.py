@@ -123,12 +123,11 @@ def test_a_stale_attempt_writes_nothing(service_settings, tmp_path):
 # ----- the outage the issue describes, on PostgreSQL
 # ----------------------------------------------------------
 @pytest.mark.slow
+@pytest.mark.usefixtures("local_ray")  # shut down after the module, not left to the next one
 def test_an_outage_longer_than_the_lease_leaves_one_writer_and_no_gap(tmp_path):
     from tests.helpers import drop_postgres_database, fresh_postgres_database, steps_of, wait_for
     from tests.service.test_faults import block_connections, submit_switch
-    from workers.train.run import ensure_ray
 
-    ensure_ray(2)
     url = fresh_postgres_database()
     upgrade(url)
     # retries 5.3 s
