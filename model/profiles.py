@@ -217,6 +217,30 @@ class GuidedConfig(Frozen):
         "at its own point (a bin's label reaches O at one random point of the bin, where a thin "
         "surface may not be)",
     )
+    online_dense_points: bool = Field(
+        False,
+        description="online: O is also taught to keep every main sample that stops at least "
+        "`online_surface` of the light reaching it while half the ray's light still gets there "
+        "(a top a ray grazes on its way to the ground is not the point the ray shows most, so "
+        "`online_surface_points` does not teach it)",
+    )
+    online_box_points: int = Field(
+        0,
+        ge=0,
+        le=1 << 20,
+        description="online: O is also taught at this many points drawn uniformly over the scene's "
+        "box on each step it learns, kept where the main field's alpha over one step of the box "
+        "diagonal / 256 reaches `online_box_alpha` and dropped elsewhere: labels for the whole "
+        "box from the field's density, as Instant-NGP's grid is updated (the points are charged "
+        "to the step's samples; 0: off)",
+    )
+    online_box_alpha: float = Field(
+        0.01,
+        gt=0,
+        lt=1,
+        description="online_box_points: a point is occupied where the main field stops this share "
+        "of the light over one step (nerfacc's grid threshold)",
+    )
     queries_per_bin: int = Field(
         1,
         ge=1,

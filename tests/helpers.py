@@ -103,13 +103,22 @@ def tar_of(folder, top: str = "scene") -> bytes:
     return buffer.getvalue()
 
 
+_HANDED_OUT: set[int] = set()
+
+
 def free_port() -> int:
-    """A free TCP port on the loopback interface, for a server a test starts."""
+    """A free TCP port on the loopback interface, for a server a test starts. Never one it handed
+    out before in this process: the kernel may give a just-closed port again, and two servers of
+    one test (Ray's GCS and its dashboard) must not be told the same port."""
     import socket
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    while True:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        if port not in _HANDED_OUT:
+            _HANDED_OUT.add(port)
+            return port
 
 
 PG_ADMIN = "host=127.0.0.1 port=5432 user=postgres dbname=postgres"

@@ -17,9 +17,22 @@ A bin's label speaks for the whole bin but O is asked at one point of it, so a t
 tree's crown, a silo's top) that fills a sliver of a long bin is taught "keep" at points of empty
 air, and "drop" there by every ray that grazes past: O smooths it away. With `surface_points`, O is
 also taught to keep the very point each ray shows most (its main sample of largest weight, on rays
-whose foreground is opaque), where the surface is."""
+whose foreground is opaque), where the surface is. A ray that grazes a crown's top on its way to
+the ground shows the ground most, so the top is taught only through its bin, at a random point of
+it. With `dense_points`, O is taught to keep every main sample that stops at least
+`surface_weight` of the light reaching it while the ray still sees (at least `seen_through` of its
+light gets there), each at its own point. (O can hold such tops: fitted straight to the exact
+occupancy it keeps every height layer, bench/occupancy_capacity.py; what it lacks in a run is the
+labels.)
+
+With `box_points`, O is also taught at points drawn uniformly over the scene's box, each labelled
+by the main field's own density there (occupied where its alpha over one step of the box diagonal
+/ BOX_STEPS reaches `box_alpha`): the labels reach the whole box, not only where the sampler sent
+main samples, as Instant-NGP's grid is updated from the field's density at random cells."""
 
 from __future__ import annotations
+
+from typing import Callable
 
 import torch
 import torch.nn.functional as F
@@ -29,8 +42,17 @@ from model.estimators.occupancy import OccupancyQuery
 from model.estimators.placement import bin_mass
 from model.fields.hmoe import OccupancyNetwork
 from model.render.accounting import reached_bins
+from model.render.noise import Noise
 from model.render.samples import PackedSamples
+from model.render.volume import exclusive_cumsum_per_ray
 from model.scenes.rays import RayBatch
+
+# the main field's density at world points (N, 3) -> (N,)
+FieldAt = Callable[[Tensor], Tensor]
+
+# box_points: the step a point's alpha is taken over is the box diagonal over this many (the `cpu`
+# profile's grid marches 256)
+BOX_STEPS = 256
 
 # surface_points: a ray teaches O where its surface is only when its foreground shows more than
 # the background does (a ray into the sky has no surface to teach)
@@ -49,7 +71,12 @@ class OnlineOccupancy(OccupancyQuery):
         seen_through: float = 0.5,
         free_opacity: float = 0.0,
         surface_points: bool = False,
+        dense_points: bool = False,
+        box: Tensor | None = None,
+        box_points: int = 0,
+        box_alpha: float = 0.01,
     ):
+        """`box`: (2, 3) the scene's box, where `box_points` are drawn."""
         super().__init__(network, empty_threshold)
         self.learn = True
         self.surface_weight, self.seen_through, self.free_opacity = (
@@ -57,7 +84,10 @@ class OnlineOccupancy(OccupancyQuery):
             seen_through,
             free_opacity,
         )
-        self.surface_points = surface_points
+        self.surface_points, self.dense_points = surface_points, dense_points
+        if box_points and box is None:
+            raise ValueError("OnlineOccupancy: box_points needs the scene's box")
+        self.box, self.box_points, self.box_alpha = box, box_points, box_alpha
 
     def bin_targets(
         self, samples: PackedSamples, weights: Tensor, rays: RayBatch, num_coarse: int
@@ -97,7 +127,7 @@ class OnlineOccupancy(OccupancyQuery):
         nll = F.binary_cross_entropy_with_logits(logit, target, reduction="none")
         self.logits = None
         loss = (nll * mask).sum() / mask.sum().clamp(min=1)
-        if self.surface_points:
+        if self.surface_points or self.dense_points:
             loss = loss + self.point_loss(samples, weights, rays)
         return loss
 
@@ -114,11 +144,52 @@ class OnlineOccupancy(OccupancyQuery):
         rows = ray[shown]
         return rays.origins[rows] + rays.directions[rows] * samples.mids[shown, None]
 
+    def matter_points(self, samples: PackedSamples, weights: Tensor, rays: RayBatch) -> Tensor:
+        """(P, 3): the mid-points of the main samples that stop at least `surface_weight` of the
+        light reaching them (alpha_i = w_i / T_i) where at least `seen_through` of the ray's light
+        still gets there (T_i = 1 - the weight in front); a point behind what the ray already hit
+        teaches nothing (another view may see it empty)."""
+        weights = weights.detach().reshape(-1)
+        reach = 1.0 - exclusive_cumsum_per_ray(weights, samples.ray_index, len(rays.origins))
+        alpha = weights / reach.clamp(min=1e-6)
+        dense = (weights > 0) & (alpha >= self.surface_weight) & (reach >= self.seen_through)
+        rows = samples.ray_index[dense]
+        return rays.origins[rows] + rays.directions[rows] * samples.mids[dense, None]
+
     def point_loss(self, samples: PackedSamples, weights: Tensor, rays: RayBatch) -> Tensor:
-        """Binary cross-entropy pushing O to keep the points the rays show (`shown_points`)."""
-        points = self.shown_points(samples, weights, rays)
+        """Binary cross-entropy pushing O to keep the points the rays show (`shown_points`) and,
+        with `dense_points`, every point the field holds matter at (`matter_points`)."""
+        parts = []
+        if self.surface_points:
+            parts.append(self.shown_points(samples, weights, rays))
+        if self.dense_points:
+            parts.append(self.matter_points(samples, weights, rays))
+        points = torch.cat(parts)
         if not len(points):
             return weights.sum() * 0.0
         logits, _ = self.network.query(points)
         logit = self.decision_logit(logits)
         return F.binary_cross_entropy_with_logits(logit, torch.ones_like(logit))
+
+    def box_targets(self, field: FieldAt, noise: Noise | None) -> tuple[Tensor, Tensor]:
+        """(P, 3) points drawn uniformly over the box and (P,) their labels: 1 where the field's
+        alpha over one step of the box diagonal / BOX_STEPS reaches `box_alpha`, asked without
+        gradient and without the field's training noise."""
+        assert self.box is not None
+        lo, hi = self.box[0], self.box[1]
+        shape = (self.box_points, 3)
+        u = (noise or Noise()).rand(*shape, device=lo.device, dtype=lo.dtype)
+        points = lo + u * (hi - lo)
+        step = (hi - lo).norm() / BOX_STEPS
+        with torch.no_grad():
+            sigma = field(points).float()
+        # alpha = 1 - exp(-sigma * step) >= a  <=>  sigma * step >= -log(1 - a)
+        bound = -torch.log1p(torch.tensor(-self.box_alpha, device=sigma.device))
+        return points, (sigma * step >= bound).to(points.dtype)
+
+    def box_loss(self, field: FieldAt, noise: Noise | None) -> Tensor:
+        """Binary cross-entropy on O's decision logit at `box_points` points of the box, against
+        the field's own occupancy there (`box_targets`)."""
+        points, target = self.box_targets(field, noise)
+        logits, _ = self.network.query(points)
+        return F.binary_cross_entropy_with_logits(self.decision_logit(logits), target)

@@ -21,7 +21,7 @@ from model.estimators.occupancy import OccupancyQuery
 from model.estimators.online import OnlineOccupancy
 from model.estimators.proposal import interlevel_loss
 from model.methods.base import Networks, Step, SweepPoint
-from model.methods.leco.guided_render import phase1_placement_loss
+from model.methods.leco.guided_render import density_at, phase1_placement_loss
 from model.methods.leco.method import LeCOMethod
 from model.methods.leco.phase1 import occupancy_step
 from model.methods.main_phase import MainRender
@@ -137,6 +137,11 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
             weights = render.rendered.weights.reshape(-1)
             with stage("losses"):
                 render.occupancy_loss = learner.loss(local, weights, sub, g.coarse_samples)
+                if learner.box_points:  # charged as main samples, as culled ones are
+                    render.occupancy_loss = render.occupancy_loss + learner.box_loss(
+                        partial(density_at, models.field), noise
+                    )
+                    render.samples_per_ray += learner.box_points / len(rays)
         return render, levels, edges
 
     def o_histogram(self, query: OccupancyQuery, axis: KeptAxis) -> Tensor:

@@ -5,6 +5,8 @@ its keep/drop loss (model/estimators/online.py) and its placement loss
 
 from __future__ import annotations
 
+from functools import partial
+
 import torch
 from torch import Tensor
 
@@ -150,9 +152,13 @@ def render_guided(
     out = field_on_packed(field, rays, samples)
     rendered = composite_field(out, rays, samples, behind)
     losses: list[Tensor] = []
+    box_queries = 0
     with stage("losses"):  # O's, while it learns
         if learner is not None:
             losses.append(learner.loss(local, rendered.weights, sub, g.coarse_samples))
+            if learner.box_points:
+                losses.append(learner.box_loss(partial(density_at, field), noise))
+                box_queries = learner.box_points
         if learn_placement and query.sigma is not None and len(sub):
             proposal = histogram(
                 query.sigma.reshape(len(sub), g.coarse_samples, -1).mean(dim=-1), draw.edges
@@ -169,17 +175,28 @@ def render_guided(
         "o_kept_ratio": draw.occupied_bins.float().mean() if len(sub) else 0.0,
         "fallback_fraction": draw.lost.float().mean() if len(sub) else 0.0,
     }
-    # Culled samples still ran the network once (without gradient), so they count, as vanilla's
-    # coarse ones do.
+    # Culled samples and the box points O is taught at still ran the network once (without
+    # gradient), so they count, as vanilla's coarse ones do.
     return MainRender(
         rendered,
         out,
-        (evaluated + len(samples)) / len(rays),
+        (evaluated + len(samples) + box_queries) / len(rays),
         None,
         torch.stack(losses).sum() if losses else None,
         samples=samples,
         stats=stats,
     )
+
+
+def density_at(field: SwitchNeRF, points: Tensor) -> Tensor:
+    """The main field's density at world points, as an occupancy grid's update asks it (no view
+    direction, the first image's appearance, without the field's training noise)."""
+    training = field.training
+    field.eval()
+    image = torch.zeros(len(points), dtype=torch.long, device=points.device)
+    sigma = field(points, torch.zeros_like(points), image).sigma
+    field.train(training)
+    return sigma
 
 
 def phase1_placement_loss(

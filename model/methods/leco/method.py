@@ -57,6 +57,8 @@ def hmoe(profile: Profile, num_images: int) -> HMoE:
 
 
 class LeCOMethod(Method):
+    aabb: Tensor  # the scene's box, made by build(): where online_box_points are drawn
+
     def __init__(self, profile: Profile):
         super().__init__(profile)
         self.predictor: OccupancyPredictor | None = None
@@ -65,6 +67,7 @@ class LeCOMethod(Method):
     # ----- static
     # -------------------------------------------------------------------------------------
     def build(self, num_images: int, aabb: Tensor) -> Networks:
+        self.aabb = aabb.detach().float()
         models = Networks()
         models.hmoe = hmoe(self.profile, num_images)
         models.occupancy_background = background(self.profile, num_images)
@@ -172,6 +175,10 @@ class LeCOMethod(Method):
                 g.online_surface,
                 free_opacity=g.online_free_opacity,
                 surface_points=g.online_surface_points,
+                dense_points=g.online_dense_points,
+                box=self.aabb.to(device),
+                box_points=g.online_box_points,
+                box_alpha=g.online_box_alpha,
             )
             self.predictor = OccupancyPredictor(
                 gate, empty_threshold=g.empty_threshold, frozen=False

@@ -6,6 +6,7 @@ import json
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from model.estimators import online as online_module
 from model.estimators.guided import guided_samples
@@ -316,18 +317,29 @@ def test_surface_points_are_each_opaque_rays_most_visible_sample():
     assert torch.allclose(points[0], expected)
 
 
-def test_the_point_loss_teaches_o_to_keep_the_point_a_ray_shows():
+def sure_empty_network() -> OccupancyNetwork:
+    """A seeded O that starts sure that everything is empty."""
     torch.manual_seed(0)
     network = OccupancyNetwork(num_scene_experts=2, width=32, xyz_frequencies=4)
     with torch.no_grad():
-        network.output.bias[network.empty_index] = 8.0  # O starts sure that everything is empty
-    rays = ray_batch(64)
-    # every ray shows a thin wall at x = 4.5 (a sliver of bin 4 of 8)
-    samples = PackedSamples(
-        torch.tensor([0.5, 4.45]).repeat(64),
-        torch.tensor([1.0, 4.55]).repeat(64),
-        torch.arange(64).repeat_interleave(2),
+        network.output.bias[network.empty_index] = 8.0
+    return network
+
+
+def same_on_every_ray(starts: list[float], ends: list[float], count: int) -> PackedSamples:
+    """The same samples (starts, ends) on each of `count` rays."""
+    per_ray = len(starts)
+    return PackedSamples(
+        torch.tensor(starts).repeat(count),
+        torch.tensor(ends).repeat(count),
+        torch.arange(count).repeat_interleave(per_ray),
     )
+
+
+def test_the_point_loss_teaches_o_to_keep_the_point_a_ray_shows():
+    network, rays = sure_empty_network(), ray_batch(64)
+    # every ray shows a thin wall at x = 4.5 (a sliver of bin 4 of 8)
+    samples = same_on_every_ray([0.5, 4.45], [1.0, 4.55], 64)
     weights = torch.tensor([0.0, 0.95]).repeat(64)
     online = OnlineOccupancy(network, 0.9, surface_points=True)
     wall = online.shown_points(samples, weights, rays)
@@ -364,3 +376,127 @@ def test_a_leco_run_with_surface_points_trains_and_adds_the_point_loss(
         first[points] = losses[3]
     # same seed: the first step O learns on is the same step, and the point loss adds to it
     assert first[True] > first[False]
+
+
+def test_matter_points_are_the_samples_that_stop_light_where_the_ray_still_sees():
+    # ray 0 grazes a crown's top (alpha 0.2 at 2.5, holding 0.2 of its weight: under the bin's
+    # surface share only if the top were thinner) then hits the ground at 6.25 (alpha 0.9 of the
+    # 0.8 left); ray 1 is clear but for a wisp (alpha 0.02, under online_surface's 0.05)
+    rays = ray_batch(2)
+    samples = PackedSamples(
+        torch.tensor([0.5, 2.25, 6.0, 7.0, 0.5, 3.0]),
+        torch.tensor([1.0, 2.75, 6.5, 7.5, 1.0, 3.5]),
+        torch.tensor([0, 0, 0, 0, 1, 1]),
+    )
+    # weights w_i = T_i * alpha_i with T_i = 1 - the weight in front
+    weights = torch.tensor([0.0, 0.2, 0.72, 0.05, 0.0, 0.02])
+    online = OnlineOccupancy(OccupancyNetwork(2, 16, 4), 0.9, 0.05, dense_points=True)
+    points = online.matter_points(samples, weights, rays)
+    # the crown (T 1.0, alpha 0.2) and the ground (T 0.8, alpha 0.9); the sample behind the ground
+    # (T 0.08) teaches nothing, nor does the wisp
+    expected = torch.stack([rays.directions[0] * 2.5, rays.directions[0] * 6.25])
+    assert points.shape == (2, 3) and torch.allclose(points, expected)
+
+
+def test_dense_points_teach_o_to_keep_a_top_the_ray_only_grazes():
+    network, rays = sure_empty_network(), ray_batch(64)
+    # every ray grazes a top at x = 2.5 (0.3 of its weight) on its way to the ground at x = 6.5,
+    # which it shows most
+    samples = same_on_every_ray([2.45, 6.45], [2.55, 6.55], 64)
+    weights = torch.tensor([0.3, 0.65]).repeat(64)
+    top = rays.origins + rays.directions * 2.5
+    ground = rays.origins + rays.directions * 6.5
+    # the air around them, which the free bins teach O to drop
+    air = torch.cat([rays.origins + rays.directions * x for x in (0.5, 1.5, 3.5, 4.5, 5.5)])
+    kept = {}
+    for dense in (False, True):
+        trained = OccupancyNetwork(num_scene_experts=2, width=32, xyz_frequencies=4)
+        trained.load_state_dict(network.state_dict())
+        online = OnlineOccupancy(trained, 0.9, 0.05, surface_points=True, dense_points=dense)
+        optimizer = torch.optim.Adam(trained.parameters(), lr=1e-2)
+        for _ in range(100):
+            free = trained.decision_logit(trained(air), 0.9)
+            loss = online.point_loss(samples, weights, rays)
+            loss = loss + F.binary_cross_entropy_with_logits(free, torch.zeros_like(free))
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+        kept[dense] = [float(trained.occupied(p, 0.9).float().mean()) for p in (top, ground, air)]
+    # the shown points alone teach the ground and not the top; with the dense points, both; the
+    # air is dropped either way
+    assert kept[False][1] >= 0.9 and kept[False][0] < 0.5 and kept[False][2] < 0.1, kept
+    assert kept[True][0] >= 0.9 and kept[True][1] >= 0.9 and kept[True][2] < 0.1, kept
+
+
+BOX = torch.tensor([[0.0, -1.0, -1.0], [8.0, 1.0, 1.0]])
+
+
+def test_box_points_are_labelled_by_the_fields_alpha_over_one_step():
+    # a slab the field holds at density 50, and a faint one at 0.05: over one step of the box's
+    # diagonal / 256 (about 0.034), alphas of about 0.82 and 0.0017 against the bound of 0.01
+    online = OnlineOccupancy(
+        OccupancyNetwork(2, 16, 4), 0.9, box=BOX, box_points=4096, box_alpha=0.01
+    )
+    field = lambda x: slab_density(x, [WALL]) + 0.05  # noqa: E731
+    points, target = online.box_targets(field, Noise(torch.Generator().manual_seed(0)))
+    assert points.shape == (4096, 3)
+    assert ((points >= BOX[0]) & (points <= BOX[1])).all()
+    inside = (points[:, 0] > WALL[0]) & (points[:, 0] < WALL[1])
+    assert torch.equal(target.bool(), inside)
+    assert 0.05 < float(inside.float().mean()) < 0.1  # the wall is 0.6 of the box's 8
+
+
+def test_box_points_teach_o_a_wall_no_ray_sampled():
+    # O starts sure that everything is empty and no render teaches it: the field's density over
+    # the box alone makes it keep the wall and drop the air
+    network = sure_empty_network()
+    online = OnlineOccupancy(network, 0.9, box=BOX, box_points=1024)
+    field = lambda x: slab_density(x, [WALL])  # noqa: E731
+    noise = Noise(torch.Generator().manual_seed(0))
+    optimizer = torch.optim.Adam(network.parameters(), lr=1e-2)
+    for _ in range(200):
+        loss = online.box_loss(field, noise)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    line = lambda lo, hi: torch.stack(  # noqa: E731
+        [torch.linspace(lo, hi, 50), torch.zeros(50), torch.zeros(50)], -1
+    )
+    assert network.occupied(line(WALL[0] + 0.05, WALL[1] - 0.05), 0.9).float().mean() >= 0.9
+    assert network.occupied(line(0.5, 3.5), 0.9).float().mean() <= 0.05
+
+
+def test_box_points_need_the_box():
+    with pytest.raises(ValueError, match="box_points needs the scene's box"):
+        OnlineOccupancy(OccupancyNetwork(2, 16, 4), 0.9, box_points=16)
+
+
+@pytest.mark.parametrize("method, section", [("leco", ""), ("ngp-leco", "ngp_leco.")])
+def test_a_run_with_box_points_adds_their_loss_and_charges_them(
+    tiny_scene, tmp_path, method, section
+):
+    charged, first = {}, {}
+    for points in (0, 512):
+        run = tmp_path / f"{method}-{points}"
+        cfg = TrainConfig(
+            method=method,
+            profile="smoke",
+            metrics_every=1,
+            seed=0,
+            overrides={
+                f"{section}occupancy.steps": 10,
+                "main_steps": 4,
+                f"{section}guided.online": True,
+                f"{section}guided.online_warmup": 1,
+                f"{section}guided.online_box_points": points,
+            },
+        )
+        run_training(cfg, tiny_scene.root, run, backend="local")
+        rows = [r for r in read_metrics(run / "metrics.jsonl") if r["phase"] == "main"]
+        losses = [r["occupancy_online_loss"] for r in rows if "occupancy_online_loss" in r]
+        assert len(losses) == 3 and all(torch.isfinite(torch.tensor(losses)))
+        first[points] = losses[0]
+        charged[points] = rows[1]["samples_per_ray"]
+    assert first[512] > first[0]  # same seed, same step: the box loss adds to the bins' loss
+    rays = TrainConfig(method=method, profile="smoke").resolved_profile().rays_per_device
+    assert charged[512] - charged[0] == pytest.approx(512 / rays, rel=0.05)

@@ -348,14 +348,18 @@ def test_leco_pipeline_on_the_tiny_city_learns_occupancy(tiny_scene, tmp_path):
     cfg = TrainConfig(
         method="leco",
         profile="cpu",
-        overrides={"occupancy.steps": 1000, "occupancy.samples_per_ray": 32, "main_steps": 100},
+        # 2,000 steps, not fewer: at 1,000 O's air still sits near the threshold, and the share it
+        # keeps swung from 0.25 to 0.59 with the CPU's kernels and thread count alone.
+        overrides={"occupancy.steps": 2000, "occupancy.samples_per_ray": 32, "main_steps": 100},
     )
     summary = run_training(cfg, tiny_scene.root, tmp_path / "run", backend="local")
     occ = summary["occupancy"]
     print(json.dumps(occ, indent=1))
     assert occ["empty_fraction"] > 0.8 and occ["density_ratio"] < 0.2
-    # Over the hit rays' bins O itself keeps about a third (0.34 measured); with dilation and the
-    # fallback about half reach the main network (0.47), counted as the paper defines the ratio.
+    # Over the hit rays' bins O itself keeps about a third (0.22-0.36 measured on seed 0 over one
+    # or two threads and the default, AVX2 and AVX-512 kernels; 0.36-0.39 on seeds 1-2, AVX2);
+    # with dilation and the fallback 0.39-0.46 reach the main network, counted as the paper defines
+    # the ratio.
     print(json.dumps(summary["sampling"], indent=1))
     assert (
         occ["recall"] > 0.6
