@@ -21,12 +21,13 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	deploy/main-job.sh
 
-# Lint and types first (seconds), then the suite.
+# Lint and types first (seconds), then the suite. If a test kills pytest, the last lines printed name it
+# and the frames it died in (tests/crash_report.py).
 test: $(STAMP)
 	$(BIN)/ruff check model workers service bench cli tests
 	$(BIN)/ruff format --check model workers service bench cli tests
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q --durations=40
+	$(BIN)/python -m pytest -q --durations=40 || { status=$$?; $(BIN)/python -m tests.crash_report; exit $$status; }
 
 clean:
 	rm -rf $(VENV) scenes runs leco-data .pytest_cache

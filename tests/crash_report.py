@@ -1,22 +1,88 @@
-"""A crash names its test, even after Ray ran in this process.
+"""A test that kills pytest (SIGABRT, SIGSEGV) is named, with the top of its Python stack, at the
+very end of `make test`'s output.
 
-pytest's faulthandler prints the Python stack of a test that kills the process (SIGABRT, SIGSEGV).
-`ray.init` puts Ray's own handler for those signals in front of it, and Ray's handler writes to
-the file descriptor pytest captures, so a crash in any later test printed nothing: the run just
-stopped after its last dot. Before each test, once Ray was imported, faulthandler is put back in
-front, writing where pytest's own faulthandler writes. It must be disabled first: `enable()` on an
-enabled faulthandler changes its file and installs nothing."""
+Two things hid such a crash. `ray.init` puts Ray's own handler for those signals in front of
+pytest's faulthandler, so after any test that started Ray a crash printed nothing. And with Ray's
+threads alive faulthandler's report runs to hundreds of lines whose end, all a CI log shows, is
+pytest's own frames. So before each test faulthandler is re-armed (disabled first: `enable()` on an
+enabled faulthandler only changes its file) to write into a report file that starts with the test's
+id; a run that ends normally removes it. When pytest dies, `make test` runs this module, which
+prints the test, the fatal error and the innermost frames of the thread that died.
+
+    python -m tests.crash_report     # print the report of a run that died, if there is one
+
+The report is `.pytest_cache/crash-report.txt` under the repository, or $LECO_CRASH_REPORT."""
+
+from __future__ import annotations
 
 import faulthandler
+import os
 import sys
+from pathlib import Path
+from typing import IO
 
 import pytest
-from _pytest.faulthandler import fault_handler_stderr_fd_key
+
+ROOT = Path(__file__).resolve().parents[1]
+FRAMES = 12  # innermost frames printed: the test's own call and what it was doing
+
+
+def report_path() -> Path:
+    return Path(os.environ.get("LECO_CRASH_REPORT") or ROOT / ".pytest_cache" / "crash-report.txt")
+
+
+_report: IO[str] | None = None
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    global _report
+    path = report_path()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _report = path.open("w")
 
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_setup(item: pytest.Item) -> None:
-    if "ray" not in sys.modules or fault_handler_stderr_fd_key not in item.config.stash:
+    if _report is None:
+        return
+    _report.seek(0)
+    _report.truncate()
+    _report.write(f"pytest died while running {item.nodeid}\n")
+    _report.flush()
+    faulthandler.disable()
+    faulthandler.enable(file=_report, all_threads=True)
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    global _report
+    if _report is None:
         return
     faulthandler.disable()
-    faulthandler.enable(file=item.config.stash[fault_handler_stderr_fd_key], all_threads=True)
+    _report.close()
+    _report = None
+    report_path().unlink(missing_ok=True)
+
+
+def summary(text: str, frames: int = FRAMES) -> str:
+    """The test's line, faulthandler's 'Fatal Python error' line and the first `frames` frames of
+    the thread that crashed (faulthandler marks it 'Current thread'; the others come before it)."""
+    lines = text.splitlines()
+    head = lines[:1] + [line for line in lines if "Fatal Python error" in line]
+    start = next((i for i, line in enumerate(lines) if line.startswith("Current thread")), None)
+    if start is None:
+        return "\n".join(head + lines[1 : 1 + frames])
+    stack = [line for line in lines[start + 1 :] if line.startswith("  File")][:frames]
+    return "\n".join([*head, lines[start], *stack])
+
+
+def main() -> int:
+    path = report_path()
+    if not path.exists() or not path.read_text().strip():
+        return 0
+    print(f"\n--- {path} (innermost frame first)", file=sys.stderr)
+    print(summary(path.read_text()), file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
