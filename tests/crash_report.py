@@ -23,7 +23,8 @@ from typing import IO
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.helpers import ROOT
+
 FRAMES = 12  # innermost frames printed: the test's own call and what it was doing
 
 
