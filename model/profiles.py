@@ -211,6 +211,15 @@ class GuidedConfig(Frozen):
         description="online: a kept bin is labelled free only on rays whose foreground opacity "
         "reaches this, so O is not taught to drop what the background paints (0: off)",
     )
+    online_free_error: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="online: a kept bin is labelled free only on rays whose squared colour error "
+        "(mean over RGB) is at most this: a ray the field still renders wrong may pass a surface "
+        "it has not fitted yet (a roof's top it grazes), so it does not teach O to drop it "
+        "(0: off)",
+    )
     online_surface_points: bool = Field(
         False,
         description="online: O is also taught to keep each opaque ray's most visible main sample, "

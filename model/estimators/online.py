@@ -7,6 +7,9 @@ interlevel loss:
   it;
 - a kept bin that carries less, on a ray that still sees past it (transmittance after the bin above
   `seen_through`), is free space this view looked through: O is pushed to drop it.
+With `free_error`, a kept bin is labelled free only on rays the field already renders well
+(squared colour error at most `free_error`): a ray that paints the ground through a roof's top the
+field has not fitted yet would teach O to drop the top.
 Bins the sampler skipped, and bins hidden behind what the ray already hit, teach nothing: the first
 because the main network never looked there, the second because another view may see a surface
 there. Dilation, jittered queries, the fallback and the explored bins (guided.explore_bins) keep
@@ -70,6 +73,7 @@ class OnlineOccupancy(OccupancyQuery):
         surface_weight: float = 0.05,
         seen_through: float = 0.5,
         free_opacity: float = 0.0,
+        free_error: float = 0.0,
         surface_points: bool = False,
         dense_points: bool = False,
         box: Tensor | None = None,
@@ -84,16 +88,22 @@ class OnlineOccupancy(OccupancyQuery):
             seen_through,
             free_opacity,
         )
+        self.free_error = free_error
         self.surface_points, self.dense_points = surface_points, dense_points
         if box_points and box is None:
             raise ValueError("OnlineOccupancy: box_points needs the scene's box")
         self.box, self.box_points, self.box_alpha = box, box_points, box_alpha
 
     def bin_targets(
-        self, samples: PackedSamples, weights: Tensor, rays: RayBatch, num_coarse: int
+        self,
+        samples: PackedSamples,
+        weights: Tensor,
+        rays: RayBatch,
+        num_coarse: int,
+        rgb: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
         """(R, n) target (1 occupied, 0 free) and mask (bins that teach) from the packed render
-        weights."""
+        weights; `rgb` (R, 3): the rays' rendered colours (needed with `free_error`)."""
         mass = bin_mass(samples, weights, rays.near, rays.far, num_coarse)
         sampled = reached_bins(samples, rays.near, rays.far, num_coarse)
         # transmittance left after each bin (skipped bins hold no mass)
@@ -103,6 +113,13 @@ class OnlineOccupancy(OccupancyQuery):
         # a semi-transparent foreground leaves the rest to the background: no "free"
         if self.free_opacity > 0:
             free &= mass.sum(dim=1, keepdim=True) >= self.free_opacity
+        # a ray the field still renders wrong may pass a surface the field has not fitted yet: it
+        # does not teach O to drop what it passes
+        if self.free_error > 0:
+            if rgb is None:
+                raise ValueError("OnlineOccupancy: free_error needs the rays' rendered colours")
+            error = (rgb.detach() - rays.rgb).square().mean(dim=-1, keepdim=True)
+            free &= error <= self.free_error
         return surface.to(weights.dtype), surface | free
 
     def decision_logit(self, logits: Tensor) -> Tensor:
@@ -111,12 +128,17 @@ class OnlineOccupancy(OccupancyQuery):
         return self.network.decision_logit(logits, self.empty_threshold)
 
     def loss(
-        self, samples: PackedSamples, weights: Tensor, rays: RayBatch, num_coarse: int
+        self,
+        samples: PackedSamples,
+        weights: Tensor,
+        rays: RayBatch,
+        num_coarse: int,
+        rgb: Tensor | None = None,
     ) -> Tensor:
         """Binary cross-entropy on the decision logit, over the bins that teach: O keeps a point
         where most rays through its bin found a surface there, whatever the threshold the sampler
         decides with."""
-        target, mask = self.bin_targets(samples, weights, rays, num_coarse)
+        target, mask = self.bin_targets(samples, weights, rays, num_coarse, rgb)
         if self.logits is None:
             raise RuntimeError(
                 "OnlineOccupancy.loss needs the logits of this step's occupied() call"

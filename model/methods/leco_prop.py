@@ -136,7 +136,8 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
             )
             weights = render.rendered.weights.reshape(-1)
             with stage("losses"):
-                render.occupancy_loss = learner.loss(local, weights, sub, g.coarse_samples)
+                rgb = render.rendered.rgb[hits]
+                render.occupancy_loss = learner.loss(local, weights, sub, g.coarse_samples, rgb)
                 if learner.box_points:  # charged as main samples, as culled ones are
                     render.occupancy_loss = render.occupancy_loss + learner.box_loss(
                         partial(density_at, models.field), noise

@@ -174,6 +174,7 @@ class LeCOMethod(Method):
                 g.empty_threshold,
                 g.online_surface,
                 free_opacity=g.online_free_opacity,
+                free_error=g.online_free_error,
                 surface_points=g.online_surface_points,
                 dense_points=g.online_dense_points,
                 box=self.aabb.to(device),

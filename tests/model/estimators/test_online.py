@@ -81,6 +81,27 @@ def test_no_bin_is_free_on_a_ray_whose_foreground_is_semi_transparent():
     assert mask.tolist() == [[True, True, False, False], [False, True, False, False]]
 
 
+def test_no_bin_is_free_on_a_ray_the_field_still_renders_wrong():
+    # Both rays hold 0.9 in bin 1, so bin 0 in front looks free. Ray 1 renders its pixel 0.3 off
+    # in every channel (squared error 0.09): with free_error 0.01 its bin 0 teaches nothing, as a
+    # roof's top the field has not fitted yet is not taught free by the rays that graze it.
+    rays = ray_batch(2)
+    rays.rgb = torch.full((2, 3), 0.5)
+    rendered = torch.tensor([[0.52, 0.5, 0.48], [0.8, 0.8, 0.8]])
+    samples = PackedSamples(
+        torch.tensor([0.5, 2.5, 0.5, 2.5]),
+        torch.tensor([1.0, 3.0, 1.0, 3.0]),
+        torch.tensor([0, 0, 1, 1]),
+    )
+    weights = torch.tensor([0.01, 0.89, 0.01, 0.89])
+    strict = OnlineOccupancy(OccupancyNetwork(2, 16, 4), empty_threshold=0.9, free_error=0.01)
+    target, mask = strict.bin_targets(samples, weights, rays, 4, rendered)
+    assert target.tolist() == [[0.0, 1.0, 0.0, 0.0]] * 2
+    assert mask.tolist() == [[True, True, False, False], [False, True, False, False]]
+    with pytest.raises(ValueError, match="free_error needs the rays' rendered colours"):
+        strict.bin_targets(samples, weights, rays, 4)
+
+
 def slab_density(points: torch.Tensor, slabs: list[tuple[float, float]]) -> torch.Tensor:
     x = points[:, 0]
     inside = torch.zeros_like(x, dtype=torch.bool)
