@@ -6,7 +6,8 @@ pytest's faulthandler, so after any test that started Ray a crash printed nothin
 threads alive faulthandler's report runs to hundreds of lines whose end, all a CI log shows, is
 pytest's own frames. So before each test faulthandler is re-armed (disabled first: `enable()` on an
 enabled faulthandler only changes its file) to write into a report file that starts with the test's
-id; a run that ends normally removes it. When pytest dies, `make test` runs this module, which
+id and pytest's memory then (a process that runs out of memory can abort rather than be killed); a
+run that ends normally removes it. When pytest dies, `make test` runs this module, which
 prints the test, the fatal error and the innermost frames of the thread that died.
 
     python -m tests.crash_report     # print the report of a run that died, if there is one
@@ -35,6 +36,25 @@ def report_path() -> Path:
 _report: IO[str] | None = None
 
 
+def memory_line() -> str:
+    """pytest's resident and virtual memory and the machine's available memory, in MB (Linux's
+    /proc; elsewhere a line saying it is unknown)."""
+    try:
+        status = Path("/proc/self/status").read_text().splitlines()
+        meminfo = Path("/proc/meminfo").read_text().splitlines()
+    except OSError:
+        return "memory at its start: unknown on this platform"
+
+    def mb(lines: list[str], key: str) -> str:
+        kb = next((line.split()[1] for line in lines if line.startswith(key + ":")), None)
+        return "?" if kb is None else f"{int(kb) // 1024:,}"
+
+    return (
+        f"memory at its start: pytest resident {mb(status, 'VmRSS')} MB, virtual "
+        f"{mb(status, 'VmSize')} MB; machine available {mb(meminfo, 'MemAvailable')} MB"
+    )
+
+
 def pytest_configure(config: pytest.Config) -> None:
     global _report
     path = report_path()
@@ -48,7 +68,7 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
         return
     _report.seek(0)
     _report.truncate()
-    _report.write(f"pytest died while running {item.nodeid}\n")
+    _report.write(f"pytest died while running {item.nodeid}\n{memory_line()}\n")
     _report.flush()
     faulthandler.disable()
     faulthandler.enable(file=_report, all_threads=True)
@@ -65,10 +85,15 @@ def pytest_unconfigure(config: pytest.Config) -> None:
 
 
 def summary(text: str, frames: int = FRAMES) -> str:
-    """The test's line, faulthandler's 'Fatal Python error' line and the first `frames` frames of
-    the thread that crashed (faulthandler marks it 'Current thread'; the others come before it)."""
+    """The test's line, its memory line, faulthandler's 'Fatal Python error' line and the first
+    `frames` frames of the thread that crashed (faulthandler marks it 'Current thread'; the others
+    come before it)."""
     lines = text.splitlines()
-    head = lines[:1] + [line for line in lines if "Fatal Python error" in line]
+    head = lines[:1] + [
+        line
+        for line in lines
+        if line.startswith("memory at its start") or "Fatal Python error" in line
+    ]
     start = next((i for i, line in enumerate(lines) if line.startswith("Current thread")), None)
     if start is None:
         return "\n".join(head + lines[1 : 1 + frames])

@@ -55,14 +55,22 @@ def test_an_abort_after_ray_names_its_test_only_with_the_plugin(tmp_path, plugin
     if plugin:
         lines = printed.strip().splitlines()
         assert lines[1] == "pytest died while running test_crash.py::test_that_kills_the_process"
-        assert "Fatal Python error: Aborted" in lines[2]
-        assert len(lines) <= 3 + 1 + 12, printed
+        assert lines[2].startswith("memory at its start: pytest resident ")
+        assert " MB, virtual " in lines[2] and "machine available" in lines[2]
+        assert "Fatal Python error: Aborted" in lines[3]
+        assert len(lines) <= 4 + 1 + 12, printed
+
+
+MEMORY = (
+    "memory at its start: pytest resident 12,000 MB, virtual 18,000 MB; machine available 90 MB"
+)
 
 
 def test_the_summary_keeps_the_thread_that_died_and_drops_the_others():
     report = "\n".join(
         [
             "pytest died while running tests/x.py::test_y",
+            MEMORY,
             "Fatal Python error: Segmentation fault",
             "",
             "Thread 0x01 (most recent call first):",
@@ -77,6 +85,7 @@ def test_the_summary_keeps_the_thread_that_died_and_drops_the_others():
     lines = summary(report, frames=3).splitlines()
     assert lines == [
         "pytest died while running tests/x.py::test_y",
+        MEMORY,
         "Fatal Python error: Segmentation fault",
         "Current thread 0x02 (most recent call first):",
         '  File "f0.py", line 0 in g0',
