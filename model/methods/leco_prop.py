@@ -136,7 +136,7 @@ class LeCOPropMethod(LeCOMethod, ProposalMethod):
             )
             weights = render.rendered.weights.reshape(-1)
             with stage("losses"):
-                rgb = render.rendered.rgb[hits]
+                rgb = render.rendered.rgb[hits] if learner.free_error > 0 else None
                 render.occupancy_loss = learner.loss(local, weights, sub, g.coarse_samples, rgb)
                 if learner.box_points:  # charged as main samples, as culled ones are
                     render.occupancy_loss = render.occupancy_loss + learner.box_loss(

@@ -155,9 +155,8 @@ def render_guided(
     box_queries = 0
     with stage("losses"):  # O's, while it learns
         if learner is not None:
-            losses.append(
-                learner.loss(local, rendered.weights, sub, g.coarse_samples, rendered.rgb[hit])
-            )
+            rgb = rendered.rgb[hit] if learner.free_error > 0 else None  # only its free labels
+            losses.append(learner.loss(local, rendered.weights, sub, g.coarse_samples, rgb))
             if learner.box_points:
                 losses.append(learner.box_loss(partial(density_at, field), noise))
                 box_queries = learner.box_points

@@ -521,3 +521,33 @@ def test_a_run_with_box_points_adds_their_loss_and_charges_them(
     assert first[512] > first[0]  # same seed, same step: the box loss adds to the bins' loss
     rays = TrainConfig(method=method, profile="smoke").resolved_profile().rays_per_device
     assert charged[512] - charged[0] == pytest.approx(512 / rays, rel=0.05)
+
+
+@pytest.mark.parametrize(
+    "method, section", [("leco", ""), ("ngp-leco", "ngp_leco."), ("leco-prop", "leco_prop.")]
+)
+def test_a_run_with_free_error_labels_fewer_bins_free(tiny_scene, tmp_path, method, section):
+    # the same seed and steps: with a bound no early ray renders within, the rays' free labels go
+    # and the online loss is another number (finite)
+    first = {}
+    for bound in (0.0, 1e-6):
+        run = tmp_path / f"{method}-{bound}"
+        cfg = TrainConfig(
+            method=method,
+            profile="smoke",
+            metrics_every=1,
+            seed=0,
+            overrides={
+                f"{section}occupancy.steps": 10,
+                "main_steps": 4,
+                f"{section}guided.online": True,
+                f"{section}guided.online_warmup": 1,
+                f"{section}guided.online_free_error": bound,
+            },
+        )
+        run_training(cfg, tiny_scene.root, run, backend="local")
+        rows = [r for r in read_metrics(run / "metrics.jsonl") if r["phase"] == "main"]
+        losses = [r["occupancy_online_loss"] for r in rows if "occupancy_online_loss" in r]
+        assert len(losses) == 3 and all(torch.isfinite(torch.tensor(losses)))
+        first[bound] = losses[0]
+    assert first[1e-6] != pytest.approx(first[0.0], rel=1e-3)
