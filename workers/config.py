@@ -31,6 +31,9 @@ if TYPE_CHECKING:
     from model.methods.base import Method
 
 MAX_WORKERS = 8
+# The smoke profile checks that a pipeline runs end to end in seconds; 32 fitting steps would cost
+# each of its validations ten times its few training steps.
+SMOKE_APPEARANCE_STEPS = 4
 
 
 class TrainConfig(BaseModel):
@@ -106,7 +109,7 @@ class TrainConfig(BaseModel):
         le=1000,
         description="validation protocol: right halves scored, appearance embeddings fitted on the "
         "left halves for this many steps with the networks frozen (0: the training embeddings' "
-        "mean)",
+        f"mean); {SMOKE_APPEARANCE_STEPS} when not given at the smoke profile",
     )
     max_failures: StrictInt = Field(
         3,
@@ -149,6 +152,17 @@ class TrainConfig(BaseModel):
         if name not in PROFILES:
             raise ValueError(f"unknown profile {name!r}: choose one of {', '.join(PROFILES)}")
         return name
+
+    @model_validator(mode="before")
+    @classmethod
+    def smoke_fits_briefly(cls, data: Any) -> Any:
+        if (
+            isinstance(data, dict)
+            and data.get("profile") == "smoke"
+            and "val_appearance_steps" not in data
+        ):
+            return {**data, "val_appearance_steps": SMOKE_APPEARANCE_STEPS}
+        return data
 
     @model_validator(mode="after")
     def overrides_resolve(self) -> "TrainConfig":
