@@ -13,7 +13,6 @@ read between them, in eager code.
 from __future__ import annotations
 
 import torch
-import torch._inductor.config
 from torch import nn
 
 from model.errors import Failed
@@ -41,6 +40,9 @@ def check_can_compile(device: torch.device) -> None:
 
 def compile_modules(modules: list[nn.Module]) -> int:
     """Each module compiled in place (once); how many were compiled now."""
+    # imported here: inductor's import costs a second and a half of every process that trains
+    import torch._inductor.config
+
     # random numbers as eager code draws them (Switch-NeRF's density noise), from torch's own
     # generator: a compiled run is the eager run, and a checkpoint's RNG state resumes it
     torch._inductor.config.fallback_random = True
