@@ -26,6 +26,7 @@ from workers.train.session import LocalSession, RaySession
 from workers.train.sinks import read_metrics
 
 SUMMARY = "summary.json"
+HEALTH_CHECK_ENV, HEALTH_CHECK_S = "RAY_TRAIN_HEALTH_CHECK_INTERVAL_S", "0.5"
 __all__ = ["SUMMARY", "RunError", "RunGaveUp", "RunInterrupted", "run_training"]
 
 
@@ -141,6 +142,10 @@ def fit_with_ray(
     import ray.train
     from ray.train.torch import TorchTrainer
 
+    # Ray Train's controller notices that the workers have finished (or died) at its next health
+    # check: at its default 2 s a 20-step job ended 4.7 s after its last step, at 0.5 s about 1 s
+    # (tiny city, two CPU workers). Passed on to the controller; a setting of the caller's own wins.
+    os.environ.setdefault(HEALTH_CHECK_ENV, HEALTH_CHECK_S)
     threads = (
         max(1, (os.cpu_count() or 2) // cfg.workers) if not os.environ.get("RAY_ADDRESS") else 1
     )

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from workers.config import TrainConfig
-from workers.train.run import run_training
+from workers.train.run import HEALTH_CHECK_ENV, HEALTH_CHECK_S, run_training
 from workers.train.sinks import read_metrics
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("local_ray")]
@@ -48,7 +48,10 @@ def test_two_workers_on_halves_equal_one_worker_on_the_whole_batch(
     assert one.global_batch == two.global_batch == 128
     run_training(one, tiny_scene.root, tmp_path / "one")
     monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv(HEALTH_CHECK_ENV, raising=False)
     run_training(two, Path(os.path.relpath(tiny_scene.root, tmp_path)), Path("two"))
+    # handed to Ray Train's controller with the job: it sees the workers finish within 0.5 s
+    assert os.environ[HEALTH_CHECK_ENV] == HEALTH_CHECK_S
     initial = TrainConfig(method="switch", profile="smoke", overrides={**DETERMINISTIC})
     from workers.models import build_models
 
