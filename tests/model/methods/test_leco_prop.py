@@ -20,7 +20,7 @@ from model.methods import family_of, get_method
 from model.methods.base import Step
 from model.render.noise import Noise
 from model.scenes import RaySampler
-from tests.helpers import ROOT, api_client, wait_for
+from tests.helpers import ON_SQLITE, ROOT, api_client, wait_for
 from tests.workers.train.test_training import read_metrics
 from workers.config import TrainConfig
 
@@ -230,6 +230,7 @@ def test_a_killed_leco_prop_run_resumes_from_its_checkpoint(tiny_scene, tmp_path
 
 
 @pytest.mark.slow
+@ON_SQLITE  # one database: the service's own tests run both
 def test_leco_prop_trains_through_the_api_and_a_dispatcher(service_settings):
     from service.dispatcher import Dispatcher
 

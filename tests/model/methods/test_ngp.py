@@ -16,7 +16,7 @@ from cli.main import main
 from model.memory_estimate import describe, estimate_peak_bytes
 from model.methods import family_of, get_method
 from model.sizes import level_resolutions
-from tests.helpers import ROOT, api_client, wait_for
+from tests.helpers import ON_POSTGRESQL, ROOT, api_client, wait_for
 from tests.workers.train.test_training import read_metrics
 from workers.config import TrainConfig
 from workers.models import build_models, build_optimizer
@@ -195,6 +195,7 @@ def test_a_killed_ngp_leco_run_resumes_from_its_checkpoint(tiny_scene, tmp_path)
 
 
 @pytest.mark.slow
+@ON_POSTGRESQL  # one database: the service's own tests run both
 def test_ngp_leco_trains_through_the_api_and_a_dispatcher(service_settings):
     from service.dispatcher import Dispatcher
 

@@ -17,7 +17,7 @@ from model.methods.costs import main_phase
 from model.methods.leco.phase1 import render_background
 from model.methods.main_phase import MainRender, render_batched
 from model.render.samples import stratified_edges
-from tests.helpers import ROOT, api_client
+from tests.helpers import ON_SQLITE, ROOT, api_client
 from workers.config import TrainConfig
 
 
@@ -142,6 +142,7 @@ def test_a_registered_toy_method_trains_through_leco_train(toy, tiny_scene, tmp_
 
 
 @pytest.mark.slow
+@ON_SQLITE  # one database: the service's own tests run both
 def test_a_registered_toy_method_trains_through_the_api(toy, service_settings):
     from service.dispatcher import Dispatcher
 
