@@ -2,8 +2,9 @@
 (`ray start --head --num-cpus=0`) and a CPU Ray worker node joined to it, the API (`leco serve
 --no-dispatcher`) and a dispatcher (`leco dispatch`), each its own process on loopback, with Ray
 token auth and an API token set as docker-compose.yml sets them. On it: a smoke job end to end
-through `leco submit`, a Ray worker killed with SIGKILL mid-phase, and the API killed and restarted
-mid-job while clients poll; each checks nothing was lost."""
+through `leco submit` (the dispatcher submits it to the Ray Jobs API as `leco-job-<id>-attempt-<n>`,
+and Ray's own CLI reads its status and log back), a Ray worker killed with SIGKILL mid-phase, and
+the API killed and restarted mid-job while clients poll; each checks nothing was lost."""
 
 import hashlib
 import json
@@ -254,6 +255,11 @@ def test_a_smoke_job_runs_end_to_end_through_leco_submit(topology):
             break
         time.sleep(1)
     assert f"'{ray_job}' succeeded" in plain, plain
+    # the job's own process (python -m service.execute) said how its attempt ended, in Ray's log
+    logs = topology.run(
+        str(BIN / "ray"), "job", "logs", "--address", topology.env["LECO_RAY_JOBS_ADDRESS"], ray_job
+    )
+    assert f"job {job['id']} attempt 1: succeeded" in logs.stdout + logs.stderr
 
 
 def submit_long(api: httpx.Client, topology: Topology) -> int:
