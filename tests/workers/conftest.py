@@ -1,5 +1,5 @@
 """A LeCO run on the synthetic city as `make run` trains it (cpu profile, 1,500 + 1,500 steps, one
-local process): trained once a session, about two and a half minutes on two cores, and read by the
+local process): trained once a session, about three minutes on two cores, and read by the
 tests that need a trained model of a real size (the pipeline's occupancy, the point-cloud
 export)."""
 

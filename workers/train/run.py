@@ -143,7 +143,7 @@ def fit_with_ray(
     from ray.train.torch import TorchTrainer
 
     # Ray Train's controller notices that the workers have finished (or died) at its next health
-    # check: at its default 2 s a 20-step job ended 4.7 s after its last step, at 0.5 s about 1 s
+    # check: at its default 2 s a 20-step job ended 4.7 s after its last step, at 0.5 s 1.5-2.1 s
     # (tiny city, two CPU workers). Passed on to the controller; a setting of the caller's own wins.
     os.environ.setdefault(HEALTH_CHECK_ENV, HEALTH_CHECK_S)
     threads = (
