@@ -40,8 +40,8 @@ def check_can_compile(device: torch.device) -> None:
 
 def compile_modules(modules: list[nn.Module]) -> int:
     """Each module compiled in place (once); how many were compiled now."""
-    # imported here: a process that loads the training code and trains nothing (a Ray driver, a
-    # render) is spared about 1.2 s; one that trains imports torch._dynamo with its first optimizer
+    # imported here: it brings torch._dynamo (1.2 s), which a process that loads the training code
+    # but builds no optimizer never needs; one that trains imports it with its first optimizer
     import torch._inductor.config
 
     # random numbers as eager code draws them (Switch-NeRF's density noise), from torch's own
