@@ -27,7 +27,7 @@ test: $(STAMP)
 	$(BIN)/ruff check model workers service bench cli tests
 	$(BIN)/ruff format --check model workers service bench cli tests
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q --durations=40 || { status=$$?; $(BIN)/python -m tests.crash_report; exit $$status; }
+	$(BIN)/python -m pytest -q -n 2 --durations=40 || { status=$$?; $(BIN)/python -m tests.crash_report; exit $$status; }
 
 clean:
 	rm -rf $(VENV) scenes runs leco-data .pytest_cache

@@ -9,7 +9,7 @@ import pytest
 
 from tests.helpers import PG_ADMIN, drop_postgres_database, fresh_postgres_database
 
-pytest_plugins = ["tests.crash_report"]
+pytest_plugins = ["tests.crash_report", "tests.parallel"]
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "datasets"
 

@@ -30,7 +30,10 @@ FRAMES = 12  # innermost frames printed: the test's own call and what it was doi
 
 
 def report_path() -> Path:
-    return Path(os.environ.get("LECO_CRASH_REPORT") or ROOT / ".pytest_cache" / "crash-report.txt")
+    """The report of this process: with xdist, each worker writes its own (crash-report-gw0.txt)."""
+    path = Path(os.environ.get("LECO_CRASH_REPORT") or ROOT / ".pytest_cache" / "crash-report.txt")
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    return path.with_name(f"{path.stem}-{worker}{path.suffix}") if worker else path
 
 
 _report: IO[str] | None = None
@@ -103,10 +106,10 @@ def summary(text: str, frames: int = FRAMES) -> str:
 
 def main() -> int:
     path = report_path()
-    if not path.exists() or not path.read_text().strip():
-        return 0
-    print(f"\n--- {path} (innermost frame first)", file=sys.stderr)
-    print(summary(path.read_text()), file=sys.stderr)
+    for report in sorted(path.parent.glob(f"{path.stem}*{path.suffix}")):
+        if report.read_text().strip():
+            print(f"\n--- {report} (innermost frame first)", file=sys.stderr)
+            print(summary(report.read_text()), file=sys.stderr)
     return 0
 
 

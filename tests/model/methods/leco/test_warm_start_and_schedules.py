@@ -50,9 +50,13 @@ def test_budgeted_run_ends_its_main_phase_at_lr_final(tiny_scene, tmp_path):
     rows = read_metrics(tmp_path / "run" / "metrics.jsonl")
     profile = cfg.resolved_profile()
     assert rows[0]["lr"] == pytest.approx(profile.lr, rel=0.05)
-    # The last step started within one step of the budget's end: lr within a few % of lr_final (10x
-    # below lr).
-    assert rows[-1]["lr"] == pytest.approx(profile.lr_final, rel=0.1)
+    # The last step started within one step of the budget's end, so its lr is lr_final to within one
+    # step's share of the log-linear schedule (half a step more for jitter). The step is measured,
+    # not assumed: beside another pytest worker the last step began 6% of the budget before its end.
+    step_s = max(b["wall_time_s"] - a["wall_time_s"] for a, b in zip(rows[-11:], rows[-10:]))
+    share = 1.5 * step_s / (cfg.budget_min * 60)
+    ceiling = profile.lr_final * (profile.lr / profile.lr_final) ** share
+    assert profile.lr_final * 0.99 <= rows[-1]["lr"] <= ceiling, (rows[-1]["lr"], step_s)
 
 
 def test_warm_start_copies_phase_one_into_the_main_network(tiny_scene):
