@@ -3,7 +3,7 @@
 A unit of work is a test module, except for two groups that each run whole on one worker:
 - `ray`: every test that starts Ray, in pytest or in a process it starts (a service's job on the Ray
   backend). The topology test's `ray stop --force` ends every Ray on the machine, and its
-  `ray start --head` would be joined by another test's `ray.init()`: these run one after another.
+  `ray start --head` is a cluster another test's `ray.init()` could find: they take turns.
 - `city`: the tests that share the session's synthetic city and its LeCO run (tests/conftest.py,
   tests/workers/conftest.py), which cost minutes to make and would be made once per worker.
 
@@ -56,8 +56,8 @@ def pytest_xdist_make_scheduler(config, log):
     from xdist.scheduler import LoadScopeScheduling
 
     class Units(LoadScopeScheduling):
-        # Units go out largest first (xdist's --loadscope-reorder): the Ray group starts at once
-        # on one worker while the other works through the modules.
+        # Units go out most tests first (xdist's --loadscope-reorder): the Ray group, the largest,
+        # starts at once on one worker while the other works through the modules.
         def _split_scope(self, nodeid: str) -> str:
             return unit_of(nodeid)
 
